@@ -1,0 +1,6 @@
+"""EB-VLA: the Energy-Based VLA policy for LeRobot (`--policy.type=ebvla`)."""
+
+from .configuration_ebvla import EBVLAConfig
+from .processor_ebvla import make_ebvla_pre_post_processors
+
+__all__ = ["EBVLAConfig", "make_ebvla_pre_post_processors"]

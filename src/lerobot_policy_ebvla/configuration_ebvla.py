@@ -1,0 +1,276 @@
+"""Configuration of the Energy-Based VLA (EB-VLA) policy.
+
+Defaults are the paper's (Table V): the full VLA with a fused DINOv2+SigLIP vision encoder, Qwen2.5-0.5B
+with LoRA, K_a = 64 latent tokens and an L = 4 block, D = 896 energy head refined by 15 MCMC steps.
+The light backbone (`backbone="resnet"`) is LeRobot's Diffusion Policy image encoder, for the paper's
+head-only experiments (Sec. III-A) and for CPU training.
+"""
+
+from dataclasses import dataclass, field
+
+from lerobot.configs import NormalizationMode, PreTrainedConfig
+from lerobot.optim import AdamWConfig, CosineDecayWithWarmupSchedulerConfig
+
+BACKBONES = ("vlm", "resnet")
+
+
+@PreTrainedConfig.register_subclass("ebvla")
+@dataclass
+class EBVLAConfig(PreTrainedConfig):
+    """Configuration class for `EBVLAPolicy`.
+
+    Inputs are one or more camera images (`observation.images.*`), an optional proprioceptive state
+    (`observation.state`) and, with the VLM backbone, a task instruction (`task`). The output is a chunk of
+    `chunk_size` actions (`action`). Symbols in brackets are the paper's.
+
+    Args:
+        n_obs_steps: Number of observation steps the policy sees. EB-VLA conditions on the current one only.
+        chunk_size: Length H of the action chunk the energy scores and MCMC refines.
+        n_action_steps: How many actions of each refined chunk are executed before refining a new one.
+        normalization_mapping: Normalization mode per feature type. Actions are mean/std normalized so
+            that the N(0, sigma_init^2) initialisation and the clamp a_max are in units of the data's std.
+        backbone: "vlm" for the paper's vision-language backbone, "resnet" for the light image encoder.
+        vision_backbone: torchvision ResNet of the light backbone (LeRobot's Diffusion Policy encoder).
+        pretrained_backbone_weights: torchvision weights of the light backbone; None trains from scratch
+            (the default, as torchvision's weights need a download).
+        resize_shape: (H, W) the light backbone resizes images to before cropping; None keeps their size.
+        crop_shape: (H, W) crop of the light backbone (random when training if `crop_is_random`).
+        crop_is_random: Random crop at training time, center crop at inference.
+        use_group_norm: Replace the ResNet's BatchNorm by GroupNorm (needs `pretrained_backbone_weights=None`).
+        spatial_softmax_num_keypoints: Keypoints of the light backbone's spatial-softmax pooling.
+        use_separate_rgb_encoder_per_camera: One light image encoder per camera instead of a shared one.
+        vlm_model_name: Hugging Face id of the language model (Qwen2.5-0.5B).
+        dinov2_model_name: timm name of the DINOv2 encoder of the fused vision encoder.
+        siglip_model_name: timm name of the SigLIP encoder of the fused vision encoder.
+        load_pretrained_backbone: Load the VLM and vision weights from the Hub (or the local cache). False
+            builds them with random weights from their configs (tests, meta-device sizing).
+        vlm_config_overrides: Overrides applied to the language model's config before it is built, e.g.
+            {"num_hidden_layers": 2, "hidden_size": 64} for a tiny model. Empty for the real model.
+        vision_image_size: Side of the square images the vision encoders see (224 in Prismatic).
+        freeze_vision_encoder: Keep the DINOv2 and SigLIP weights frozen (the paper's setting).
+        lora_rank: LoRA rank of the language model's adapters.
+        lora_alpha: LoRA scaling alpha.
+        lora_dropout: LoRA dropout.
+        lora_target_modules: Language-model modules that receive LoRA adapters.
+        num_latent_tokens: Number K_a of learned latent embeddings appended to the prompt.
+        tokenizer_max_length: Maximum number of prompt tokens of the task instruction.
+        context_layers: Hidden-state index l_i (0 is the embedding output) whose h_a, h_t feed head block i;
+            one entry per head block. None spreads the blocks evenly over the last `num_context_layers`
+            hidden states.
+        num_context_layers: Number N_l of hidden states extracted (embedding included) when
+            `context_layers` is None.
+        dim_model: Hidden dimension D of the energy head.
+        n_heads: Attention heads of the energy head.
+        n_blocks: Number L of energy-head transformer blocks.
+        ffn_multiplier: Inner width of the SwiGLU FFN, in multiples of D.
+        rope_base: Base of the rotary position embedding over action timesteps.
+        dropout: Dropout in the energy head.
+        energy_temperature: Temperature tau of the energy-scaled step size (Eq. 3).
+        init_action_std: Std sigma_init of the Gaussian initialisation a^(0).
+        langevin_noise_std: Std sigma_L of the Langevin perturbation (Eq. 2).
+        grad_clip: Element-wise gradient clip c.
+        action_clamp: Bound a_max of the refined (normalized) actions.
+        inference_step_size: Constant step size alpha at inference.
+        train_step_size_range: [alpha_min, alpha_max] of the step size sampled at every training step.
+        train_mcmc_steps_range: [K_min, K_max] of the number of MCMC steps sampled at every training step.
+        inference_mcmc_steps: Number K_inf of MCMC steps at inference.
+        num_restarts: Refine this many chains per observation and keep the one with the lowest final
+            energy (energy as a verifier). 1 is the paper.
+        early_stop_tol: Stop refining once no action moves more than this in one step. None (the paper)
+            runs all K_inf steps.
+        optimizer_lr: AdamW learning rate.
+        optimizer_betas: AdamW betas.
+        optimizer_eps: AdamW epsilon.
+        optimizer_weight_decay: AdamW weight decay.
+        optimizer_grad_clip_norm: Gradient-norm clip applied by lerobot-train.
+        scheduler_warmup_steps: Linear warm-up steps of the cosine schedule.
+        scheduler_decay_steps: Cosine decay steps.
+        scheduler_decay_lr: Learning rate at the end of the decay.
+    """
+
+    # Inputs / output structure.
+    n_obs_steps: int = 1
+    chunk_size: int = 8
+    n_action_steps: int = 8
+
+    normalization_mapping: dict[str, NormalizationMode] = field(
+        default_factory=lambda: {
+            "VISUAL": NormalizationMode.IDENTITY,
+            "STATE": NormalizationMode.MEAN_STD,
+            "ACTION": NormalizationMode.MEAN_STD,
+        }
+    )
+
+    # Backbone choice.
+    backbone: str = "vlm"
+
+    # Light backbone: LeRobot's Diffusion Policy image encoder (field names match `DiffusionConfig`).
+    vision_backbone: str = "resnet18"
+    pretrained_backbone_weights: str | None = None
+    resize_shape: tuple[int, int] | None = None
+    crop_shape: tuple[int, int] | None = None
+    crop_is_random: bool = True
+    use_group_norm: bool = True
+    spatial_softmax_num_keypoints: int = 32
+    use_separate_rgb_encoder_per_camera: bool = False
+
+    # VLM backbone (Sec. II-A).
+    vlm_model_name: str = "Qwen/Qwen2.5-0.5B"
+    dinov2_model_name: str = "vit_large_patch14_reg4_dinov2.lvd142m"
+    siglip_model_name: str = "vit_so400m_patch14_siglip_224"
+    load_pretrained_backbone: bool = True
+    vlm_config_overrides: dict = field(default_factory=dict)
+    vision_image_size: int = 224
+    freeze_vision_encoder: bool = True
+    lora_rank: int = 64
+    lora_alpha: int = 64
+    lora_dropout: float = 0.0
+    lora_target_modules: tuple[str, ...] = ("q_proj", "k_proj", "v_proj", "o_proj", "gate_proj", "up_proj", "down_proj")
+    num_latent_tokens: int = 64
+    tokenizer_max_length: int = 48
+    context_layers: tuple[int, ...] | None = None
+    num_context_layers: int = 23
+
+    # Energy head (Sec. II-B).
+    dim_model: int = 896
+    n_heads: int = 8
+    n_blocks: int = 4
+    ffn_multiplier: int = 4
+    rope_base: float = 10000.0
+    dropout: float = 0.0
+
+    # MCMC refinement (Sec. II-C).
+    energy_temperature: float = 9.0
+    init_action_std: float = 1.0
+    langevin_noise_std: float = 0.001
+    grad_clip: float = 1.0
+    action_clamp: float = 10.0
+    inference_step_size: float = 0.22
+    train_step_size_range: tuple[float, float] = (0.05, 0.4)
+    train_mcmc_steps_range: tuple[int, int] = (8, 15)
+    inference_mcmc_steps: int = 15
+
+    # Inference options beyond the paper (off by default).
+    num_restarts: int = 1
+    early_stop_tol: float | None = None
+
+    # Training presets.
+    optimizer_lr: float = 1e-4
+    optimizer_betas: tuple[float, float] = (0.9, 0.95)
+    optimizer_eps: float = 1e-8
+    optimizer_weight_decay: float = 1e-4
+    optimizer_grad_clip_norm: float = 10.0
+    scheduler_warmup_steps: int = 500
+    scheduler_decay_steps: int = 30_000
+    scheduler_decay_lr: float = 1e-5
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.backbone not in BACKBONES:
+            raise ValueError(f"`backbone` must be one of {BACKBONES}. Got {self.backbone!r}.")
+        if self.n_obs_steps != 1:
+            raise ValueError(f"`n_obs_steps` must be 1: EB-VLA conditions on one observation. Got {self.n_obs_steps}.")
+        if self.chunk_size < 1:
+            raise ValueError(f"`chunk_size` must be >= 1. Got {self.chunk_size}.")
+        if not 1 <= self.n_action_steps <= self.chunk_size:
+            raise ValueError(
+                f"`n_action_steps` must be in [1, chunk_size={self.chunk_size}]. Got {self.n_action_steps}."
+            )
+        if self.dim_model % self.n_heads != 0 or (self.dim_model // self.n_heads) % 2 != 0:
+            raise ValueError(
+                f"`dim_model` ({self.dim_model}) must be divisible by `n_heads` ({self.n_heads}) into an even "
+                "head size (RoPE rotates pairs of channels)."
+            )
+        for name in ("n_blocks", "n_heads", "ffn_multiplier", "inference_mcmc_steps", "num_restarts",
+                     "num_latent_tokens", "lora_rank", "tokenizer_max_length"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"`{name}` must be >= 1. Got {getattr(self, name)}.")
+        for name in ("energy_temperature", "grad_clip", "action_clamp", "inference_step_size", "init_action_std"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"`{name}` must be > 0. Got {getattr(self, name)}.")
+        if self.langevin_noise_std < 0:
+            raise ValueError(f"`langevin_noise_std` must be >= 0. Got {self.langevin_noise_std}.")
+        if not 0 <= self.dropout < 1:
+            raise ValueError(f"`dropout` must be in [0, 1). Got {self.dropout}.")
+        alpha_min, alpha_max = self.train_step_size_range
+        if not 0 < alpha_min <= alpha_max:
+            raise ValueError(
+                f"`train_step_size_range` must satisfy 0 < alpha_min <= alpha_max. Got {self.train_step_size_range}."
+            )
+        k_min, k_max = self.train_mcmc_steps_range
+        if not 1 <= k_min <= k_max:
+            raise ValueError(
+                f"`train_mcmc_steps_range` must satisfy 1 <= K_min <= K_max. Got {self.train_mcmc_steps_range}."
+            )
+        if self.early_stop_tol is not None and self.early_stop_tol <= 0:
+            raise ValueError(f"`early_stop_tol` must be > 0 or None. Got {self.early_stop_tol}.")
+        if self.context_layers is not None and len(self.context_layers) != self.n_blocks:
+            raise ValueError(
+                f"`context_layers` needs one hidden-state index per head block (n_blocks={self.n_blocks}). "
+                f"Got {self.context_layers}."
+            )
+        if self.num_context_layers < 1:
+            raise ValueError(f"`num_context_layers` must be >= 1. Got {self.num_context_layers}.")
+        if self.use_group_norm and self.pretrained_backbone_weights:
+            raise ValueError(
+                "`use_group_norm=True` would discard the BatchNorm statistics of "
+                f"`pretrained_backbone_weights={self.pretrained_backbone_weights!r}`: set one of them off."
+            )
+
+    def get_optimizer_preset(self) -> AdamWConfig:
+        return AdamWConfig(
+            lr=self.optimizer_lr,
+            betas=self.optimizer_betas,
+            eps=self.optimizer_eps,
+            weight_decay=self.optimizer_weight_decay,
+            grad_clip_norm=self.optimizer_grad_clip_norm,
+        )
+
+    def get_scheduler_preset(self) -> CosineDecayWithWarmupSchedulerConfig:
+        return CosineDecayWithWarmupSchedulerConfig(
+            peak_lr=self.optimizer_lr,
+            decay_lr=self.scheduler_decay_lr,
+            num_warmup_steps=self.scheduler_warmup_steps,
+            num_decay_steps=self.scheduler_decay_steps,
+        )
+
+    def validate_features(self) -> None:
+        if not self.image_features:
+            raise ValueError(
+                "EB-VLA needs at least one camera among the input features (a key starting with "
+                f"'observation.images.'). Got input features {list(self.input_features)}."
+            )
+        if self.action_feature is None:
+            raise ValueError(f"EB-VLA needs an 'action' output feature. Got {list(self.output_features)}.")
+        if self.backbone == "resnet" and self.resize_shape is None and self.crop_shape is not None:
+            for key, feature in self.image_features.items():
+                if self.crop_shape[0] > feature.shape[1] or self.crop_shape[1] > feature.shape[2]:
+                    raise ValueError(
+                        f"`crop_shape` {self.crop_shape} does not fit in `{key}` of shape {feature.shape}."
+                    )
+        if self.backbone == "resnet" and len({f.shape for f in self.image_features.values()}) > 1:
+            raise ValueError(
+                "The light backbone needs all cameras at the same shape (set `resize_shape`). Got "
+                f"{ {k: tuple(f.shape) for k, f in self.image_features.items()} }."
+            )
+
+    @property
+    def action_dim(self) -> int:
+        return self.action_feature.shape[0]
+
+    @property
+    def state_dim(self) -> int | None:
+        state = self.robot_state_feature
+        return None if state is None else state.shape[0]
+
+    @property
+    def observation_delta_indices(self) -> None:
+        return None
+
+    @property
+    def action_delta_indices(self) -> list[int]:
+        return list(range(self.chunk_size))
+
+    @property
+    def reward_delta_indices(self) -> None:
+        return None
