@@ -39,26 +39,36 @@ class EBVLAConfig(PreTrainedConfig):
         use_group_norm: Replace the ResNet's BatchNorm by GroupNorm (needs `pretrained_backbone_weights=None`).
         spatial_softmax_num_keypoints: Keypoints of the light backbone's spatial-softmax pooling.
         use_separate_rgb_encoder_per_camera: One light image encoder per camera instead of a shared one.
-        vlm_model_name: Hugging Face id of the language model (Qwen2.5-0.5B).
+        vlm_model_name: Hugging Face id (or local folder) of the language model and its tokenizer
+            (Qwen2.5-0.5B). Read only when `vlm_config` is None, when loading pretrained weights, and when
+            the pre-processor is first built; checkpoints carry the rest.
         dinov2_model_name: timm name of the DINOv2 encoder of the fused vision encoder.
         siglip_model_name: timm name of the SigLIP encoder of the fused vision encoder.
         load_pretrained_backbone: Load the VLM and vision weights from the Hub (or the local cache). False
-            builds them with random weights from their configs (tests, meta-device sizing).
-        vlm_config_overrides: Overrides applied to the language model's config before it is built, e.g.
-            {"num_hidden_layers": 2, "hidden_size": 64} for a tiny model. Empty for the real model.
-        vision_image_size: Side of the square images the vision encoders see (224 in Prismatic).
+            builds them with random weights from their configs (tests, meta-device sizing, and
+            `EBVLAPolicy.from_pretrained`, whose checkpoint holds every weight).
+        vlm_config: The language model's resolved config (`PretrainedConfig.to_diff_dict()`). None resolves
+            it from `vlm_model_name` plus `vlm_config_overrides` at the first build and records it here, so
+            that a saved `config.json` rebuilds the model with no network.
+        vlm_config_overrides: Overrides applied to the language model's config when `vlm_config` is
+            resolved, e.g. {"num_hidden_layers": 2, "hidden_size": 64} for a tiny model. Empty for the real
+            model. Once `vlm_config` is recorded they are part of it; set `vlm_config=None` to re-resolve.
+        vision_model_overrides: Keyword arguments passed to both `timm.create_model` calls of the vision
+            encoder, e.g. {"depth": 2, "embed_dim": 32, "num_heads": 2} for tiny test encoders.
+        vision_image_size: Side of the square images the vision encoders see (224 in Prismatic). Each
+            camera gives (vision_image_size / 14)^2 tokens, 256 at 224 px.
         freeze_vision_encoder: Keep the DINOv2 and SigLIP weights frozen (the paper's setting).
         lora_rank: LoRA rank of the language model's adapters.
         lora_alpha: LoRA scaling alpha.
         lora_dropout: LoRA dropout.
         lora_target_modules: Language-model modules that receive LoRA adapters.
         num_latent_tokens: Number K_a of learned latent embeddings appended to the prompt.
-        tokenizer_max_length: Maximum number of prompt tokens of the task instruction.
-        context_layers: Hidden-state index l_i (0 is the embedding output) whose h_a, h_t feed head block i;
-            one entry per head block. None spreads the blocks evenly over the last `num_context_layers`
-            hidden states.
+        tokenizer_max_length: Number of prompt tokens of the task instruction (padded or truncated to it).
+        context_layers: Hidden-state index l_i (0 is the embedding output, N_layers the last layer) whose
+            h_a, h_t feed head block i; one entry per head block. None spreads the blocks evenly over the
+            last `num_context_layers` hidden states, both ends included: (2, 9, 17, 24) for Qwen2.5-0.5B.
         num_context_layers: Number N_l of hidden states extracted (embedding included) when
-            `context_layers` is None.
+            `context_layers` is None; at most the language model's layers + 1.
         dim_model: Hidden dimension D of the energy head.
         n_heads: Attention heads of the energy head.
         n_blocks: Number L of energy-head transformer blocks.
@@ -119,7 +129,9 @@ class EBVLAConfig(PreTrainedConfig):
     dinov2_model_name: str = "vit_large_patch14_reg4_dinov2.lvd142m"
     siglip_model_name: str = "vit_so400m_patch14_siglip_224"
     load_pretrained_backbone: bool = True
+    vlm_config: dict | None = None
     vlm_config_overrides: dict = field(default_factory=dict)
+    vision_model_overrides: dict = field(default_factory=dict)
     vision_image_size: int = 224
     freeze_vision_encoder: bool = True
     lora_rank: int = 64
@@ -209,8 +221,20 @@ class EBVLAConfig(PreTrainedConfig):
                 f"`context_layers` needs one hidden-state index per head block (n_blocks={self.n_blocks}). "
                 f"Got {self.context_layers}."
             )
+        if self.context_layers is not None and min(self.context_layers) < 0:
+            raise ValueError(
+                f"`context_layers` are hidden-state indices (0 is the embedding output). Got {self.context_layers}."
+            )
         if self.num_context_layers < 1:
             raise ValueError(f"`num_context_layers` must be >= 1. Got {self.num_context_layers}.")
+        if self.vision_image_size < 14:
+            raise ValueError(f"`vision_image_size` must be >= 14 (one patch). Got {self.vision_image_size}.")
+        if not self.lora_alpha > 0:
+            raise ValueError(f"`lora_alpha` must be > 0. Got {self.lora_alpha}.")
+        if not 0 <= self.lora_dropout < 1:
+            raise ValueError(f"`lora_dropout` must be in [0, 1). Got {self.lora_dropout}.")
+        if not self.lora_target_modules:
+            raise ValueError("`lora_target_modules` must name at least one language-model module.")
         if self.use_group_norm and self.pretrained_backbone_weights:
             raise ValueError(
                 "`use_group_norm=True` would discard the BatchNorm statistics of "

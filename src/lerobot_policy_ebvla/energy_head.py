@@ -1,0 +1,167 @@
+"""The energy-based transformer (EBT) action head of EB-VLA (paper Sec. II-B).
+
+The head scores a candidate action chunk a in R^{H x d_a} against the VLM context C with per-timestep
+energies e_t; the chunk's energy is their mean E(a, C) = 1/H sum_t e_t. Action tokens attend to the context,
+never the reverse, so the context's keys and values depend on the observation only: `context_kv` computes
+them once, and every MCMC step reuses them.
+"""
+
+import math
+
+import torch
+import torch.nn.functional as F  # noqa: N812
+from einops import rearrange
+from torch import Tensor, nn
+
+from .configuration_ebvla import EBVLAConfig
+
+# One (key, value) pair per head block, each (B, n_heads, S_i, head_dim).
+ContextKV = list[tuple[Tensor, Tensor]]
+
+
+def repeat_context_kv(kv: ContextKV, repeats: int) -> ContextKV:
+    """Repeats each observation's keys and values for `repeats` consecutive candidate chunks."""
+    if repeats == 1:
+        return kv
+    return [(k.repeat_interleave(repeats, dim=0), v.repeat_interleave(repeats, dim=0)) for k, v in kv]
+
+
+class EBVLARotaryEmbedding(nn.Module):
+    """Rotary position embedding over the H action timesteps (RoFormer)."""
+
+    def __init__(self, head_dim: int, base: float):
+        super().__init__()
+        inv_freq = 1.0 / (base ** (torch.arange(0, head_dim, 2, dtype=torch.float32) / head_dim))
+        self.register_buffer("inv_freq", inv_freq, persistent=False)
+
+    def forward(self, seq_len: int, device: torch.device, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+        positions = torch.arange(seq_len, device=device, dtype=torch.float32)
+        angles = torch.outer(positions, self.inv_freq.to(device))  # (H, head_dim / 2)
+        angles = torch.cat([angles, angles], dim=-1)  # (H, head_dim)
+        return angles.cos().to(dtype), angles.sin().to(dtype)
+
+
+def apply_rotary(x: Tensor, cos: Tensor, sin: Tensor) -> Tensor:
+    """Rotates channel pairs (i, i + head_dim / 2) of x (B, nh, H, hd) by position-dependent angles."""
+    x1, x2 = x.chunk(2, dim=-1)
+    return x * cos + torch.cat([-x2, x1], dim=-1) * sin
+
+
+class EBVLASelfAttention(nn.Module):
+    """Bidirectional self-attention over the action tokens, with RoPE on queries and keys."""
+
+    def __init__(self, dim: int, n_heads: int, dropout: float):
+        super().__init__()
+        self.n_heads = n_heads
+        self.qkv = nn.Linear(dim, 3 * dim, bias=False)
+        self.out = nn.Linear(dim, dim, bias=False)
+        self.dropout = dropout
+
+    def forward(self, x: Tensor, cos: Tensor, sin: Tensor) -> Tensor:
+        q, k, v = rearrange(self.qkv(x), "b t (three nh hd) -> three b nh t hd", three=3, nh=self.n_heads)
+        q, k = apply_rotary(q, cos, sin), apply_rotary(k, cos, sin)
+        y = F.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
+        return self.out(rearrange(y, "b nh t hd -> b t (nh hd)"))
+
+
+class EBVLACrossAttention(nn.Module):
+    """Cross-attention of the action tokens into one block's context C_i (Eq. 1).
+
+    The context side (norm and key/value projection) lives in `context_kv` so it can run once per
+    observation; `forward` only projects the queries.
+    """
+
+    def __init__(self, dim: int, context_dim: int, n_heads: int, dropout: float):
+        super().__init__()
+        self.n_heads = n_heads
+        self.context_norm = nn.RMSNorm(context_dim)
+        self.q = nn.Linear(dim, dim, bias=False)
+        self.kv = nn.Linear(context_dim, 2 * dim, bias=False)
+        self.out = nn.Linear(dim, dim, bias=False)
+        self.dropout = dropout
+
+    def context_kv(self, context: Tensor) -> tuple[Tensor, Tensor]:
+        k, v = rearrange(
+            self.kv(self.context_norm(context)), "b s (two nh hd) -> two b nh s hd", two=2, nh=self.n_heads
+        )
+        return k, v
+
+    def forward(self, x: Tensor, kv: tuple[Tensor, Tensor]) -> Tensor:
+        q = rearrange(self.q(x), "b t (nh hd) -> b nh t hd", nh=self.n_heads)
+        k, v = kv
+        y = F.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
+        return self.out(rearrange(y, "b nh t hd -> b t (nh hd)"))
+
+
+class EBVLASwiGLU(nn.Module):
+    """SwiGLU feed-forward network (Shazeer, 2020)."""
+
+    def __init__(self, dim: int, hidden_dim: int, dropout: float):
+        super().__init__()
+        self.gate_up = nn.Linear(dim, 2 * hidden_dim, bias=False)
+        self.down = nn.Linear(hidden_dim, dim, bias=False)
+        self.dropout = nn.Dropout(dropout)
+
+    def forward(self, x: Tensor) -> Tensor:
+        gate, up = self.gate_up(x).chunk(2, dim=-1)
+        return self.dropout(self.down(F.silu(gate) * up))
+
+
+class EBVLABlock(nn.Module):
+    """One EBT block: (i) self-attention with RoPE, (ii) cross-attention into C_i, (iii) SwiGLU; pre-norm."""
+
+    def __init__(self, config: EBVLAConfig, context_dim: int):
+        super().__init__()
+        dim = config.dim_model
+        self.self_attn_norm = nn.RMSNorm(dim)
+        self.self_attn = EBVLASelfAttention(dim, config.n_heads, config.dropout)
+        self.cross_attn_norm = nn.RMSNorm(dim)
+        self.cross_attn = EBVLACrossAttention(dim, context_dim, config.n_heads, config.dropout)
+        self.ffn_norm = nn.RMSNorm(dim)
+        self.ffn = EBVLASwiGLU(dim, config.ffn_multiplier * dim, config.dropout)
+
+    def forward(self, x: Tensor, kv: tuple[Tensor, Tensor], cos: Tensor, sin: Tensor) -> Tensor:
+        x = x + self.self_attn(self.self_attn_norm(x), cos, sin)
+        x = x + self.cross_attn(self.cross_attn_norm(x), kv)
+        return x + self.ffn(self.ffn_norm(x))
+
+
+class EBVLAEnergyHead(nn.Module):
+    """The energy E_theta(a, C) of an action chunk under a per-block context.
+
+        a (B, H, d_a) --Linear--> z (B, H, D) --[L x EBVLABlock(C_i)]--> RMSNorm --Linear--> e (B, H)
+
+    `context_kv(C_1..C_L)` must be called once per observation; `forward(a, kv)` is then cheap enough to
+    run at every MCMC step.
+    """
+
+    def __init__(self, config: EBVLAConfig, context_dim: int):
+        super().__init__()
+        self.config = config
+        self.action_in = nn.Linear(config.action_dim, config.dim_model)
+        self.rotary = EBVLARotaryEmbedding(config.dim_model // config.n_heads, config.rope_base)
+        self.blocks = nn.ModuleList(EBVLABlock(config, context_dim) for _ in range(config.n_blocks))
+        self.final_norm = nn.RMSNorm(config.dim_model)
+        self.energy_out = nn.Linear(config.dim_model, 1)
+        self.apply(self._init_weights)
+
+    @staticmethod
+    def _init_weights(module: nn.Module) -> None:
+        if isinstance(module, nn.Linear):
+            nn.init.normal_(module.weight, std=1.0 / math.sqrt(module.in_features))
+            if module.bias is not None:
+                nn.init.zeros_(module.bias)
+
+    def context_kv(self, contexts: list[Tensor]) -> ContextKV:
+        """Projects each block's context C_i (B, S_i, context_dim) to its cross-attention keys and values."""
+        if len(contexts) != len(self.blocks):
+            raise ValueError(f"Expected one context per head block ({len(self.blocks)}), got {len(contexts)}.")
+        return [block.cross_attn.context_kv(c) for block, c in zip(self.blocks, contexts, strict=True)]
+
+    def forward(self, actions: Tensor, kv: ContextKV) -> Tensor:
+        """Returns the per-timestep energies e_t (B, H) of action chunks (B, H, d_a) under `kv` of batch B."""
+        z = self.action_in(actions)  # (B, H, D)
+        cos, sin = self.rotary(actions.shape[1], actions.device, z.dtype)
+        for block, block_kv in zip(self.blocks, kv, strict=True):
+            z = block(z, block_kv, cos, sin)
+        return self.energy_out(self.final_norm(z)).squeeze(-1)  # (B, H)

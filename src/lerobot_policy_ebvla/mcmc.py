@@ -1,0 +1,116 @@
+"""MCMC refinement of action chunks by gradient descent on the learned energy (paper Sec. II-C, Eq. 2-3).
+
+One step k, for a chunk a^(k) in R^{H x d_a}:
+
+    eps^(k) ~ N(0, sigma_L^2 I)
+    e^(k)   = E_theta(a^(k) + eps^(k), C)              per-timestep energies, (B, H)
+    g^(k)   = clip(grad_a mean_t e_t^(k), -c, c)       Eq. 2: gradient at the perturbed point, element-wise clip
+    a_t^(k+1) = clamp(a_t^(k) - alpha^(k) exp(e_t^(k) / tau) g_t^(k), -a_max, a_max)     Eq. 3
+
+Every step starts from a detached a^(k), so gradients only ever flow within one step: at inference this keeps
+memory flat in K, and in training it is the paper's "detach the graph at every step except the last"
+(the caller asks for `create_graph=True` on the last step only).
+"""
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+# Maps action chunks (B, H, d_a) to per-timestep energies e_t (B, H); the context is bound inside.
+EnergyFn = Callable[[Tensor], Tensor]
+
+
+@dataclass
+class RefinementResult:
+    """What `refine_actions` returns.
+
+    Attributes:
+        actions: The refined chunk a^(K), (B, H, d_a).
+        step_energies: E(a^(k) + eps^(k), C) at every step k that ran, (K, B). Row 0 is the initial energy.
+        diverged: (B,) True where a non-finite energy or gradient appeared; such a chunk kept its last
+            finite iterate from then on.
+    """
+
+    actions: Tensor
+    step_energies: Tensor
+    diverged: Tensor
+
+    @property
+    def num_steps(self) -> int:
+        return self.step_energies.shape[0]
+
+
+def sample_initial_actions(
+    shape: tuple[int, ...],
+    init_std: float,
+    *,
+    device: torch.device | str,
+    dtype: torch.dtype = torch.float32,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """Draws a^(0) ~ N(0, sigma_init^2 I)."""
+    return init_std * torch.randn(shape, device=device, dtype=dtype, generator=generator)
+
+
+def refine_actions(
+    energy_fn: EnergyFn,
+    initial_actions: Tensor,
+    step_sizes: Sequence[float],
+    *,
+    temperature: float,
+    langevin_std: float,
+    grad_clip: float,
+    action_clamp: float,
+    generator: torch.Generator | None = None,
+    create_graph: bool = False,
+    early_stop_tol: float | None = None,
+) -> RefinementResult:
+    """Runs len(step_sizes) energy-scaled gradient steps (Eq. 2-3) from `initial_actions`.
+
+    Args:
+        energy_fn: Per-timestep energies e_t of a chunk under a fixed context.
+        initial_actions: a^(0), (B, H, d_a). Used detached.
+        step_sizes: The base step size alpha^(k) of each step; its length is the number of steps K.
+        temperature: tau of the energy scaling exp(e_t / tau).
+        langevin_std: sigma_L of the perturbation at which the gradient is taken.
+        grad_clip: c of the element-wise gradient clip.
+        action_clamp: a_max of the clamp applied after every update.
+        generator: Seeds the Langevin noise.
+        create_graph: Keep each step's update differentiable with respect to the energy's parameters
+            (second-order training). Gradients never flow from one step into the previous one.
+        early_stop_tol: Stop once no action entry moved more than this in a step. None runs every step.
+
+    Returns:
+        The refined chunk, the energy seen at every step and which chunks diverged.
+    """
+    a = initial_actions.detach()
+    diverged = torch.zeros(a.shape[0], dtype=torch.bool, device=a.device)
+    step_energies = []
+    for alpha in step_sizes:
+        with torch.enable_grad():
+            a = a.detach().requires_grad_(True)
+            noise = torch.randn(a.shape, device=a.device, dtype=a.dtype, generator=generator)
+            e = energy_fn(a + langevin_std * noise)  # (B, H)
+            energy = e.mean(dim=-1)  # E(a, C), (B,)
+            # Chunks are independent, so the gradient of the batch sum is each chunk's own gradient.
+            (grad,) = torch.autograd.grad(energy.sum(), a, create_graph=create_graph)
+        with torch.set_grad_enabled(create_graph):
+            if not create_graph:
+                e, grad = e.detach(), grad.detach()
+            step = alpha * torch.exp(e / temperature).unsqueeze(-1) * grad.clamp(-grad_clip, grad_clip)
+            updated = (a - step).clamp(-action_clamp, action_clamp)
+            finite = torch.isfinite(energy) & torch.isfinite(grad).flatten(1).all(dim=1)
+            finite &= torch.isfinite(updated).flatten(1).all(dim=1)
+            # A chunk whose energy or gradient went non-finite keeps its last finite iterate.
+            updated = torch.where(finite[:, None, None], updated, a.detach())
+        diverged |= ~finite
+        step_energies.append(energy.detach())
+        moved = (updated - a).detach().abs().amax() if early_stop_tol is not None else None
+        a = updated
+        if moved is not None and moved < early_stop_tol:
+            break
+    if not create_graph:
+        a = a.detach()
+    return RefinementResult(actions=a, step_energies=torch.stack(step_energies), diverged=diverged)

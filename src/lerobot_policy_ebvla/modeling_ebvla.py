@@ -1,0 +1,306 @@
+"""Energy-Based VLA (EB-VLA): "Energy-Based Action Heads Know When They Don't Know".
+
+EB-VLA learns a scalar energy E_theta(a, C) over action chunks conditioned on the observation's context and
+produces actions by gradient descent on it. The energy of the refined chunk is returned with it as a
+confidence score: `EnergyReadout.final_energy` (higher means less expert-like, see `monitoring/`).
+"""
+
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from lerobot.configs import PreTrainedConfig
+from lerobot.policies.pretrained import PreTrainedPolicy
+from lerobot.utils.constants import ACTION, OBS_STATE
+from torch import Tensor, nn
+from torch.nn.attention import SDPBackend, sdpa_kernel
+
+from .backbone_resnet import EBVLAResNetBackbone
+from .configuration_ebvla import EBVLAConfig
+from .energy_head import ContextKV, EBVLAEnergyHead, repeat_context_kv
+from .mcmc import RefinementResult, refine_actions, sample_initial_actions
+
+logger = logging.getLogger(__name__)
+
+ACTION_IS_PAD = "action_is_pad"
+
+
+@dataclass
+class EnergyReadout:
+    """The energies of one refined chunk per batch element.
+
+    Attributes:
+        initial_energy: E(a^(0), C), (B,): the energy of the initial noise, read at the first MCMC step.
+        final_energy: E(a^(K_inf), C), (B,): the confidence score of the returned chunk; +inf where the
+            refinement hit a non-finite energy or gradient.
+    """
+
+    initial_energy: Tensor
+    final_energy: Tensor
+
+
+class EBVLAPolicy(PreTrainedPolicy):
+    """EB-VLA policy: a VLM (or light) backbone and an energy-based transformer head refined by MCMC."""
+
+    config_class = EBVLAConfig
+    name = "ebvla"
+
+    def __init__(self, config: EBVLAConfig, **kwargs):
+        super().__init__(config)
+        config.validate_features()
+        self.config = config
+        self.model = EBVLA(config)
+        self.reset()
+
+    @classmethod
+    def from_pretrained(
+        cls,
+        pretrained_name_or_path: str | Path,
+        *,
+        config: PreTrainedConfig | None = None,
+        strict: bool = True,
+        **kwargs,
+    ) -> "EBVLAPolicy":
+        """Loads a saved policy; every weight comes from the checkpoint, so no backbone is downloaded."""
+        if config is None:
+            config = PreTrainedConfig.from_pretrained(pretrained_name_or_path, **kwargs)
+        config.load_pretrained_backbone = False
+        return super().from_pretrained(pretrained_name_or_path, config=config, strict=strict, **kwargs)
+
+    def get_optim_params(self) -> list[nn.Parameter]:
+        return [p for p in self.parameters() if p.requires_grad]
+
+    def reset(self) -> None:
+        """Clears the action queue; call it on `env.reset()`."""
+        self._action_queue: deque[Tensor] = deque(maxlen=self.config.n_action_steps)
+        self.last_energy: EnergyReadout | None = None
+
+    def predict_action_chunk(
+        self,
+        batch: dict[str, Tensor],
+        generator: torch.Generator | None = None,
+        return_energy: bool = False,
+    ) -> Tensor | tuple[Tensor, EnergyReadout]:
+        """Refines a chunk of (normalized) actions, (B, chunk_size, action_dim), for each observation.
+
+        Args:
+            batch: A pre-processed observation batch.
+            generator: Seeds a^(0) and the Langevin noise; on the policy's device.
+            return_energy: Also return the chunk's initial and final energies.
+        """
+        validate_observation(batch, self.config)
+        # lerobot-eval runs under inference_mode, but refinement differentiates the energy w.r.t. a.
+        with torch.inference_mode(False):
+            batch = {k: v.clone() if isinstance(v, Tensor) and v.is_inference() else v for k, v in batch.items()}
+            actions, readout = self.model.generate_actions(batch, generator=generator)
+        return (actions, readout) if return_energy else actions
+
+    @torch.no_grad()
+    def select_action(self, batch: dict[str, Tensor], generator: torch.Generator | None = None) -> Tensor:
+        """Returns the next action (B, action_dim), refining a new chunk every `n_action_steps` calls.
+
+        After each refinement `self.last_energy` holds a new `EnergyReadout` for the refined chunk.
+        """
+        if len(self._action_queue) == 0:
+            actions, self.last_energy = self.predict_action_chunk(batch, generator=generator, return_energy=True)
+            self._action_queue.extend(actions[:, : self.config.n_action_steps].transpose(0, 1))
+        return self._action_queue.popleft()
+
+    def score_action_chunks(self, batch: dict[str, Tensor], candidates: Tensor) -> Tensor:
+        """Energies E(a, C) of candidate chunks (B, N, chunk_size, action_dim) in normalized action space.
+
+        The context of each observation is encoded once for its N candidates. Returns (B, N).
+        """
+        validate_observation(batch, self.config)
+        expected = (self.config.chunk_size, self.config.action_dim)
+        if candidates.ndim != 4 or tuple(candidates.shape[2:]) != expected:
+            raise ValueError(f"`candidates` must be (B, N, {expected[0]}, {expected[1]}). Got {tuple(candidates.shape)}.")
+        with torch.inference_mode(False), torch.no_grad():
+            batch = {k: v.clone() if isinstance(v, Tensor) and v.is_inference() else v for k, v in batch.items()}
+            b, n = candidates.shape[:2]
+            kv = repeat_context_kv(self.model.encode_context(batch), n)
+            energies = self.model.head(candidates.clone().flatten(0, 1), kv).mean(dim=-1)
+        return energies.view(b, n)
+
+    def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict]:
+        """Training loss (Eq. 4) and logged metrics for a pre-processed batch with actions."""
+        validate_observation(batch, self.config)
+        validate_actions(batch, self.config)
+        return self.model.compute_loss(batch)
+
+
+class EBVLA(nn.Module):
+    """The EB-VLA network: context encoding, energy, and the MCMC loops of inference and training.
+
+        observation ──► backbone ──► C_1 .. C_L ──► per-block keys/values (once per observation)
+                                                           │
+        a^(0) ~ N(0, sigma_init^2) ──► e_t = E_theta(a + eps, C_i) ◄──┘
+               ▲                              │ g = clip(grad_a E, c)                      (Eq. 2)
+               └── a - alpha exp(e_t / tau) g, clamped to a_max ◄──┘  x K                   (Eq. 3)
+    """
+
+    def __init__(self, config: EBVLAConfig):
+        super().__init__()
+        self.config = config
+        self.backbone = make_backbone(config)
+        self.head = EBVLAEnergyHead(config, self.backbone.context_dim)
+
+    def encode_context(self, batch: dict[str, Tensor]) -> ContextKV:
+        """Backbone contexts C_i projected to each head block's cross-attention keys and values."""
+        return self.head.context_kv(self.backbone(batch))
+
+    def _refine(
+        self,
+        kv: ContextKV,
+        initial_actions: Tensor,
+        step_sizes: list[float],
+        generator: torch.Generator | None,
+        create_graph: bool = False,
+        early_stop_tol: float | None = None,
+    ) -> RefinementResult:
+        cfg = self.config
+        return refine_actions(
+            lambda a: self.head(a, kv),
+            initial_actions,
+            step_sizes,
+            temperature=cfg.energy_temperature,
+            langevin_std=cfg.langevin_noise_std,
+            grad_clip=cfg.grad_clip,
+            action_clamp=cfg.action_clamp,
+            generator=generator,
+            create_graph=create_graph,
+            early_stop_tol=early_stop_tol,
+        )
+
+    def _initial_actions(self, batch_size: int, reference: Tensor, generator: torch.Generator | None) -> Tensor:
+        return sample_initial_actions(
+            (batch_size, self.config.chunk_size, self.config.action_dim),
+            self.config.init_action_std,
+            device=reference.device,
+            dtype=reference.dtype,
+            generator=generator,
+        )
+
+    def generate_actions(
+        self, batch: dict[str, Tensor], generator: torch.Generator | None = None
+    ) -> tuple[Tensor, EnergyReadout]:
+        """Inference: K_inf steps of constant size alpha from noise; with restarts, the lowest-energy chain."""
+        cfg = self.config
+        with torch.no_grad():
+            kv = self.encode_context(batch)
+        batch_size, restarts = kv[0][0].shape[0], cfg.num_restarts
+        kv = repeat_context_kv(kv, restarts)
+        initial = self._initial_actions(batch_size * restarts, kv[0][0], generator)
+        result = self._refine(
+            kv, initial, [cfg.inference_step_size] * cfg.inference_mcmc_steps, generator,
+            early_stop_tol=cfg.early_stop_tol,
+        )
+        with torch.no_grad():
+            final_energy = self.head(result.actions, kv).mean(dim=-1)
+        final_energy = torch.where(result.diverged, math.inf, final_energy)
+        if result.diverged.any():
+            logger.warning(
+                "EB-VLA refinement met a non-finite energy or gradient for %d of %d chunks: they keep their "
+                "last finite iterate and report final_energy=+inf.",
+                int(result.diverged.sum()), result.diverged.numel(),
+            )
+        actions, initial_energy = result.actions, result.step_energies[0]
+        if restarts > 1:
+            best = final_energy.view(batch_size, restarts).argmin(dim=1)
+            rows = torch.arange(batch_size, device=best.device) * restarts + best
+            actions, initial_energy, final_energy = actions[rows], initial_energy[rows], final_energy[rows]
+        return actions.detach(), EnergyReadout(initial_energy=initial_energy, final_energy=final_energy)
+
+    def compute_loss(self, batch: dict[str, Tensor], generator: torch.Generator | None = None) -> tuple[Tensor, dict]:
+        """Training: K ~ U[K_min, K_max] steps with alpha ~ U[alpha_min, alpha_max] each, L1 on a^(K) (Eq. 4).
+
+        Only the last step is differentiated (second order, through grad_a E); the earlier ones see a detached
+        context, so they build no graph into the backbone.
+        """
+        cfg = self.config
+        target = batch[ACTION]
+        kv = self.encode_context(batch)
+        device = target.device
+        k_min, k_max = cfg.train_mcmc_steps_range
+        num_steps = int(torch.randint(k_min, k_max + 1, (1,), generator=generator, device=device).item())
+        alpha_min, alpha_max = cfg.train_step_size_range
+        step_sizes = (alpha_min + (alpha_max - alpha_min) * torch.rand(num_steps, generator=generator, device=device)).tolist()
+
+        actions = self._initial_actions(target.shape[0], target, generator)
+        initial_energy = None
+        if num_steps > 1:
+            detached_kv = [(k.detach(), v.detach()) for k, v in kv]
+            warmup = self._refine(detached_kv, actions, step_sizes[:-1], generator)
+            actions, initial_energy = warmup.actions, warmup.step_energies[0]
+        # CPU (and fused GPU) attention kernels have no double backward; the math kernel does.
+        with sdpa_kernel(SDPBackend.MATH):
+            last = self._refine(kv, actions, step_sizes[-1:], generator, create_graph=True)
+        if initial_energy is None:
+            initial_energy = last.step_energies[0]
+
+        l1 = (last.actions - target).abs()  # (B, H, d_a)
+        if ACTION_IS_PAD in batch:
+            valid = (~batch[ACTION_IS_PAD]).unsqueeze(-1).to(l1.dtype)  # (B, H, 1)
+            loss = (l1 * valid).sum() / (valid.sum() * l1.shape[-1]).clamp(min=1)
+        else:
+            loss = l1.mean()
+        info = {
+            "l1_loss": loss.item(),
+            "mcmc_steps": num_steps,
+            "initial_energy": initial_energy.mean().item(),
+            "last_step_energy": last.step_energies[-1].mean().item(),
+        }
+        return loss, info
+
+
+def make_backbone(config: EBVLAConfig) -> nn.Module:
+    """The backbone named by `config.backbone`: its `forward(batch)` returns the context C_i of each block."""
+    if config.backbone == "resnet":
+        return EBVLAResNetBackbone(config)
+    from .backbone_vlm import EBVLAVisionLanguageBackbone  # transformers/timm/peft are only needed here
+
+    return EBVLAVisionLanguageBackbone(config)
+
+
+def validate_observation(batch: dict[str, Tensor], config: EBVLAConfig) -> None:
+    """Raises a ValueError naming the key when a camera or the state is missing, misshapen or non-finite."""
+    resizes = config.backbone == "vlm" or config.resize_shape is not None
+    for key, feature in config.image_features.items():
+        if key not in batch:
+            raise ValueError(
+                f"Missing camera `{key}`: the policy was configured with cameras {list(config.image_features)}, "
+                f"the batch has keys {sorted(batch)}. Rename cameras with the pre-processor's rename map."
+            )
+        image = batch[key]
+        expected = f"(B, {feature.shape[0]}, H, W)" if resizes else f"(B, {', '.join(map(str, feature.shape))})"
+        ok = image.ndim == 4 and image.shape[1] == feature.shape[0]
+        ok &= resizes or tuple(image.shape[1:]) == tuple(feature.shape)
+        if not ok:
+            raise ValueError(f"Camera `{key}` must be {expected}. Got {tuple(image.shape)}.")
+        _check_finite(image, key)
+    if config.state_dim is not None:
+        if OBS_STATE not in batch:
+            raise ValueError(f"Missing `{OBS_STATE}` of size {config.state_dim}. Batch keys: {sorted(batch)}.")
+        state = batch[OBS_STATE]
+        if state.ndim != 2 or state.shape[1] != config.state_dim:
+            raise ValueError(f"`{OBS_STATE}` must be (B, {config.state_dim}). Got {tuple(state.shape)}.")
+        _check_finite(state, OBS_STATE)
+
+
+def validate_actions(batch: dict[str, Tensor], config: EBVLAConfig) -> None:
+    """Raises a ValueError when the training target is missing, misshapen or non-finite."""
+    expected = (config.chunk_size, config.action_dim)
+    if ACTION not in batch:
+        raise ValueError(f"Training needs `{ACTION}` of shape (B, {expected[0]}, {expected[1]}).")
+    action = batch[ACTION]
+    if action.ndim != 3 or tuple(action.shape[1:]) != expected:
+        raise ValueError(f"`{ACTION}` must be (B, {expected[0]}, {expected[1]}). Got {tuple(action.shape)}.")
+    _check_finite(action, ACTION)
+
+
+def _check_finite(tensor: Tensor, key: str) -> None:
+    if tensor.is_floating_point() and not torch.isfinite(tensor).all():
+        raise ValueError(f"`{key}` contains NaN or infinite values.")

@@ -1,0 +1,221 @@
+"""Energy records: one row per predicted action chunk, the data every monitoring tool reads.
+
+`ebvla-eval` writes them as JSON lines to `energy_records.jsonl`, next to lerobot-eval's `eval_info.json`:
+
+    {"episode_index": 0, "chunk_index": 0, "env_step": 0, "initial_energy": 7.31, "final_energy": 5.92,
+     "success": true, "task": "pick up the cup", "seed": 1000, "perturbation": "none", "severity": 0.0}
+
+JSON has no infinity, and the policy reports `+inf` when refinement went non-finite, so non-finite energies
+are written as the strings "inf", "-inf" and "nan". Reading accepts those strings, plain numbers and the
+`Infinity`/`NaN` tokens Python's `json` module emits, so a file round-trips exactly.
+"""
+
+import json
+import math
+import os
+import tempfile
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any, NamedTuple
+
+ENERGY_RECORDS_FILENAME = "energy_records.jsonl"
+VANILLA_PERTURBATION = "none"
+
+_NON_FINITE_TO_STR = {math.inf: "inf", -math.inf: "-inf"}
+_STR_TO_NON_FINITE = {"inf": math.inf, "+inf": math.inf, "-inf": -math.inf, "nan": math.nan}
+
+
+@dataclass(frozen=True)
+class EnergyRecord:
+    """Energies of one predicted action chunk, and the episode it belongs to.
+
+    Args:
+        episode_index: Index of the evaluation episode (as in lerobot-eval, per task).
+        chunk_index: 0-based index of the chunk within its episode.
+        env_step: Environment step at which the chunk was predicted.
+        initial_energy: E(a^(0), C), the energy of the unrefined initial sample.
+        final_energy: E(a^(K_inf), C), the energy after MCMC refinement (the paper's confidence score).
+        success: Whether the episode succeeded (repeated on each of its rows).
+        task: Task instruction or name of the episode.
+        seed: Environment seed of the episode, None when unseeded.
+        perturbation: Name of the applied perturbation, "none" for vanilla (in-distribution) rollouts.
+        severity: Perturbation severity, 0 for vanilla rollouts.
+    """
+
+    episode_index: int
+    chunk_index: int
+    env_step: int
+    initial_energy: float
+    final_energy: float
+    success: bool
+    task: str
+    seed: int | None
+    perturbation: str = VANILLA_PERTURBATION
+    severity: float = 0.0
+
+    @property
+    def is_vanilla(self) -> bool:
+        return self.perturbation == VANILLA_PERTURBATION
+
+
+class EpisodeKey(NamedTuple):
+    """Identifies an episode in a record file: lerobot-eval restarts `episode_index` for each task."""
+
+    perturbation: str
+    severity: float
+    task: str
+    episode_index: int
+
+
+def episode_key(record: EnergyRecord) -> EpisodeKey:
+    return EpisodeKey(record.perturbation, record.severity, record.task, record.episode_index)
+
+
+def _energy_to_json(value: float) -> float | str:
+    if math.isnan(value):
+        return "nan"
+    return _NON_FINITE_TO_STR.get(value, value)
+
+
+def record_to_json(record: EnergyRecord) -> str:
+    """Serializes one record to a JSON line (without the newline), non-finite energies as strings."""
+    row = asdict(record)
+    row["initial_energy"] = _energy_to_json(record.initial_energy)
+    row["final_energy"] = _energy_to_json(record.final_energy)
+    return json.dumps(row, allow_nan=False)
+
+
+def write_energy_records(path: str | Path, records: Iterable[EnergyRecord], overwrite: bool = False) -> Path:
+    """Writes records as JSON lines, atomically: to a temporary file in the same folder, then renamed.
+
+    The rename means a reader never sees a half-written file, even if evaluation is killed mid-write.
+
+    Args:
+        path: Destination file, usually `<eval output dir>/energy_records.jsonl`.
+        records: The records, written in the given order.
+        overwrite: Replace an existing file. Without it an existing file is an error.
+
+    Returns:
+        The path written.
+
+    Raises:
+        FileExistsError: `path` exists and `overwrite` is False.
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} already exists; pass overwrite=True to replace it.")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            for record in records:
+                f.write(record_to_json(record) + "\n")
+        os.replace(tmp_name, path)
+    except BaseException:
+        Path(tmp_name).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _parse_int(value: Any, name: str, where: str) -> int:
+    # bool is an int subclass in Python; a boolean where an index belongs is a bug in the writer.
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ValueError(f"{where}: field `{name}` must be an integer, got {value!r}.")
+    return value
+
+
+def _parse_float(value: Any, name: str, where: str) -> float:
+    if isinstance(value, str) and value.strip().lower() in _STR_TO_NON_FINITE:
+        return _STR_TO_NON_FINITE[value.strip().lower()]
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ValueError(
+            f'{where}: field `{name}` must be a number or one of "inf", "-inf", "nan", got {value!r}.'
+        )
+    return float(value)
+
+
+def record_from_json(row: dict[str, Any], where: str = "record") -> EnergyRecord:
+    """Builds a record from a decoded JSON object, validating every field.
+
+    Args:
+        row: The decoded object.
+        where: Location used in error messages, e.g. "energy_records.jsonl:12".
+
+    Raises:
+        ValueError: A field is missing or has the wrong type; the message names it and `where`.
+    """
+    if not isinstance(row, dict):
+        raise ValueError(f"{where}: expected a JSON object, got {type(row).__name__}.")
+    missing = [f.name for f in fields(EnergyRecord) if f.name not in row]
+    if missing:
+        raise ValueError(f"{where}: missing field(s) {', '.join(f'`{m}`' for m in missing)}.")
+    if not isinstance(row["success"], bool):
+        raise ValueError(f"{where}: field `success` must be true or false, got {row['success']!r}.")
+    for name in ("task", "perturbation"):
+        if not isinstance(row[name], str):
+            raise ValueError(f"{where}: field `{name}` must be a string, got {row[name]!r}.")
+    seed = row["seed"]
+    return EnergyRecord(
+        episode_index=_parse_int(row["episode_index"], "episode_index", where),
+        chunk_index=_parse_int(row["chunk_index"], "chunk_index", where),
+        env_step=_parse_int(row["env_step"], "env_step", where),
+        initial_energy=_parse_float(row["initial_energy"], "initial_energy", where),
+        final_energy=_parse_float(row["final_energy"], "final_energy", where),
+        success=row["success"],
+        task=row["task"],
+        seed=None if seed is None else _parse_int(seed, "seed", where),
+        perturbation=row["perturbation"],
+        severity=_parse_float(row["severity"], "severity", where),
+    )
+
+
+def read_energy_records(path: str | Path) -> list[EnergyRecord]:
+    """Reads an `energy_records.jsonl` file. Blank lines are skipped.
+
+    Args:
+        path: The file, or a folder holding `energy_records.jsonl`.
+
+    Raises:
+        FileNotFoundError: The file does not exist.
+        ValueError: A line is not valid JSON or a field is missing or malformed; the message gives the
+            file, the 1-based line number and the field.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / ENERGY_RECORDS_FILENAME
+    records = []
+    with open(path, encoding="utf-8") as f:
+        for line_number, line in enumerate(f, start=1):
+            if not line.strip():
+                continue
+            where = f"{path}:{line_number}"
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError as e:
+                raise ValueError(f"{where}: invalid JSON ({e.msg}).") from e
+            records.append(record_from_json(row, where))
+    return records
+
+
+def group_by_episode(records: Iterable[EnergyRecord]) -> dict[EpisodeKey, list[EnergyRecord]]:
+    """Groups records by episode, each episode's chunks sorted by `chunk_index`.
+
+    Episodes are keyed by (perturbation, severity, task, episode_index) because lerobot-eval numbers
+    episodes per task. Episodes keep the order in which they first appear.
+
+    Raises:
+        ValueError: An episode has two rows with the same `chunk_index` (e.g. two runs' files were
+            concatenated) or rows that disagree on `success`.
+    """
+    episodes: dict[EpisodeKey, list[EnergyRecord]] = {}
+    for record in records:
+        episodes.setdefault(episode_key(record), []).append(record)
+    for key, chunks in episodes.items():
+        chunks.sort(key=lambda r: r.chunk_index)
+        indices = [r.chunk_index for r in chunks]
+        if len(set(indices)) != len(indices):
+            raise ValueError(f"Episode {key} has duplicate chunk indices; were two record files merged?")
+        if len({r.success for r in chunks}) > 1:
+            raise ValueError(f"Episode {key} has rows that disagree on `success`.")
+    return episodes

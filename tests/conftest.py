@@ -1,0 +1,74 @@
+"""Shared fixtures: tiny policies and a tiny LeRobotDataset written locally (the Hub is not needed)."""
+
+import numpy as np
+import pytest
+import torch
+from lerobot.configs.types import FeatureType, PolicyFeature
+
+from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
+
+TINY_HEAD = {"dim_model": 32, "n_heads": 2, "n_blocks": 2}
+IMAGE_SHAPE = (3, 32, 32)
+
+
+def tiny_config(**overrides) -> EBVLAConfig:
+    """A light-backbone config small enough for CPU tests; keyword arguments override any field."""
+    fields = {
+        "backbone": "resnet",
+        "device": "cpu",
+        "spatial_softmax_num_keypoints": 8,
+        "input_features": {
+            "observation.images.top": PolicyFeature(FeatureType.VISUAL, IMAGE_SHAPE),
+            "observation.state": PolicyFeature(FeatureType.STATE, (4,)),
+        },
+        "output_features": {"action": PolicyFeature(FeatureType.ACTION, (3,))},
+        **TINY_HEAD,
+    }
+    fields.update(overrides)
+    return EBVLAConfig(**fields)
+
+
+def tiny_batch(config: EBVLAConfig, batch_size: int = 2, seed: int = 0, with_action: bool = True) -> dict:
+    g = torch.Generator().manual_seed(seed)
+    batch = {
+        key: torch.rand(batch_size, *ft.shape, generator=g) for key, ft in config.image_features.items()
+    }
+    if config.state_dim:
+        batch["observation.state"] = torch.randn(batch_size, config.state_dim, generator=g)
+    if with_action:
+        batch["action"] = torch.randn(batch_size, config.chunk_size, config.action_dim, generator=g)
+        batch["action_is_pad"] = torch.zeros(batch_size, config.chunk_size, dtype=torch.bool)
+    return batch
+
+
+@pytest.fixture
+def tiny_policy() -> EBVLAPolicy:
+    torch.manual_seed(0)
+    return EBVLAPolicy(tiny_config())
+
+
+def write_tiny_dataset(root, repo_id: str = "local/ebvla_tiny", n_episodes: int = 2, n_frames: int = 24):
+    """Writes a LeRobotDataset (images, state, action, task) whose actions depend on the state."""
+    from lerobot.datasets import LeRobotDataset
+
+    features = {
+        "observation.images.top": {"dtype": "image", "shape": (32, 32, 3), "names": ["height", "width", "channels"]},
+        "observation.state": {"dtype": "float32", "shape": (4,), "names": None},
+        "action": {"dtype": "float32", "shape": (3,), "names": None},
+    }
+    dataset = LeRobotDataset.create(repo_id=repo_id, fps=10, features=features, root=root, use_videos=False)
+    rng = np.random.default_rng(0)
+    for _ in range(n_episodes):
+        for t in range(n_frames):
+            state = rng.normal(size=4).astype(np.float32)
+            dataset.add_frame(
+                {
+                    "observation.images.top": (rng.random((32, 32, 3)) * 255).astype(np.uint8),
+                    "observation.state": state,
+                    "action": np.tanh(state[:3] + 0.1 * t).astype(np.float32),
+                    "task": "reach the goal",
+                }
+            )
+        dataset.save_episode()
+    dataset.finalize()
+    return root
