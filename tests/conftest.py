@@ -8,7 +8,7 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
 
 TINY_HEAD = {"dim_model": 32, "n_heads": 2, "n_blocks": 2}
-IMAGE_SHAPE = (3, 32, 32)
+IMAGE_SHAPE = (3, 64, 64)
 
 
 def tiny_config(**overrides) -> EBVLAConfig:
@@ -52,7 +52,7 @@ def write_tiny_dataset(root, repo_id: str = "local/ebvla_tiny", n_episodes: int 
     from lerobot.datasets import LeRobotDataset
 
     features = {
-        "observation.images.top": {"dtype": "image", "shape": (32, 32, 3), "names": ["height", "width", "channels"]},
+        "observation.images.top": {"dtype": "image", "shape": (64, 64, 3), "names": ["height", "width", "channels"]},
         "observation.state": {"dtype": "float32", "shape": (4,), "names": None},
         "action": {"dtype": "float32", "shape": (3,), "names": None},
     }
@@ -63,7 +63,7 @@ def write_tiny_dataset(root, repo_id: str = "local/ebvla_tiny", n_episodes: int 
             state = rng.normal(size=4).astype(np.float32)
             dataset.add_frame(
                 {
-                    "observation.images.top": (rng.random((32, 32, 3)) * 255).astype(np.uint8),
+                    "observation.images.top": (rng.random((64, 64, 3)) * 255).astype(np.uint8),
                     "observation.state": state,
                     "action": np.tanh(state[:3] + 0.1 * t).astype(np.float32),
                     "task": "reach the goal",

@@ -272,6 +272,15 @@ class EBVLAConfig(PreTrainedConfig):
                     raise ValueError(
                         f"`crop_shape` {self.crop_shape} does not fit in `{key}` of shape {feature.shape}."
                     )
+        if self.backbone == "resnet":
+            height, width = self.crop_shape or self.resize_shape or next(iter(self.image_features.values())).shape[1:]
+            # The ResNet downsamples 32x; on a 1x1 feature map spatial-softmax keypoints are constant.
+            if min(height, width) <= 32:
+                raise ValueError(
+                    f"The light backbone needs images larger than 32 px (got {height}x{width} after "
+                    "`resize_shape`/`crop_shape`): smaller ones give a 1x1 ResNet feature map whose keypoints "
+                    "carry no information."
+                )
         if self.backbone == "resnet" and len({f.shape for f in self.image_features.values()}) > 1:
             raise ValueError(
                 "The light backbone needs all cameras at the same shape (set `resize_shape`). Got "

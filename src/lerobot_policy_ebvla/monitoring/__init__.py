@@ -11,6 +11,7 @@ from .failure import (
     episode_slopes,
     evaluate_failure_predictor,
     failure_prediction_sweep,
+    format_failure_table,
     linear_slope,
 )
 from .landscape import (
@@ -27,6 +28,7 @@ from .ood import (
     OODCalibration,
     OODDecision,
     auroc,
+    format_detection_table,
     ood_detection_table,
     roc_curve,
     rollout_score,
@@ -57,6 +59,8 @@ __all__ = [
     "episode_slopes",
     "evaluate_failure_predictor",
     "failure_prediction_sweep",
+    "format_detection_table",
+    "format_failure_table",
     "group_by_episode",
     "linear_slope",
     "make_policy_score_fn",

@@ -238,3 +238,21 @@ def failure_prediction_sweep(
                     best = result
         best_per_step.append(best)
     return best_per_step
+
+
+def _percent(value: float) -> str:
+    return "nan" if math.isnan(value) else f"{100 * value:.2f}%"
+
+
+def format_failure_table(results: Sequence[FailurePredictionResult]) -> str:
+    """Renders Table IV as a markdown table, rates in percent, with the episodes counted at each step."""
+    lines = [
+        "| Step | Win. | Std | Acc. | Bal. Acc. | TPR | Spec. | Episodes | Failed |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        rates = " | ".join(_percent(v) for v in (r.accuracy, r.balanced_accuracy, r.tpr, r.specificity))
+        lines.append(
+            f"| {r.step} | {r.window} | {r.multiplier:.2f} | {rates} | {r.n_episodes} | {r.n_failed} |"
+        )
+    return "\n".join(lines)

@@ -54,7 +54,7 @@ def energy_landscape(
     timestep: int = 0,
     grid_size: int = 50,
     span: float | tuple[float, float] = 1.0,
-    batch_size: int = 256,
+    batch_size: int = 1024,
 ) -> EnergyLandscape:
     """Sweeps two action dimensions of one timestep of a refined chunk and scores every grid point.
 
@@ -83,7 +83,9 @@ def energy_landscape(
     x = _grid_axis(float(center[0]), span, grid_size)
     y = _grid_axis(float(center[1]), span, grid_size)
     grid_x, grid_y = np.meshgrid(x, y)  # (G, G) each, row i <-> y[i]
-    points = torch.from_numpy(np.stack([grid_x.ravel(), grid_y.ravel()], axis=-1)).to(refined_chunk)
+    # The refined point itself rides along as the last point: a policy encodes the context once per call.
+    points = np.concatenate([np.stack([grid_x.ravel(), grid_y.ravel()], axis=-1), center[None]])
+    points = torch.from_numpy(points).to(refined_chunk)  # (G * G + 1, 2)
 
     energies = []
     for batch_points in points.split(batch_size):
@@ -91,13 +93,13 @@ def energy_landscape(
         candidates[:, timestep, dims[0]] = batch_points[:, 0]
         candidates[:, timestep, dims[1]] = batch_points[:, 1]
         energies.append(score_fn(candidates).reshape(-1).double().cpu())
-    center_energy = float(score_fn(refined_chunk[None]).reshape(-1)[0])
+    energies = torch.cat(energies).numpy()
     return EnergyLandscape(
         x=x,
         y=y,
-        energies=torch.cat(energies).numpy().reshape(grid_size, grid_size),
+        energies=energies[:-1].reshape(grid_size, grid_size),
         center=center,
-        center_energy=center_energy,
+        center_energy=float(energies[-1]),
         dims=(int(dims[0]), int(dims[1])),
         timestep=int(timestep),
     )

@@ -182,7 +182,14 @@ class OODCalibration:
             return cls.load(pretrained_name_or_path)
         from huggingface_hub import hf_hub_download
 
-        return cls.load(hf_hub_download(str(pretrained_name_or_path), OOD_CALIBRATION_FILENAME))
+        try:
+            path = hf_hub_download(str(pretrained_name_or_path), OOD_CALIBRATION_FILENAME)
+        except Exception as e:  # a mistyped local path reaches the Hub as an invalid repo id
+            raise FileNotFoundError(
+                f"No {OOD_CALIBRATION_FILENAME} in a local folder or Hub repo named {pretrained_name_or_path}; "
+                "create it with `ebvla-ood-report --calibrate-to`."
+            ) from e
+        return cls.load(path)
 
 
 @dataclass(frozen=True)
@@ -239,8 +246,9 @@ class EnergyOODMonitor:
         return OODDecision(bool(energy <= self.threshold), float(energy), self.threshold)
 
     def check(self, final_energy: float | Tensor) -> OODDecision | list[OODDecision]:
-        """Checks chunk final energies: a float gives one decision, a (B,) tensor or array a list of B."""
-        if isinstance(final_energy, int | float):
+        """Checks chunk final energies: a scalar gives one decision, a (B,) tensor or array a list of B."""
+        ndim = final_energy.ndim if isinstance(final_energy, Tensor) else np.ndim(final_energy)
+        if ndim == 0:
             return self._decide(float(final_energy))
         return [self._decide(e) for e in _as_array(final_energy)]
 
@@ -409,3 +417,21 @@ def roc_curve(vanilla_scores: ArrayLike, ood_scores: ArrayLike) -> tuple[np.ndar
         tpr = n_pos_above / positives.size if positives.size else np.full(thresholds.size, np.nan)
         fpr = n_neg_above / negatives.size if negatives.size else np.full(thresholds.size, np.nan)
     return fpr.astype(np.float64), tpr.astype(np.float64), thresholds
+
+
+def _percent(value: float) -> str:
+    return "nan" if math.isnan(value) else f"{100 * value:.1f}%"
+
+
+def format_detection_table(rows: Sequence[DetectionRow]) -> str:
+    """Renders Table III as a markdown table, rates in percent."""
+    lines = [
+        "| Multiplier | Threshold | Accuracy | Bal. Acc. | TPR (Catch) | FPR (False Alarm) | F1-Score | FP | FN |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        # "1.0σ" as in the paper, but without rounding away a finer multiplier such as 0.25.
+        k = f"{r.multiplier:.1f}" if r.multiplier == round(r.multiplier, 1) else f"{r.multiplier:g}"
+        rates = " | ".join(_percent(v) for v in (r.accuracy, r.balanced_accuracy, r.tpr, r.fpr, r.f1))
+        lines.append(f"| {k}σ | {r.threshold:.3f} | {rates} | {r.fp} | {r.fn} |")
+    return "\n".join(lines)

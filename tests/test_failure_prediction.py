@@ -1,0 +1,149 @@
+"""Energy-slope failure prediction (Sec. III-D, Table IV).
+
+The running example at step 3, window 3 (final energies, slope per step):
+    success A [0, 0, 0] slope 0    success B [0, 1, 2] slope 1
+    failed  C [0, 2, 4] slope 2    failed  D [0, .5, 1] slope 0.5
+Reference slopes (the successful A, B): mean 0.5, population std 0.5.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from lerobot_policy_ebvla.monitoring.failure import (
+    episode_slopes,
+    evaluate_failure_predictor,
+    failure_prediction_sweep,
+    format_failure_table,
+    linear_slope,
+)
+from lerobot_policy_ebvla.monitoring.records import EnergyRecord
+
+
+def episode(final, success, initial=None, index=0):
+    initial = [0.0] * len(final) if initial is None else initial
+    return [
+        EnergyRecord(index, i, 8 * i, initial[i], final[i], success, "t", None) for i in range(len(final))
+    ]
+
+
+EPISODES = [
+    episode([0.0, 0.0, 0.0], True, index=0),
+    episode([0.0, 1.0, 2.0], True, index=1),
+    episode([0.0, 2.0, 4.0], False, index=2),
+    episode([0.0, 0.5, 1.0], False, index=3),
+]
+
+
+def test_linear_slope_is_the_least_squares_slope():
+    assert linear_slope([1.0, 3.0, 5.0]) == pytest.approx(2.0)
+    assert linear_slope([0.0, 2.0, 1.0, 3.0]) == pytest.approx(0.8)
+
+
+def test_linear_slope_of_one_point_is_zero():
+    assert linear_slope([5.0]) == 0.0
+
+
+def test_episode_slopes_use_the_window_ending_at_the_step():
+    # Step 3, window 2: chunks 2 and 3 of [0, 10, 11] -> slope 1.
+    assert episode_slopes([episode([0.0, 10.0, 11.0], True)], step=3, window=2)[0] == pytest.approx(1.0)
+
+
+def test_episode_slopes_truncate_a_window_reaching_before_step_one():
+    assert episode_slopes([episode([0.0, 4.0, 100.0], True)], step=2, window=5)[0] == pytest.approx(4.0)
+
+
+def test_episode_slopes_of_an_episode_that_ended_are_nan():
+    assert math.isnan(episode_slopes([episode([0.0, 1.0], True)], step=3, window=2)[0])
+
+
+def test_slope_start_uses_the_initial_energy():
+    ep = episode([0.0, 0.0, 0.0], True, initial=[3.0, 2.0, 1.0])
+    assert episode_slopes([ep], step=3, window=3, metric="start")[0] == pytest.approx(-1.0)
+
+
+def test_predictor_matches_hand_computation():
+    result = evaluate_failure_predictor(EPISODES, step=3, window=3, multiplier=1.0)
+    # T = 0.5 + 1.0 * 0.5 = 1: only C (slope 2) is flagged; B's slope 1 equals T and is not.
+    assert result.threshold == pytest.approx(1.0)
+    assert result.accuracy == pytest.approx(3 / 4)
+    assert result.tpr == pytest.approx(1 / 2)
+    assert result.specificity == 1.0
+    assert result.balanced_accuracy == pytest.approx(3 / 4)
+
+
+def test_predictor_at_zero_std_matches_hand_computation():
+    result = evaluate_failure_predictor(EPISODES, step=3, window=3, multiplier=0.0)
+    # T = 0.5: B and C are flagged; D's slope 0.5 equals T.
+    assert (result.accuracy, result.tpr, result.specificity) == pytest.approx((0.5, 0.5, 0.5))
+
+
+def test_predictor_calibrates_on_given_reference_episodes():
+    reference = [episode([0.0, 0.0, 0.0], True), episode([0.0, 0.2, 0.4], False)]
+    result = evaluate_failure_predictor(
+        EPISODES, step=3, window=3, multiplier=0.0, reference_episodes=reference
+    )
+    # Reference slopes 0 and 0.2, all of them regardless of success: T = 0.1; B, C and D are flagged.
+    assert result.threshold == pytest.approx(0.1)
+    assert (result.tpr, result.specificity) == (1.0, 0.5)
+
+
+def test_predictor_flags_a_non_finite_slope():
+    episodes = [*EPISODES, episode([0.0, 1.0, math.inf], False, index=4)]
+    result = evaluate_failure_predictor(episodes, step=3, window=3, multiplier=1.0)
+    assert result.tpr == pytest.approx(2 / 3)
+
+
+def test_predictor_without_reference_slopes_is_undefined():
+    result = evaluate_failure_predictor(EPISODES[2:], step=3, window=3, multiplier=1.0)
+    assert math.isnan(result.threshold) and math.isnan(result.balanced_accuracy)
+
+
+def test_episodes_shorter_than_the_step_are_excluded():
+    episodes = [*EPISODES, episode([0.0, 9.0], False, index=4)]
+    result = evaluate_failure_predictor(episodes, step=3, window=3, multiplier=1.0)
+    assert (result.n_episodes, result.n_failed) == (4, 2)
+
+
+def test_sweep_at_step_one_flags_nothing():
+    (result,) = failure_prediction_sweep(EPISODES, steps=[1], windows=[2], multipliers=[0.1])
+    # A single point has slope 0 everywhere: TPR 0, specificity 1, as in Table IV's first row.
+    assert (result.tpr, result.specificity, result.balanced_accuracy) == (0.0, 1.0, 0.5)
+
+
+def test_sweep_picks_the_best_configuration_by_balanced_accuracy():
+    (result,) = failure_prediction_sweep(EPISODES, steps=[3], windows=[2, 3], multipliers=[0.0, 1.0])
+    # Window 2 (chunks 2, 3) gives slopes A 0, B 1, C 2, D 0.5, as window 3 does; ties keep the first.
+    assert (result.window, result.multiplier) == (2, 1.0)
+    assert result.balanced_accuracy == pytest.approx(0.75)
+
+
+def test_sweep_reports_each_step_reached_in_order():
+    results = failure_prediction_sweep(EPISODES, steps=[1, 2, 3, 4], windows=[2], multipliers=[1.0])
+    assert [r.step for r in results] == [1, 2, 3]
+
+
+def test_sweep_without_failures_reports_nan_balanced_accuracy():
+    (result,) = failure_prediction_sweep(EPISODES[:2], steps=[3], windows=[2], multipliers=[1.0])
+    assert math.isnan(result.balanced_accuracy) and result.specificity == 1.0
+
+
+def test_episodes_with_missing_chunks_are_rejected():
+    broken = [r for r in episode([0.0, 1.0, 2.0], True) if r.chunk_index != 1]
+    with pytest.raises(ValueError, match="chunks"):
+        failure_prediction_sweep([broken], steps=[2], windows=[2], multipliers=[1.0])
+
+
+def test_sweep_over_the_default_grid_reports_steps_1_to_20():
+    rng = np.random.default_rng(0)
+    episodes = [
+        episode(list(rng.normal(size=20).cumsum()), bool(rng.random() < 0.7), index=i) for i in range(300)
+    ]
+    results = failure_prediction_sweep(episodes)
+    assert [r.step for r in results] == list(range(1, 21))
+
+
+def test_format_failure_table_prints_percentages():
+    result = evaluate_failure_predictor(EPISODES, step=3, window=3, multiplier=1.0)
+    assert "| 3 | 3 | 1.00 | 75.00% | 75.00% | 50.00% | 100.00% | 4 | 2 |" in format_failure_table([result])

@@ -1,0 +1,136 @@
+"""Energy records: the JSON-lines contract between `ebvla-eval` and the monitoring tools."""
+
+import json
+import math
+from dataclasses import asdict
+
+import pytest
+
+from lerobot_policy_ebvla.monitoring.records import (
+    ENERGY_RECORDS_FILENAME,
+    EnergyRecord,
+    group_by_episode,
+    read_energy_records,
+    write_energy_records,
+)
+
+
+def record(
+    episode=0, chunk=0, final=1.0, initial=2.0, success=True, task="t", perturbation="none", severity=0.0
+):
+    return EnergyRecord(
+        episode_index=episode,
+        chunk_index=chunk,
+        env_step=8 * chunk,
+        initial_energy=initial,
+        final_energy=final,
+        success=success,
+        task=task,
+        seed=1000 + episode,
+        perturbation=perturbation,
+        severity=severity,
+    )
+
+
+def test_records_round_trip(tmp_path):
+    records = [record(chunk=0), record(chunk=1, perturbation="camera", severity=0.5)]
+    records.append(EnergyRecord(1, 0, 0, 3.0, 1.5, False, "t", None, "none", 0.0))
+    path = write_energy_records(tmp_path / ENERGY_RECORDS_FILENAME, records)
+    assert read_energy_records(path) == records
+
+
+def test_infinite_energy_is_written_as_a_string_and_read_back_as_inf(tmp_path):
+    path = write_energy_records(tmp_path / "r.jsonl", [record(final=math.inf, initial=-math.inf)])
+    row = json.loads(path.read_text())
+    assert row["final_energy"] == "inf" and row["initial_energy"] == "-inf"
+    (loaded,) = read_energy_records(path)
+    assert loaded.final_energy == math.inf and loaded.initial_energy == -math.inf
+
+
+def test_nan_energy_round_trips(tmp_path):
+    path = write_energy_records(tmp_path / "r.jsonl", [record(final=math.nan)])
+    assert math.isnan(read_energy_records(path)[0].final_energy)
+
+
+def test_python_json_infinity_token_is_accepted(tmp_path):
+    row = asdict(record())
+    row["final_energy"] = math.inf
+    path = tmp_path / "r.jsonl"
+    path.write_text(json.dumps(row) + "\n")  # writes the bare token `Infinity`
+    assert read_energy_records(path)[0].final_energy == math.inf
+
+
+def test_write_refuses_to_overwrite_an_existing_file(tmp_path):
+    path = write_energy_records(tmp_path / "r.jsonl", [record()])
+    with pytest.raises(FileExistsError):
+        write_energy_records(path, [record(final=9.0)])
+    assert read_energy_records(path)[0].final_energy == 1.0
+
+
+def test_write_overwrites_when_asked(tmp_path):
+    path = write_energy_records(tmp_path / "r.jsonl", [record()])
+    write_energy_records(path, [record(final=9.0)], overwrite=True)
+    assert read_energy_records(path)[0].final_energy == 9.0
+
+
+def test_write_leaves_no_temporary_file(tmp_path):
+    write_energy_records(tmp_path / "r.jsonl", [record()])
+    assert [p.name for p in tmp_path.iterdir()] == ["r.jsonl"]
+
+
+def test_failed_write_keeps_the_previous_file(tmp_path):
+    path = write_energy_records(tmp_path / "r.jsonl", [record()])
+
+    def broken_records():
+        yield record(final=9.0)
+        raise RuntimeError("evaluation crashed")
+
+    with pytest.raises(RuntimeError):
+        write_energy_records(path, broken_records(), overwrite=True)
+    assert read_energy_records(path)[0].final_energy == 1.0
+    assert len(list(tmp_path.iterdir())) == 1
+
+
+def test_read_accepts_the_eval_folder(tmp_path):
+    write_energy_records(tmp_path / ENERGY_RECORDS_FILENAME, [record()])
+    assert len(read_energy_records(tmp_path)) == 1
+
+
+def test_read_error_names_line_and_missing_field(tmp_path):
+    path = write_energy_records(tmp_path / "r.jsonl", [record(), record(chunk=1)])
+    lines = path.read_text().splitlines()
+    row = json.loads(lines[1])
+    del row["final_energy"]
+    path.write_text(lines[0] + "\n" + json.dumps(row) + "\n")
+    with pytest.raises(ValueError, match=r"r\.jsonl:2: missing field\(s\) `final_energy`"):
+        read_energy_records(path)
+
+
+def test_read_error_names_a_malformed_field(tmp_path):
+    row = asdict(record())
+    row["chunk_index"] = "3"
+    (tmp_path / "r.jsonl").write_text(json.dumps(row) + "\n")
+    with pytest.raises(ValueError, match=r"r\.jsonl:1: field `chunk_index` must be an integer"):
+        read_energy_records(tmp_path / "r.jsonl")
+
+
+def test_read_error_names_a_line_that_is_not_json(tmp_path):
+    (tmp_path / "r.jsonl").write_text("{not json\n")
+    with pytest.raises(ValueError, match=r"r\.jsonl:1: invalid JSON"):
+        read_energy_records(tmp_path / "r.jsonl")
+
+
+def test_group_by_episode_sorts_chunks(tmp_path):
+    episodes = group_by_episode([record(chunk=2), record(chunk=0), record(chunk=1)])
+    (chunks,) = episodes.values()
+    assert [r.chunk_index for r in chunks] == [0, 1, 2]
+
+
+def test_group_by_episode_separates_tasks_with_the_same_episode_index():
+    episodes = group_by_episode([record(task="a"), record(task="b"), record(task="a", chunk=1)])
+    assert [len(chunks) for chunks in episodes.values()] == [2, 1]
+
+
+def test_group_by_episode_rejects_duplicate_chunks():
+    with pytest.raises(ValueError, match="duplicate chunk indices"):
+        group_by_episode([record(chunk=0), record(chunk=0)])

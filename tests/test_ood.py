@@ -1,0 +1,264 @@
+"""Energy-based OOD detection (Sec. III-C): calibration (Eq. 5), run-time monitor and Table III metrics.
+
+The running example: vanilla rollout scores [1, 2, 3, 4] (mu_v = 2.5, sigma_v = sqrt(1.25)) and OOD
+rollout scores [3, 5, 6].
+"""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from lerobot_policy_ebvla.monitoring.ood import (
+    OOD_CALIBRATION_FILENAME,
+    EnergyOODMonitor,
+    OODCalibration,
+    auroc,
+    format_detection_table,
+    ood_detection_table,
+    roc_curve,
+    rollout_score,
+    rollout_scores,
+)
+from lerobot_policy_ebvla.monitoring.records import EnergyRecord
+
+VANILLA = [1.0, 2.0, 3.0, 4.0]
+OOD = [3.0, 5.0, 6.0]
+SIGMA = math.sqrt(1.25)
+
+
+@pytest.mark.parametrize(
+    ("aggregation", "expected"), [("mean", 3.25), ("max", 6.0), ("last", 2.0), ("median", 3.0)]
+)
+def test_rollout_score_aggregations(aggregation, expected):
+    assert rollout_score([4.0, 1.0, 6.0, 2.0], aggregation) == expected
+
+
+def test_rollout_score_accepts_a_tensor():
+    assert rollout_score(torch.tensor([1.0, 3.0])) == 2.0
+
+
+def test_rollout_score_rejects_an_unknown_aggregation():
+    with pytest.raises(ValueError, match="aggregation"):
+        rollout_score([1.0], "min")
+
+
+def test_rollout_score_rejects_an_empty_rollout():
+    with pytest.raises(ValueError, match="at least one"):
+        rollout_score([])
+
+
+def test_rollout_score_of_a_diverged_chunk_is_infinite():
+    assert rollout_score([1.0, math.inf]) == math.inf
+
+
+def test_rollout_scores_groups_records_by_episode():
+    records = [
+        EnergyRecord(0, 0, 0, 9.0, 1.0, True, "t", None),
+        EnergyRecord(0, 1, 8, 9.0, 3.0, True, "t", None),
+        EnergyRecord(1, 0, 0, 9.0, 5.0, False, "t", None),
+    ]
+    assert list(rollout_scores(records).values()) == [2.0, 5.0]
+
+
+def test_fit_computes_mu_v_and_population_sigma_v():
+    calibration = OODCalibration.fit(VANILLA, k=2.0)
+    assert calibration.mu_v == 2.5
+    assert calibration.sigma_v == pytest.approx(SIGMA)
+    assert calibration.threshold == pytest.approx(2.5 + 2.0 * SIGMA)
+    assert calibration.n_rollouts == 4
+
+
+def test_fit_on_a_single_rollout_gives_sigma_zero():
+    calibration = OODCalibration.fit([5.0], k=3.0)
+    assert calibration.sigma_v == 0.0 and calibration.threshold == 5.0
+
+
+def test_fit_on_equal_energies_flags_only_higher_scores():
+    monitor = EnergyOODMonitor(OODCalibration.fit([2.0, 2.0, 2.0]))
+    assert monitor.check(2.0).in_distribution
+    assert monitor.check(2.0001).is_ood
+
+
+def test_fit_leaves_out_non_finite_scores_with_a_warning():
+    with pytest.warns(UserWarning, match="1 non-finite"):
+        calibration = OODCalibration.fit([1.0, 3.0, math.inf])
+    assert calibration.mu_v == 2.0 and calibration.n_rollouts == 2
+
+
+def test_fit_without_finite_scores_raises():
+    with pytest.raises(ValueError, match="finite"), pytest.warns(UserWarning):
+        OODCalibration.fit([math.inf])
+
+
+def test_calibration_round_trips_through_json(tmp_path):
+    calibration = OODCalibration.fit(VANILLA, k=0.7, aggregation="max")
+    path = calibration.save(tmp_path)
+    assert path == tmp_path / OOD_CALIBRATION_FILENAME
+    assert json.loads(path.read_text())["threshold"] == pytest.approx(calibration.threshold)
+    assert OODCalibration.load(tmp_path) == calibration
+
+
+def test_calibration_save_refuses_to_overwrite(tmp_path):
+    OODCalibration.fit(VANILLA).save(tmp_path)
+    with pytest.raises(FileExistsError):
+        OODCalibration.fit([10.0, 20.0]).save(tmp_path)
+    assert OODCalibration.load(tmp_path).mu_v == 2.5
+
+
+def test_calibration_save_overwrites_when_asked(tmp_path):
+    OODCalibration.fit(VANILLA).save(tmp_path)
+    OODCalibration.fit([10.0, 20.0]).save(tmp_path, overwrite=True)
+    assert OODCalibration.load(tmp_path).mu_v == 15.0
+
+
+def test_calibration_save_points_to_pretrained_model_folder(tmp_path):
+    (tmp_path / "pretrained_model").mkdir()
+    with pytest.raises(ValueError, match="pretrained_model"):
+        OODCalibration.fit(VANILLA).save(tmp_path)
+
+
+def test_calibration_save_needs_an_existing_folder(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        OODCalibration.fit(VANILLA).save(tmp_path / "missing")
+
+
+def test_monitor_from_pretrained_uses_the_saved_threshold(tmp_path):
+    OODCalibration.fit(VANILLA, k=1.0).save(tmp_path)
+    monitor = EnergyOODMonitor.from_pretrained(tmp_path)
+    assert monitor.threshold == pytest.approx(2.5 + SIGMA)
+
+
+def test_monitor_from_pretrained_without_calibration_names_the_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match=OOD_CALIBRATION_FILENAME):
+        EnergyOODMonitor.from_pretrained(tmp_path)
+
+
+def test_monitor_from_pretrained_can_override_k(tmp_path):
+    OODCalibration.fit(VANILLA, k=1.0).save(tmp_path)
+    assert EnergyOODMonitor.from_pretrained(tmp_path, k=0.0).threshold == 2.5
+
+
+def test_monitor_check_of_a_float_returns_one_decision():
+    decision = EnergyOODMonitor(OODCalibration(mu_v=2.0, sigma_v=1.0, k=1.0)).check(3.5)
+    assert decision.is_ood and decision.energy == 3.5 and decision.threshold == 3.0
+
+
+def test_monitor_check_of_a_zero_dim_tensor_returns_one_decision():
+    decision = EnergyOODMonitor(OODCalibration(mu_v=2.0, sigma_v=1.0, k=1.0)).check(torch.tensor(1.0))
+    assert decision.in_distribution and decision.energy == 1.0
+
+
+def test_monitor_check_of_a_batch_returns_one_decision_per_sample():
+    monitor = EnergyOODMonitor(OODCalibration(mu_v=2.0, sigma_v=1.0, k=1.0))
+    decisions = monitor.check(torch.tensor([1.0, 3.0, 3.5]))
+    assert [d.in_distribution for d in decisions] == [True, True, False]
+
+
+def test_monitor_flags_non_finite_energies():
+    monitor = EnergyOODMonitor(OODCalibration(mu_v=2.0, sigma_v=1.0))
+    assert all(d.is_ood for d in monitor.check(torch.tensor([math.inf, math.nan])))
+
+
+def test_monitor_update_checks_each_environments_running_rollout_score():
+    monitor = EnergyOODMonitor(OODCalibration(mu_v=2.0, sigma_v=1.0, k=1.0, aggregation="mean"))
+    monitor.update(torch.tensor([2.0, 4.0]))
+    decisions = monitor.update(torch.tensor([3.0, 4.0]))
+    assert [d.energy for d in decisions] == [2.5, 4.0]
+    assert [d.in_distribution for d in decisions] == [True, False]
+
+
+def test_monitor_reset_forgets_past_energies():
+    monitor = EnergyOODMonitor(OODCalibration(mu_v=2.0, sigma_v=1.0, k=1.0))
+    monitor.update(10.0)
+    monitor.reset()
+    assert monitor.update(1.0)[0].energy == 1.0
+
+
+def test_monitor_check_rollout_uses_the_calibration_aggregation():
+    monitor = EnergyOODMonitor(OODCalibration(mu_v=2.0, sigma_v=1.0, k=1.0, aggregation="max"))
+    assert monitor.check_rollout([1.0, 5.0, 1.0]).energy == 5.0
+
+
+def test_detection_table_at_one_sigma_matches_hand_computation():
+    (row,) = ood_detection_table(VANILLA, OOD, multipliers=[1.0])
+    # T = 3.618: vanilla 4 is a false alarm, OOD 3 is missed.
+    assert row.threshold == pytest.approx(2.5 + SIGMA)
+    assert (row.tp, row.fp, row.tn, row.fn) == (2, 1, 3, 1)
+    assert row.accuracy == pytest.approx(5 / 7)
+    assert row.tpr == pytest.approx(2 / 3)
+    assert row.fpr == pytest.approx(1 / 4)
+    assert row.balanced_accuracy == pytest.approx((2 / 3 + 3 / 4) / 2)
+    assert row.f1 == pytest.approx(2 / 3)
+
+
+def test_detection_table_at_zero_sigma_matches_hand_computation():
+    (row,) = ood_detection_table(VANILLA, OOD, multipliers=[0.0])
+    # T = mu_v = 2.5: vanilla 3 and 4 are false alarms, every OOD rollout is caught.
+    assert (row.tp, row.fp, row.tn, row.fn) == (3, 2, 2, 0)
+    assert row.f1 == pytest.approx(6 / 8)
+
+
+def test_detection_table_has_one_row_per_multiplier_of_table_iii():
+    rows = ood_detection_table(VANILLA, OOD)
+    assert [r.multiplier for r in rows] == [0.2, 0.5, 0.7, 0.8, 0.9, 1.0, 1.5, 2.0, 3.0]
+
+
+def test_detection_table_without_ood_rollouts_has_nan_tpr():
+    (row,) = ood_detection_table(VANILLA, [], multipliers=[1.0])
+    assert math.isnan(row.tpr) and math.isnan(row.balanced_accuracy)
+    assert row.accuracy == pytest.approx(3 / 4)
+
+
+def test_detection_table_without_vanilla_rollouts_has_nan_fpr():
+    calibration = OODCalibration(mu_v=2.5, sigma_v=0.0)
+    (row,) = ood_detection_table([], OOD, multipliers=[1.0], calibration=calibration)
+    assert math.isnan(row.fpr) and math.isnan(row.balanced_accuracy)
+    assert row.tpr == 1.0
+
+
+def test_format_detection_table_prints_percentages():
+    table = format_detection_table(ood_detection_table(VANILLA, OOD, multipliers=[1.0]))
+    assert "| 1.0σ | 3.618 | 71.4% | 70.8% | 66.7% | 25.0% | 66.7% | 1 | 1 |" in table
+
+
+def test_auroc_counts_ties_as_one_half():
+    # OOD 3 beats vanilla 1 and 2, ties 3, loses to 4; OOD 5 and 6 beat all four: (2.5 + 4 + 4) / 12.
+    assert auroc(VANILLA, OOD) == pytest.approx(10.5 / 12)
+
+
+def test_auroc_of_separable_scores_is_one():
+    assert auroc([1.0, 2.0], [3.0, math.inf]) == 1.0
+
+
+def test_auroc_of_reversed_scores_is_zero():
+    assert auroc([3.0, 4.0], [1.0, 2.0]) == 0.0
+
+
+def test_auroc_of_equal_scores_is_one_half():
+    assert auroc([2.0, 2.0], [2.0, 2.0, 2.0]) == 0.5
+
+
+def test_auroc_without_positives_is_nan():
+    assert math.isnan(auroc(VANILLA, []))
+
+
+def test_auroc_rejects_nan_scores():
+    with pytest.raises(ValueError, match="NaN"):
+        auroc([1.0, math.nan], [2.0])
+
+
+def test_roc_curve_matches_hand_computation():
+    fpr, tpr, thresholds = roc_curve(VANILLA, OOD)
+    np.testing.assert_array_equal(thresholds, [6, 5, 4, 3, 2, 1, -np.inf])
+    np.testing.assert_allclose(tpr, [0, 1 / 3, 2 / 3, 2 / 3, 1, 1, 1])
+    np.testing.assert_allclose(fpr, [0, 0, 0, 1 / 4, 2 / 4, 3 / 4, 1])
+
+
+def test_roc_curve_area_equals_auroc():
+    rng = np.random.default_rng(0)
+    vanilla, ood = rng.integers(0, 5, 40).astype(float), rng.integers(2, 8, 30).astype(float)
+    fpr, tpr, _ = roc_curve(vanilla, ood)
+    assert np.trapezoid(tpr, fpr) == pytest.approx(auroc(vanilla, ood))

@@ -1,0 +1,157 @@
+"""EBVLAPolicy on the light backbone: training loss, inference, energies, save/load, input checks."""
+
+import math
+
+import pytest
+import torch
+
+from lerobot_policy_ebvla import EBVLAPolicy, EnergyReadout
+from lerobot_policy_ebvla.mcmc import refine_actions
+
+from .conftest import tiny_batch, tiny_config
+
+
+def seeded(seed: int = 0) -> torch.Generator:
+    return torch.Generator().manual_seed(seed)
+
+
+def test_forward_returns_l1_loss_and_energy_metrics(tiny_policy):
+    loss, info = tiny_policy.forward(tiny_batch(tiny_policy.config))
+    assert loss.ndim == 0 and torch.isfinite(loss)
+    assert info["l1_loss"] == pytest.approx(loss.item())
+    assert 8 <= info["mcmc_steps"] <= 15
+    assert math.isfinite(info["initial_energy"]) and math.isfinite(info["last_step_energy"])
+
+
+def test_padded_action_steps_do_not_count_in_the_loss(tiny_policy):
+    batch = tiny_batch(tiny_policy.config)
+    batch["action_is_pad"][:, -3:] = True
+    torch.manual_seed(1)
+    loss, _ = tiny_policy.forward(batch)
+    batch["action"][:, -3:] += 100.0
+    torch.manual_seed(1)
+    loss_changed_padding, _ = tiny_policy.forward(batch)
+    torch.testing.assert_close(loss, loss_changed_padding)
+
+
+def test_second_order_gradient_reaches_head_and_backbone(tiny_policy):
+    loss, _ = tiny_policy.forward(tiny_batch(tiny_policy.config))
+    loss.backward()
+    without_grad = [n for n, p in tiny_policy.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0]
+    assert without_grad == []
+
+
+def test_inference_builds_no_parameter_gradients(tiny_policy):
+    actions = tiny_policy.predict_action_chunk(tiny_batch(tiny_policy.config, with_action=False))
+    assert not actions.requires_grad
+    assert all(p.grad is None for p in tiny_policy.parameters())
+
+
+def test_predict_action_chunk_works_under_inference_mode(tiny_policy):
+    batch = tiny_batch(tiny_policy.config, batch_size=3, with_action=False)
+    with torch.inference_mode():
+        actions, energy = tiny_policy.predict_action_chunk(batch, return_energy=True)
+    assert actions.shape == (3, tiny_policy.config.chunk_size, tiny_policy.config.action_dim)
+    assert energy.initial_energy.shape == energy.final_energy.shape == (3,)
+    assert torch.isfinite(actions).all() and torch.isfinite(energy.final_energy).all()
+    assert actions.abs().max() <= tiny_policy.config.action_clamp
+
+
+def test_select_action_refills_every_n_action_steps_with_a_new_energy_readout():
+    policy = EBVLAPolicy(tiny_config(n_action_steps=3)).eval()
+    batch = tiny_batch(policy.config, with_action=False)
+    readouts = []
+    for _ in range(7):
+        assert policy.select_action(batch).shape == (2, policy.config.action_dim)
+        readouts.append(policy.last_energy)
+    assert isinstance(readouts[0], EnergyReadout)
+    assert len({id(r) for r in readouts}) == 3  # refills at calls 1, 4 and 7
+    assert readouts[0] is readouts[2] and readouts[2] is not readouts[3]
+    policy.reset()
+    assert policy.last_energy is None
+
+
+def test_same_generator_seed_gives_the_same_actions(tiny_policy):
+    batch = tiny_batch(tiny_policy.config, with_action=False)
+    tiny_policy.eval()
+    a1 = tiny_policy.predict_action_chunk(batch, generator=seeded(5))
+    a2 = tiny_policy.predict_action_chunk(batch, generator=seeded(5))
+    a3 = tiny_policy.predict_action_chunk(batch, generator=seeded(6))
+    torch.testing.assert_close(a1, a2, rtol=0, atol=0)
+    assert not torch.allclose(a1, a3)
+
+
+def test_save_and_load_give_the_same_actions(tiny_policy, tmp_path):
+    tiny_policy.eval()
+    batch = tiny_batch(tiny_policy.config, with_action=False)
+    before = tiny_policy.predict_action_chunk(batch, generator=seeded(1))
+    tiny_policy.save_pretrained(tmp_path)
+    loaded = EBVLAPolicy.from_pretrained(tmp_path)
+    after = loaded.predict_action_chunk(batch, generator=seeded(1))
+    torch.testing.assert_close(before, after, rtol=0, atol=0)
+
+
+def test_context_cache_changes_nothing(tiny_policy):
+    """Refining with the context's keys/values computed once equals recomputing them at every step."""
+    model, cfg = tiny_policy.eval().model, tiny_policy.config
+    batch = tiny_batch(cfg, with_action=False)
+    a0 = torch.randn(2, cfg.chunk_size, cfg.action_dim)
+    kwargs = {"temperature": cfg.energy_temperature, "langevin_std": cfg.langevin_noise_std,
+              "grad_clip": cfg.grad_clip, "action_clamp": cfg.action_clamp}
+    steps = [cfg.inference_step_size] * cfg.inference_mcmc_steps
+    kv = model.encode_context(batch)
+    cached = refine_actions(lambda a: model.head(a, kv), a0, steps, generator=seeded(2), **kwargs)
+    uncached = refine_actions(lambda a: model.head(a, model.encode_context(batch)), a0, steps,
+                              generator=seeded(2), **kwargs)
+    torch.testing.assert_close(cached.actions, uncached.actions)
+    torch.testing.assert_close(cached.step_energies, uncached.step_energies)
+
+
+def test_final_energy_is_the_energy_of_the_returned_chunk(tiny_policy):
+    tiny_policy.eval()
+    batch = tiny_batch(tiny_policy.config, with_action=False)
+    actions, energy = tiny_policy.predict_action_chunk(batch, return_energy=True)
+    scored = tiny_policy.score_action_chunks(batch, actions.unsqueeze(1))
+    torch.testing.assert_close(scored[:, 0], energy.final_energy)
+
+
+def test_restarts_keep_the_lowest_energy_chain():
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(tiny_config(num_restarts=4)).eval()
+    batch = tiny_batch(policy.config, batch_size=2, with_action=False)
+    _, best = policy.predict_action_chunk(batch, generator=seeded(3), return_energy=True)
+    # The same chains, run as a batch of 2 x 4 independent observations without restarts.
+    policy.config.num_restarts = 1
+    repeated = {k: v.repeat_interleave(4, dim=0) for k, v in batch.items()}
+    _, every = policy.predict_action_chunk(repeated, generator=seeded(3), return_energy=True)
+    torch.testing.assert_close(best.final_energy, every.final_energy.view(2, 4).min(dim=1).values)
+
+
+def test_non_finite_energy_never_reaches_the_actions(tiny_policy, monkeypatch, caplog):
+    tiny_policy.eval()
+    head_forward = tiny_policy.model.head.forward
+    monkeypatch.setattr(tiny_policy.model.head, "forward", lambda a, kv: head_forward(a, kv) * math.nan)
+    actions, energy = tiny_policy.predict_action_chunk(
+        tiny_batch(tiny_policy.config, with_action=False), return_energy=True
+    )
+    assert torch.isfinite(actions).all()
+    assert torch.isinf(energy.final_energy).all()
+    assert "non-finite" in caplog.text
+
+
+@pytest.mark.parametrize(
+    ("mutate", "message"),
+    [
+        (lambda b: b.pop("observation.images.top"), "Missing camera `observation.images.top`"),
+        (lambda b: b.update({"observation.images.top": torch.rand(2, 3, 48, 48)}), "`observation.images.top` must be"),
+        (lambda b: b.update({"observation.state": torch.randn(2, 5)}), "`observation.state` must be \\(B, 4\\)"),
+        (lambda b: b.pop("observation.state"), "Missing `observation.state`"),
+        (lambda b: b["observation.state"].__setitem__((0, 0), math.nan), "`observation.state` contains NaN"),
+        (lambda b: b.update({"action": torch.randn(2, 5, 3)}), "`action` must be \\(B, 8, 3\\)"),
+    ],
+)
+def test_bad_input_gets_an_error_naming_the_key(tiny_policy, mutate, message):
+    batch = tiny_batch(tiny_policy.config)
+    mutate(batch)
+    with pytest.raises(ValueError, match=message):
+        tiny_policy.forward(batch)
