@@ -7,6 +7,8 @@ confidence score: `EnergyReadout.final_energy` (higher means less expert-like, s
 
 import logging
 import math
+import os
+import tempfile
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -69,6 +71,16 @@ class EBVLAPolicy(PreTrainedPolicy):
             config = PreTrainedConfig.from_pretrained(pretrained_name_or_path, **kwargs)
         config.load_pretrained_backbone = False
         return super().from_pretrained(pretrained_name_or_path, config=config, strict=strict, **kwargs)
+
+    def _save_pretrained(self, save_directory: Path, state_dict: dict[str, Tensor] | None = None) -> None:
+        """Saves config and weights so that a save that fails midway leaves the previous files intact.
+
+        Everything is written to a temporary folder beside `save_directory` first, then moved into place.
+        """
+        with tempfile.TemporaryDirectory(dir=save_directory.parent, prefix=f".{save_directory.name}-") as tmp:
+            super()._save_pretrained(Path(tmp), state_dict=state_dict)
+            for file in Path(tmp).iterdir():
+                os.replace(file, save_directory / file.name)
 
     def get_optim_params(self) -> list[nn.Parameter]:
         return [p for p in self.parameters() if p.requires_grad]

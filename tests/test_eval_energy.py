@@ -1,0 +1,112 @@
+"""`ebvla-eval`'s energy recording around LeRobot's rollout, with a scripted env and policy (no simulator)."""
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import torch
+from lerobot.scripts.lerobot_eval import rollout
+from torch import nn
+
+from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
+from lerobot_policy_ebvla.modeling_ebvla import EnergyReadout
+from lerobot_policy_ebvla.scripts.eval_energy import EnergyRecorder, env_perturbation
+
+N_ACTION_STEPS = 3
+
+
+class CountdownEnv(gym.Env):
+    """Ends (successfully) after `length` steps; the rollout keeps stepping it until its batch is done."""
+
+    def __init__(self, length: int):
+        self.length = length
+        self.task = "countdown"
+        self.task_description = "count down"
+        self._max_episode_steps = 20
+        self.observation_space = gym.spaces.Dict({"agent_pos": gym.spaces.Box(-1, 1, (2,))})
+        self.action_space = gym.spaces.Box(-1, 1, (2,))
+
+    def reset(self, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return {"agent_pos": np.zeros(2, dtype=np.float32)}, {"is_success": False}
+
+    def step(self, action):
+        self.t += 1
+        done = self.t >= self.length
+        return {"agent_pos": np.zeros(2, dtype=np.float32)}, 0.0, done, False, {"is_success": done}
+
+
+class ChunkingPolicy(nn.Module):
+    """Refines a chunk every `N_ACTION_STEPS` calls, exposing a new `EnergyReadout` each time (as EB-VLA)."""
+
+    def __init__(self):
+        super().__init__()
+        self.n_refinements = 0
+
+    def reset(self):
+        self.queue = 0
+        self.last_energy = None
+
+    def select_action(self, batch):
+        batch_size = batch["observation.state"].shape[0]
+        if self.queue == 0:
+            self.n_refinements += 1
+            energy = torch.full((batch_size,), float(self.n_refinements))
+            self.last_energy = EnergyReadout(initial_energy=energy + 0.5, final_energy=energy)
+            self.queue = N_ACTION_STEPS
+        self.queue -= 1
+        return torch.zeros(batch_size, 2)
+
+
+def identity(x):
+    return x
+
+
+def run_recorded_rollout(lengths, seeds):
+    policy = ChunkingPolicy()
+    env = gym.vector.SyncVectorEnv([lambda n=n: CountdownEnv(n) for n in lengths])
+    with EnergyRecorder(policy) as recorder:
+        watched = recorder.watch(env, "countdown", 0)
+        rollout(watched, policy, identity, identity, identity, identity, seeds=seeds)
+    return policy, recorder
+
+
+def test_records_one_row_per_chunk_while_each_env_runs():
+    lengths = [4, 9]
+    _, recorder = run_recorded_rollout(lengths, seeds=[7, 8])
+    for episode, length in enumerate(lengths):
+        chunks = [c for c in recorder.chunks if c.episode_index == episode]
+        assert len(chunks) == math.ceil(length / N_ACTION_STEPS)
+        assert [c.chunk_index for c in chunks] == list(range(len(chunks)))
+        assert [c.env_step for c in chunks] == [k * N_ACTION_STEPS for k in range(len(chunks))]
+        assert {c.seed for c in chunks} == {7 + episode}
+        assert {c.task for c in chunks} == {"countdown"}
+        assert [c.final_energy for c in chunks] == [float(k + 1) for k in range(len(chunks))]
+        assert [c.initial_energy for c in chunks] == [k + 1.5 for k in range(len(chunks))]
+
+
+def test_records_take_success_from_eval_info_and_drop_episodes_past_n_episodes():
+    _, recorder = run_recorded_rollout([4, 9], seeds=None)
+    eval_info = {"per_task": [{"task_group": "countdown", "task_id": 0, "metrics": {"successes": [True]}}]}
+    records = recorder.records(eval_info, n_episodes=1, perturbation="pose", severity=2)
+    assert {r.episode_index for r in records} == {0}
+    assert all(
+        r.success and r.seed is None and r.perturbation == "pose" and r.severity == 2.0 for r in records
+    )
+
+
+def test_recorder_restores_the_policy_select_action():
+    policy, _ = run_recorded_rollout([2], seeds=None)
+    assert "select_action" not in vars(policy)
+
+
+def test_perturbation_of_an_env_config():
+    assert env_perturbation(MetaworldEBVLAEnv(camera_perturbation="fov", perturbation_severity=3)) == (
+        "fov",
+        3.0,
+    )
+    assert env_perturbation(MetaworldEBVLAEnv(camera_perturbation="fov", perturbation_severity=0)) == (
+        "none",
+        0.0,
+    )

@@ -1,0 +1,94 @@
+"""The installed plugin through LeRobot's own tools: discovery, lerobot-train, checkpoint loading."""
+
+import shutil
+import subprocess
+import sys
+
+import pytest
+import torch
+from lerobot.policies.factory import make_pre_post_processors
+
+from lerobot_policy_ebvla import EBVLAPolicy
+
+from .conftest import write_tiny_dataset
+
+TRAIN_STEPS = 4
+
+
+def lerobot_train(dataset_root, output_dir, *extra):
+    command = [
+        shutil.which("lerobot-train") or "lerobot-train",
+        "--dataset.repo_id=local/ebvla_tiny",
+        f"--dataset.root={dataset_root}",
+        "--policy.type=ebvla",
+        "--policy.backbone=resnet",
+        "--policy.dim_model=32",
+        "--policy.n_heads=2",
+        "--policy.n_blocks=2",
+        "--policy.spatial_softmax_num_keypoints=8",
+        "--policy.train_mcmc_steps_range=[2,3]",
+        "--policy.device=cpu",
+        "--policy.push_to_hub=false",
+        f"--steps={TRAIN_STEPS}",
+        "--batch_size=4",
+        f"--save_freq={TRAIN_STEPS}",
+        "--log_freq=1",
+        "--num_workers=0",
+        "--wandb.enable=false",
+        f"--output_dir={output_dir}",
+        *extra,
+    ]
+    return subprocess.run(command, capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def trained_checkpoint(tmp_path_factory):
+    root = tmp_path_factory.mktemp("data") / "ebvla_tiny"
+    write_tiny_dataset(root)
+    output_dir = tmp_path_factory.mktemp("train") / "run"
+    result = lerobot_train(root, output_dir)
+    assert result.returncode == 0, result.stderr[-3000:]
+    return root, output_dir, result.stdout + result.stderr
+
+
+def test_register_third_party_plugins_finds_ebvla():
+    code = (
+        "from lerobot.utils.import_utils import register_third_party_plugins\n"
+        "from lerobot.configs import PreTrainedConfig\n"
+        "register_third_party_plugins()\n"
+        "from lerobot.policies.factory import get_policy_class\n"
+        "print(get_policy_class('ebvla').__name__)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert result.stdout.strip().endswith("EBVLAPolicy"), result.stderr[-2000:]
+
+
+def test_lerobot_train_logs_the_loss_and_writes_a_checkpoint(trained_checkpoint):
+    _, output_dir, log = trained_checkpoint
+    assert f"step:{TRAIN_STEPS}" in log and "l1_loss:" in log
+    pretrained = output_dir / "checkpoints" / "last" / "pretrained_model"
+    for name in ("config.json", "model.safetensors", "policy_preprocessor.json", "policy_postprocessor.json"):
+        assert (pretrained / name).is_file(), name
+
+
+def test_checkpoint_loads_like_lerobot_eval_and_gives_finite_in_range_actions(trained_checkpoint):
+    root, output_dir, _ = trained_checkpoint
+    from lerobot.datasets import LeRobotDataset
+
+    pretrained = output_dir / "checkpoints" / "last" / "pretrained_model"
+    policy = EBVLAPolicy.from_pretrained(pretrained)
+    preprocessor, postprocessor = make_pre_post_processors(policy.config, pretrained_path=str(pretrained))
+    dataset = LeRobotDataset("local/ebvla_tiny", root=root)
+    frame = dataset[0]
+    observation = {k: v for k, v in frame.items() if k.startswith("observation.")}
+    observation["task"] = frame["task"]
+    with torch.inference_mode():
+        action = postprocessor(policy.select_action(preprocessor(observation)))
+    assert action.shape == (1, 3)
+    assert torch.isfinite(action).all()
+    # Refined actions are clamped to a_max standard deviations around the dataset mean.
+    mean = torch.as_tensor(dataset.meta.stats["action"]["mean"]).float()
+    std = torch.as_tensor(dataset.meta.stats["action"]["std"]).float()
+    assert ((action - mean).abs() <= policy.config.action_clamp * std + 1e-5).all()
+    assert policy.last_energy.final_energy.shape == (1,)
+    assert torch.isfinite(policy.last_energy.final_energy).all()
