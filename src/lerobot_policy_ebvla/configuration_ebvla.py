@@ -261,8 +261,8 @@ class EBVLAConfig(PreTrainedConfig):
     def validate_features(self) -> None:
         if not self.image_features:
             raise ValueError(
-                "EB-VLA needs at least one camera among the input features (a key starting with "
-                f"'observation.images.'). Got input features {list(self.input_features)}."
+                "EB-VLA needs at least one camera (a VISUAL input feature such as `observation.image` or "
+                f"`observation.images.<camera>`). Got input features {list(self.input_features)}."
             )
         if self.action_feature is None:
             raise ValueError(f"EB-VLA needs an 'action' output feature. Got {list(self.output_features)}.")
