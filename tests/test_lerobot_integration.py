@@ -1,8 +1,8 @@
 """The installed plugin through LeRobot's own tools: discovery, lerobot-train, checkpoint loading."""
 
-import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -15,9 +15,15 @@ from .conftest import write_tiny_dataset
 TRAIN_STEPS = 4
 
 
-def lerobot_train(dataset_root, output_dir, *extra):
+def console_script(name: str) -> str:
+    """The console script installed beside this interpreter (the venv's bin need not be on PATH)."""
+    return str(Path(sys.executable).parent / name)
+
+
+def lerobot_train(dataset_root, output_dir, *extra, steps=TRAIN_STEPS, save_freq=TRAIN_STEPS, launcher=None):
+    """Runs LeRobot's trainer on the tiny dataset with a tiny light-backbone ebvla policy."""
     command = [
-        shutil.which("lerobot-train") or "lerobot-train",
+        *(launcher or [console_script("lerobot-train")]),
         "--dataset.repo_id=local/ebvla_tiny",
         f"--dataset.root={dataset_root}",
         "--policy.type=ebvla",
@@ -29,9 +35,9 @@ def lerobot_train(dataset_root, output_dir, *extra):
         "--policy.train_mcmc_steps_range=[2,3]",
         "--policy.device=cpu",
         "--policy.push_to_hub=false",
-        f"--steps={TRAIN_STEPS}",
+        f"--steps={steps}",
         "--batch_size=4",
-        f"--save_freq={TRAIN_STEPS}",
+        f"--save_freq={save_freq}",
         "--log_freq=1",
         "--num_workers=0",
         "--wandb.enable=false",

@@ -5,7 +5,7 @@ import pytest
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.envs.configs import PushtEnv
-from lerobot.envs.utils import env_to_policy_features, preprocess_observation
+from lerobot.envs.utils import preprocess_observation
 
 from lerobot_policy_ebvla import EBVLAPolicy
 
@@ -16,16 +16,20 @@ def test_pusht_env_features_and_real_env_observations():
     gym_pusht = pytest.importorskip("gym_pusht")  # noqa: F841  (registers the env)
     import gymnasium as gym
 
-    features = env_to_policy_features(PushtEnv())
+    # The features of LeRobot's `lerobot/pusht` dataset: gym_pusht renders 96 px observations.
     config_features = {
-        "input_features": {k: f for k, f in features.items() if f.type is not FeatureType.ACTION},
-        "output_features": {k: f for k, f in features.items() if f.type is FeatureType.ACTION},
+        "input_features": {
+            "observation.image": PolicyFeature(FeatureType.VISUAL, (3, 96, 96)),
+            "observation.state": PolicyFeature(FeatureType.STATE, (2,)),
+        },
+        "output_features": {"action": PolicyFeature(FeatureType.ACTION, (2,))},
     }
     from lerobot_policy_ebvla import EBVLAConfig
 
     policy = EBVLAPolicy(EBVLAConfig(backbone="resnet", device="cpu", spatial_softmax_num_keypoints=8,
                                      **TINY_HEAD, **config_features)).eval()
-    env = gym.make("gym_pusht/PushT-v0", obs_type="pixels_agent_pos", render_mode="rgb_array")
+    env_config = PushtEnv()
+    env = gym.make(f"{env_config.package_name}/{env_config.task}", **env_config.gym_kwargs)
     observation, _ = env.reset(seed=0)
     for _ in range(3):
         batch = preprocess_observation({k: np.asarray(v)[None] for k, v in observation.items()})

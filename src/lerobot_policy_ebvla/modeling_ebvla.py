@@ -159,6 +159,18 @@ class EBVLA(nn.Module):
         self.config = config
         self.backbone = make_backbone(config)
         self.head = EBVLAEnergyHead(config, self.backbone.context_dim)
+        # Training draws K, alpha, a^(0) and eps from a generator seeded by (mcmc_seed, train_steps). Both are
+        # saved with the weights, so a run resumed from a checkpoint draws what an uninterrupted one would,
+        # whatever else consumed the global RNG in between.
+        self.register_buffer("mcmc_seed", torch.randint(0, 2**62, ()))
+        self.register_buffer("train_steps", torch.zeros((), dtype=torch.long))
+
+    def training_generator(self, device: torch.device) -> torch.Generator:
+        """A generator for one training step; ranks of a multi-process run get different streams."""
+        rank = torch.distributed.get_rank() if torch.distributed.is_initialized() else 0
+        seed = (int(self.mcmc_seed) * 6364136223846793005 + int(self.train_steps) * 1442695040888963407 + rank) % 2**63
+        self.train_steps += 1
+        return torch.Generator(device=device).manual_seed(seed)
 
     def encode_context(self, batch: dict[str, Tensor]) -> ContextKV:
         """Backbone contexts C_i projected to each head block's cross-attention keys and values."""
@@ -229,6 +241,8 @@ class EBVLA(nn.Module):
     def compute_loss(self, batch: dict[str, Tensor], generator: torch.Generator | None = None) -> tuple[Tensor, dict]:
         """Training: K ~ U[K_min, K_max] steps with alpha ~ U[alpha_min, alpha_max] each, L1 on a^(K) (Eq. 4).
 
+        Without a `generator`, the randomness comes from `training_generator`.
+
         Only the last step is differentiated (second order, through grad_a E); the earlier ones see a detached
         context, so they build no graph into the backbone.
         """
@@ -236,12 +250,15 @@ class EBVLA(nn.Module):
         target = batch[ACTION]
         kv = self.encode_context(batch)
         device = target.device
+        if generator is None:
+            generator = self.training_generator(device)
         k_min, k_max = cfg.train_mcmc_steps_range
         num_steps = int(torch.randint(k_min, k_max + 1, (1,), generator=generator, device=device).item())
         alpha_min, alpha_max = cfg.train_step_size_range
         step_sizes = (alpha_min + (alpha_max - alpha_min) * torch.rand(num_steps, generator=generator, device=device)).tolist()
 
-        actions = self._initial_actions(target.shape[0], target, generator)
+        # a^(0) takes the head's dtype (bf16 policies), the L1 loss is taken in float32.
+        actions = self._initial_actions(target.shape[0], kv[0][0], generator)
         initial_energy = None
         if num_steps > 1:
             detached_kv = [(k.detach(), v.detach()) for k, v in kv]
@@ -253,7 +270,7 @@ class EBVLA(nn.Module):
         if initial_energy is None:
             initial_energy = last.step_energies[0]
 
-        l1 = (last.actions - target).abs()  # (B, H, d_a)
+        l1 = (last.actions.float() - target.float()).abs()  # (B, H, d_a)
         if ACTION_IS_PAD in batch:
             valid = (~batch[ACTION_IS_PAD]).unsqueeze(-1).to(l1.dtype)  # (B, H, 1)
             loss = (l1 * valid).sum() / (valid.sum() * l1.shape[-1]).clamp(min=1)

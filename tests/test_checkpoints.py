@@ -1,0 +1,64 @@
+"""Checkpoints survive: failed saves keep the previous files, training resumes where it stopped."""
+
+import re
+
+import pytest
+import torch
+
+from lerobot_policy_ebvla import EBVLAPolicy
+
+from .conftest import tiny_batch, write_tiny_dataset
+from .test_lerobot_integration import lerobot_train
+
+
+def test_a_failed_save_leaves_the_previous_checkpoint_intact(tiny_policy, tmp_path, monkeypatch):
+    import lerobot.policies.pretrained as pretrained
+
+    tiny_policy.eval()
+    batch = tiny_batch(tiny_policy.config, with_action=False)
+    tiny_policy.save_pretrained(tmp_path)
+    expected = tiny_policy.predict_action_chunk(batch, generator=torch.Generator().manual_seed(0))
+
+    def crash_midway(model, filename):
+        with open(filename, "wb") as f:
+            f.write(b"half a file")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(pretrained, "save_model_as_safetensor", crash_midway)
+    with torch.no_grad():
+        for p in tiny_policy.parameters():
+            p.add_(1.0)
+    with pytest.raises(OSError, match="disk full"):
+        tiny_policy.save_pretrained(tmp_path)
+
+    loaded = EBVLAPolicy.from_pretrained(tmp_path)
+    actual = loaded.predict_action_chunk(batch, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(actual, expected, rtol=0, atol=0)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["config.json", "model.safetensors"]
+
+
+def logged_losses(log: str) -> dict[int, float]:
+    return {int(step): float(loss) for step, loss in re.findall(r"step:(\d+) smpl:\d+ .*? loss:([0-9.]+)", log)}
+
+
+def test_resuming_a_lerobot_checkpoint_continues_the_steps_with_the_same_losses(tmp_path):
+    root = tmp_path / "data"
+    write_tiny_dataset(root)
+    seed = ["--seed=7"]
+    straight = lerobot_train(root, tmp_path / "straight", *seed, steps=4, save_freq=2)
+    assert straight.returncode == 0, straight.stderr[-3000:]
+
+    first_half = lerobot_train(root, tmp_path / "resumed", *seed, steps=2, save_freq=2)
+    assert first_half.returncode == 0, first_half.stderr[-3000:]
+    config_path = tmp_path / "resumed" / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
+    resumed = lerobot_train(root, tmp_path / "resumed", "--resume=true", f"--config_path={config_path}",
+                            steps=4, save_freq=2)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+
+    straight_losses = logged_losses(straight.stdout + straight.stderr)
+    resumed_losses = logged_losses(resumed.stdout + resumed.stderr)
+    assert sorted(resumed_losses) == [3, 4]
+    # Same data, same MCMC draws: equal up to float reduction order (losses are logged to 3 decimals).
+    for step in (3, 4):
+        assert resumed_losses[step] == pytest.approx(straight_losses[step], abs=2e-3)
+    assert (tmp_path / "resumed" / "checkpoints" / "000004" / "pretrained_model" / "model.safetensors").is_file()
