@@ -30,9 +30,7 @@ def tiny_config(**overrides) -> EBVLAConfig:
 
 def tiny_batch(config: EBVLAConfig, batch_size: int = 2, seed: int = 0, with_action: bool = True) -> dict:
     g = torch.Generator().manual_seed(seed)
-    batch = {
-        key: torch.rand(batch_size, *ft.shape, generator=g) for key, ft in config.image_features.items()
-    }
+    batch = {key: torch.rand(batch_size, *ft.shape, generator=g) for key, ft in config.image_features.items()}
     if config.state_dim:
         batch["observation.state"] = torch.randn(batch_size, config.state_dim, generator=g)
     if with_action:
@@ -52,7 +50,11 @@ def write_tiny_dataset(root, repo_id: str = "local/ebvla_tiny", n_episodes: int 
     from lerobot.datasets import LeRobotDataset
 
     features = {
-        "observation.images.top": {"dtype": "image", "shape": (64, 64, 3), "names": ["height", "width", "channels"]},
+        "observation.images.top": {
+            "dtype": "image",
+            "shape": (64, 64, 3),
+            "names": ["height", "width", "channels"],
+        },
         "observation.state": {"dtype": "float32", "shape": (4,), "names": None},
         "action": {"dtype": "float32", "shape": (3,), "names": None},
     }

@@ -38,7 +38,9 @@ def test_a_failed_save_leaves_the_previous_checkpoint_intact(tiny_policy, tmp_pa
 
 
 def logged_losses(log: str) -> dict[int, float]:
-    return {int(step): float(loss) for step, loss in re.findall(r"step:(\d+) smpl:\d+ .*? loss:([0-9.]+)", log)}
+    return {
+        int(step): float(loss) for step, loss in re.findall(r"step:(\d+) smpl:\d+ .*? loss:([0-9.]+)", log)
+    }
 
 
 def test_resuming_a_lerobot_checkpoint_continues_the_steps_with_the_same_losses(tmp_path):
@@ -51,8 +53,9 @@ def test_resuming_a_lerobot_checkpoint_continues_the_steps_with_the_same_losses(
     first_half = lerobot_train(root, tmp_path / "resumed", *seed, steps=2, save_freq=2)
     assert first_half.returncode == 0, first_half.stderr[-3000:]
     config_path = tmp_path / "resumed" / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
-    resumed = lerobot_train(root, tmp_path / "resumed", "--resume=true", f"--config_path={config_path}",
-                            steps=4, save_freq=2)
+    resumed = lerobot_train(
+        root, tmp_path / "resumed", "--resume=true", f"--config_path={config_path}", steps=4, save_freq=2
+    )
     assert resumed.returncode == 0, resumed.stderr[-3000:]
 
     straight_losses = logged_losses(straight.stdout + straight.stderr)
@@ -61,4 +64,6 @@ def test_resuming_a_lerobot_checkpoint_continues_the_steps_with_the_same_losses(
     # Same data, same MCMC draws: equal up to float reduction order (losses are logged to 3 decimals).
     for step in (3, 4):
         assert resumed_losses[step] == pytest.approx(straight_losses[step], abs=2e-3)
-    assert (tmp_path / "resumed" / "checkpoints" / "000004" / "pretrained_model" / "model.safetensors").is_file()
+    assert (
+        tmp_path / "resumed" / "checkpoints" / "000004" / "pretrained_model" / "model.safetensors"
+    ).is_file()

@@ -17,8 +17,9 @@ def toy_config(**overrides):
         "observation.images.top": PolicyFeature(FeatureType.VISUAL, IMAGE),
         "observation.state": PolicyFeature(FeatureType.STATE, (4,)),
     }
-    return tiny_config(input_features=features, train_mcmc_steps_range=(3, 5), inference_mcmc_steps=10,
-                       **overrides)
+    return tiny_config(
+        input_features=features, train_mcmc_steps_range=(3, 5), inference_mcmc_steps=10, **overrides
+    )
 
 
 def train(policy, batch, steps, lr=3e-3):
@@ -73,4 +74,7 @@ def test_bimodal_experts_sit_at_lower_energy_than_perturbed_chunks():
     perturbed_energy = policy.score_action_chunks(observation, perturbed.unsqueeze(1))
     assert (expert_energy < perturbed_energy).float().mean() >= 0.9
     # Neither mode is favoured by more than the perturbation costs: both are minima.
-    assert expert_energy[0::2].mean() < perturbed_energy.mean() and expert_energy[1::2].mean() < perturbed_energy.mean()
+    assert (
+        expert_energy[0::2].mean() < perturbed_energy.mean()
+        and expert_energy[1::2].mean() < perturbed_energy.mean()
+    )

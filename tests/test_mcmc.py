@@ -39,8 +39,15 @@ def test_gradient_is_clipped_elementwise_to_c():
 
 def test_actions_are_clamped_to_a_max():
     a0 = torch.full((1, H, D_A), 9.9)
-    result = refine_actions(lambda a: -a.sum(-1) * 100, a0, [5.0], temperature=1e9, langevin_std=0.0,
-                            grad_clip=1.0, action_clamp=10.0)
+    result = refine_actions(
+        lambda a: -a.sum(-1) * 100,
+        a0,
+        [5.0],
+        temperature=1e9,
+        langevin_std=0.0,
+        grad_clip=1.0,
+        action_clamp=10.0,
+    )
     assert result.actions.max().item() == pytest.approx(10.0)
 
 
@@ -62,17 +69,31 @@ def test_descends_to_the_energy_minimum():
 
 def test_without_create_graph_no_gradient_reaches_parameters():
     weight = torch.nn.Parameter(torch.tensor(2.0))
-    result = refine_actions(lambda a: weight * (a**2).sum(-1), torch.ones(1, H, D_A), [0.1, 0.1],
-                            temperature=9.0, langevin_std=0.0, grad_clip=1.0, action_clamp=10.0)
+    result = refine_actions(
+        lambda a: weight * (a**2).sum(-1),
+        torch.ones(1, H, D_A),
+        [0.1, 0.1],
+        temperature=9.0,
+        langevin_std=0.0,
+        grad_clip=1.0,
+        action_clamp=10.0,
+    )
     assert not result.actions.requires_grad
     assert weight.grad is None
 
 
 def test_create_graph_differentiates_the_update_with_respect_to_parameters():
     weight = torch.nn.Parameter(torch.tensor(2.0))
-    result = refine_actions(lambda a: weight * (a**2).sum(-1), torch.ones(1, H, D_A), [0.1],
-                            temperature=1e9, langevin_std=0.0, grad_clip=10.0, action_clamp=10.0,
-                            create_graph=True)
+    result = refine_actions(
+        lambda a: weight * (a**2).sum(-1),
+        torch.ones(1, H, D_A),
+        [0.1],
+        temperature=1e9,
+        langevin_std=0.0,
+        grad_clip=10.0,
+        action_clamp=10.0,
+        create_graph=True,
+    )
     # a1 = a0 - 0.1 * 2 w a0 / H, so d(sum a1)/dw = -0.2 * sum(a0) / H.
     result.actions.sum().backward()
     assert weight.grad.item() == pytest.approx(-0.2 * H * D_A / H, rel=1e-4)
@@ -84,8 +105,9 @@ def test_non_finite_energy_freezes_that_chunk_and_marks_it_diverged():
         return torch.cat([e[:1], torch.full_like(e[1:], math.nan)])
 
     a0 = torch.randn(2, H, D_A)
-    result = refine_actions(energy, a0, [0.2, 0.2], temperature=9.0, langevin_std=0.0, grad_clip=1.0,
-                            action_clamp=10.0)
+    result = refine_actions(
+        energy, a0, [0.2, 0.2], temperature=9.0, langevin_std=0.0, grad_clip=1.0, action_clamp=10.0
+    )
     assert result.diverged.tolist() == [False, True]
     torch.testing.assert_close(result.actions[1], a0[1])
     assert torch.isfinite(result.actions).all()

@@ -1,8 +1,5 @@
 """Multi-process training: LeRobot's trainer under torchrun, and DDP gradients equal to one process's."""
 
-import subprocess
-import sys
-
 import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
@@ -61,6 +58,7 @@ def test_ddp_gradients_match_the_single_process_gradients(tmp_path):
     ddp = torch.cat([ddp_grads[n].flatten() for n, _ in policy.named_parameters()])
     # The 1e-8 initial noise still differs between the runs; it moves gradients by far less than 1%.
     assert (ddp - single).norm() / single.norm() < 1e-2
+
 
 def test_deterministic_mcmc_settings_really_make_the_step_deterministic():
     """Guards the premise of the DDP comparison above."""

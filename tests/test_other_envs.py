@@ -26,8 +26,11 @@ def test_pusht_env_features_and_real_env_observations():
     }
     from lerobot_policy_ebvla import EBVLAConfig
 
-    policy = EBVLAPolicy(EBVLAConfig(backbone="resnet", device="cpu", spatial_softmax_num_keypoints=8,
-                                     **TINY_HEAD, **config_features)).eval()
+    policy = EBVLAPolicy(
+        EBVLAConfig(
+            backbone="resnet", device="cpu", spatial_softmax_num_keypoints=8, **TINY_HEAD, **config_features
+        )
+    ).eval()
     env_config = PushtEnv()
     env = gym.make(f"{env_config.package_name}/{env_config.task}", **env_config.gym_kwargs)
     observation, _ = env.reset(seed=0)

@@ -35,7 +35,9 @@ def test_padded_action_steps_do_not_count_in_the_loss(tiny_policy):
 def test_second_order_gradient_reaches_head_and_backbone(tiny_policy):
     loss, _ = tiny_policy.forward(tiny_batch(tiny_policy.config))
     loss.backward()
-    without_grad = [n for n, p in tiny_policy.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0]
+    without_grad = [
+        n for n, p in tiny_policy.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0
+    ]
     assert without_grad == []
 
 
@@ -94,13 +96,18 @@ def test_context_cache_changes_nothing(tiny_policy):
     model, cfg = tiny_policy.eval().model, tiny_policy.config
     batch = tiny_batch(cfg, with_action=False)
     a0 = torch.randn(2, cfg.chunk_size, cfg.action_dim)
-    kwargs = {"temperature": cfg.energy_temperature, "langevin_std": cfg.langevin_noise_std,
-              "grad_clip": cfg.grad_clip, "action_clamp": cfg.action_clamp}
+    kwargs = {
+        "temperature": cfg.energy_temperature,
+        "langevin_std": cfg.langevin_noise_std,
+        "grad_clip": cfg.grad_clip,
+        "action_clamp": cfg.action_clamp,
+    }
     steps = [cfg.inference_step_size] * cfg.inference_mcmc_steps
     kv = model.encode_context(batch)
     cached = refine_actions(lambda a: model.head(a, kv), a0, steps, generator=seeded(2), **kwargs)
-    uncached = refine_actions(lambda a: model.head(a, model.encode_context(batch)), a0, steps,
-                              generator=seeded(2), **kwargs)
+    uncached = refine_actions(
+        lambda a: model.head(a, model.encode_context(batch)), a0, steps, generator=seeded(2), **kwargs
+    )
     torch.testing.assert_close(cached.actions, uncached.actions)
     torch.testing.assert_close(cached.step_energies, uncached.step_energies)
 
@@ -141,8 +148,14 @@ def test_non_finite_energy_never_reaches_the_actions(tiny_policy, monkeypatch, c
     ("mutate", "message"),
     [
         (lambda b: b.pop("observation.images.top"), "Missing camera `observation.images.top`"),
-        (lambda b: b.update({"observation.images.top": torch.rand(2, 3, 48, 48)}), "`observation.images.top` must be"),
-        (lambda b: b.update({"observation.state": torch.randn(2, 5)}), "`observation.state` must be \\(B, 4\\)"),
+        (
+            lambda b: b.update({"observation.images.top": torch.rand(2, 3, 48, 48)}),
+            "`observation.images.top` must be",
+        ),
+        (
+            lambda b: b.update({"observation.state": torch.randn(2, 5)}),
+            "`observation.state` must be \\(B, 4\\)",
+        ),
         (lambda b: b.pop("observation.state"), "Missing `observation.state`"),
         (lambda b: b["observation.state"].__setitem__((0, 0), math.nan), "`observation.state` contains NaN"),
         (lambda b: b.update({"action": torch.randn(2, 5, 3)}), "`action` must be \\(B, 8, 3\\)"),

@@ -137,7 +137,15 @@ class EBVLAConfig(PreTrainedConfig):
     lora_rank: int = 64
     lora_alpha: int = 64
     lora_dropout: float = 0.0
-    lora_target_modules: tuple[str, ...] = ("q_proj", "k_proj", "v_proj", "o_proj", "gate_proj", "up_proj", "down_proj")
+    lora_target_modules: tuple[str, ...] = (
+        "q_proj",
+        "k_proj",
+        "v_proj",
+        "o_proj",
+        "gate_proj",
+        "up_proj",
+        "down_proj",
+    )
     num_latent_tokens: int = 64
     tokenizer_max_length: int = 48
     context_layers: tuple[int, ...] | None = None
@@ -181,7 +189,9 @@ class EBVLAConfig(PreTrainedConfig):
         if self.backbone not in BACKBONES:
             raise ValueError(f"`backbone` must be one of {BACKBONES}. Got {self.backbone!r}.")
         if self.n_obs_steps != 1:
-            raise ValueError(f"`n_obs_steps` must be 1: EB-VLA conditions on one observation. Got {self.n_obs_steps}.")
+            raise ValueError(
+                f"`n_obs_steps` must be 1: EB-VLA conditions on one observation. Got {self.n_obs_steps}."
+            )
         if self.chunk_size < 1:
             raise ValueError(f"`chunk_size` must be >= 1. Got {self.chunk_size}.")
         if not 1 <= self.n_action_steps <= self.chunk_size:
@@ -193,11 +203,25 @@ class EBVLAConfig(PreTrainedConfig):
                 f"`dim_model` ({self.dim_model}) must be divisible by `n_heads` ({self.n_heads}) into an even "
                 "head size (RoPE rotates pairs of channels)."
             )
-        for name in ("n_blocks", "n_heads", "ffn_multiplier", "inference_mcmc_steps", "num_restarts",
-                     "num_latent_tokens", "lora_rank", "tokenizer_max_length"):
+        for name in (
+            "n_blocks",
+            "n_heads",
+            "ffn_multiplier",
+            "inference_mcmc_steps",
+            "num_restarts",
+            "num_latent_tokens",
+            "lora_rank",
+            "tokenizer_max_length",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"`{name}` must be >= 1. Got {getattr(self, name)}.")
-        for name in ("energy_temperature", "grad_clip", "action_clamp", "inference_step_size", "init_action_std"):
+        for name in (
+            "energy_temperature",
+            "grad_clip",
+            "action_clamp",
+            "inference_step_size",
+            "init_action_std",
+        ):
             if not getattr(self, name) > 0:
                 raise ValueError(f"`{name}` must be > 0. Got {getattr(self, name)}.")
         if self.langevin_noise_std < 0:
@@ -273,7 +297,9 @@ class EBVLAConfig(PreTrainedConfig):
                         f"`crop_shape` {self.crop_shape} does not fit in `{key}` of shape {feature.shape}."
                     )
         if self.backbone == "resnet":
-            height, width = self.crop_shape or self.resize_shape or next(iter(self.image_features.values())).shape[1:]
+            height, width = (
+                self.crop_shape or self.resize_shape or next(iter(self.image_features.values())).shape[1:]
+            )
             # The ResNet downsamples 32x; on a 1x1 feature map spatial-softmax keypoints are constant.
             if min(height, width) <= 32:
                 raise ValueError(

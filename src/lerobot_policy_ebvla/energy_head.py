@@ -155,7 +155,9 @@ class EBVLAEnergyHead(nn.Module):
     def context_kv(self, contexts: list[Tensor]) -> ContextKV:
         """Projects each block's context C_i (B, S_i, context_dim) to its cross-attention keys and values."""
         if len(contexts) != len(self.blocks):
-            raise ValueError(f"Expected one context per head block ({len(self.blocks)}), got {len(contexts)}.")
+            raise ValueError(
+                f"Expected one context per head block ({len(self.blocks)}), got {len(contexts)}."
+            )
         return [block.cross_attn.context_kv(c) for block, c in zip(self.blocks, contexts, strict=True)]
 
     def forward(self, actions: Tensor, kv: ContextKV) -> Tensor:

@@ -106,7 +106,9 @@ class EBVLAPolicy(PreTrainedPolicy):
         validate_observation(batch, self.config)
         # lerobot-eval runs under inference_mode, but refinement differentiates the energy w.r.t. a.
         with torch.inference_mode(False):
-            batch = {k: v.clone() if isinstance(v, Tensor) and v.is_inference() else v for k, v in batch.items()}
+            batch = {
+                k: v.clone() if isinstance(v, Tensor) and v.is_inference() else v for k, v in batch.items()
+            }
             actions, readout = self.model.generate_actions(batch, generator=generator)
         return (actions, readout) if return_energy else actions
 
@@ -117,7 +119,9 @@ class EBVLAPolicy(PreTrainedPolicy):
         After each refinement `self.last_energy` holds a new `EnergyReadout` for the refined chunk.
         """
         if len(self._action_queue) == 0:
-            actions, self.last_energy = self.predict_action_chunk(batch, generator=generator, return_energy=True)
+            actions, self.last_energy = self.predict_action_chunk(
+                batch, generator=generator, return_energy=True
+            )
             self._action_queue.extend(actions[:, : self.config.n_action_steps].transpose(0, 1))
         return self._action_queue.popleft()
 
@@ -129,9 +133,13 @@ class EBVLAPolicy(PreTrainedPolicy):
         validate_observation(batch, self.config)
         expected = (self.config.chunk_size, self.config.action_dim)
         if candidates.ndim != 4 or tuple(candidates.shape[2:]) != expected:
-            raise ValueError(f"`candidates` must be (B, N, {expected[0]}, {expected[1]}). Got {tuple(candidates.shape)}.")
+            raise ValueError(
+                f"`candidates` must be (B, N, {expected[0]}, {expected[1]}). Got {tuple(candidates.shape)}."
+            )
         with torch.inference_mode(False), torch.no_grad():
-            batch = {k: v.clone() if isinstance(v, Tensor) and v.is_inference() else v for k, v in batch.items()}
+            batch = {
+                k: v.clone() if isinstance(v, Tensor) and v.is_inference() else v for k, v in batch.items()
+            }
             b, n = candidates.shape[:2]
             kv = repeat_context_kv(self.model.encode_context(batch), n)
             energies = self.model.head(candidates.clone().flatten(0, 1), kv).mean(dim=-1)
@@ -147,11 +155,11 @@ class EBVLAPolicy(PreTrainedPolicy):
 class EBVLA(nn.Module):
     """The EB-VLA network: context encoding, energy, and the MCMC loops of inference and training.
 
-        observation ──► backbone ──► C_1 .. C_L ──► per-block keys/values (once per observation)
-                                                           │
-        a^(0) ~ N(0, sigma_init^2) ──► e_t = E_theta(a + eps, C_i) ◄──┘
-               ▲                              │ g = clip(grad_a E, c)                      (Eq. 2)
-               └── a - alpha exp(e_t / tau) g, clamped to a_max ◄──┘  x K                   (Eq. 3)
+    observation ──► backbone ──► C_1 .. C_L ──► per-block keys/values (once per observation)
+                                                       │
+    a^(0) ~ N(0, sigma_init^2) ──► e_t = E_theta(a + eps, C_i) ◄──┘
+           ▲                              │ g = clip(grad_a E, c)                      (Eq. 2)
+           └── a - alpha exp(e_t / tau) g, clamped to a_max ◄──┘  x K                   (Eq. 3)
     """
 
     def __init__(self, config: EBVLAConfig):
@@ -168,7 +176,9 @@ class EBVLA(nn.Module):
     def training_generator(self, device: torch.device) -> torch.Generator:
         """A generator for one training step; ranks of a multi-process run get different streams."""
         rank = torch.distributed.get_rank() if torch.distributed.is_initialized() else 0
-        seed = (int(self.mcmc_seed) * 6364136223846793005 + int(self.train_steps) * 1442695040888963407 + rank) % 2**63
+        seed = (
+            int(self.mcmc_seed) * 6364136223846793005 + int(self.train_steps) * 1442695040888963407 + rank
+        ) % 2**63
         self.train_steps += 1
         return torch.Generator(device=device).manual_seed(seed)
 
@@ -199,7 +209,9 @@ class EBVLA(nn.Module):
             early_stop_tol=early_stop_tol,
         )
 
-    def _initial_actions(self, batch_size: int, reference: Tensor, generator: torch.Generator | None) -> Tensor:
+    def _initial_actions(
+        self, batch_size: int, reference: Tensor, generator: torch.Generator | None
+    ) -> Tensor:
         return sample_initial_actions(
             (batch_size, self.config.chunk_size, self.config.action_dim),
             self.config.init_action_std,
@@ -219,7 +231,10 @@ class EBVLA(nn.Module):
         kv = repeat_context_kv(kv, restarts)
         initial = self._initial_actions(batch_size * restarts, kv[0][0], generator)
         result = self._refine(
-            kv, initial, [cfg.inference_step_size] * cfg.inference_mcmc_steps, generator,
+            kv,
+            initial,
+            [cfg.inference_step_size] * cfg.inference_mcmc_steps,
+            generator,
             early_stop_tol=cfg.early_stop_tol,
         )
         with torch.no_grad():
@@ -229,7 +244,8 @@ class EBVLA(nn.Module):
             logger.warning(
                 "EB-VLA refinement met a non-finite energy or gradient for %d of %d chunks: they keep their "
                 "last finite iterate and report final_energy=+inf.",
-                int(result.diverged.sum()), result.diverged.numel(),
+                int(result.diverged.sum()),
+                result.diverged.numel(),
             )
         actions, initial_energy = result.actions, result.step_energies[0]
         if restarts > 1:
@@ -238,7 +254,9 @@ class EBVLA(nn.Module):
             actions, initial_energy, final_energy = actions[rows], initial_energy[rows], final_energy[rows]
         return actions.detach(), EnergyReadout(initial_energy=initial_energy, final_energy=final_energy)
 
-    def compute_loss(self, batch: dict[str, Tensor], generator: torch.Generator | None = None) -> tuple[Tensor, dict]:
+    def compute_loss(
+        self, batch: dict[str, Tensor], generator: torch.Generator | None = None
+    ) -> tuple[Tensor, dict]:
         """Training: K ~ U[K_min, K_max] steps with alpha ~ U[alpha_min, alpha_max] each, L1 on a^(K) (Eq. 4).
 
         Without a `generator`, the randomness comes from `training_generator`.
@@ -255,7 +273,9 @@ class EBVLA(nn.Module):
         k_min, k_max = cfg.train_mcmc_steps_range
         num_steps = int(torch.randint(k_min, k_max + 1, (1,), generator=generator, device=device).item())
         alpha_min, alpha_max = cfg.train_step_size_range
-        step_sizes = (alpha_min + (alpha_max - alpha_min) * torch.rand(num_steps, generator=generator, device=device)).tolist()
+        step_sizes = (
+            alpha_min + (alpha_max - alpha_min) * torch.rand(num_steps, generator=generator, device=device)
+        ).tolist()
 
         # a^(0) takes the head's dtype (bf16 policies), the L1 loss is taken in float32.
         actions = self._initial_actions(target.shape[0], kv[0][0], generator)
@@ -304,7 +324,9 @@ def validate_observation(batch: dict[str, Tensor], config: EBVLAConfig) -> None:
                 f"the batch has keys {sorted(batch)}. Rename cameras with the pre-processor's rename map."
             )
         image = batch[key]
-        expected = f"(B, {feature.shape[0]}, H, W)" if resizes else f"(B, {', '.join(map(str, feature.shape))})"
+        expected = (
+            f"(B, {feature.shape[0]}, H, W)" if resizes else f"(B, {', '.join(map(str, feature.shape))})"
+        )
         ok = image.ndim == 4 and image.shape[1] == feature.shape[0]
         ok &= resizes or tuple(image.shape[1:]) == tuple(feature.shape)
         if not ok:
@@ -312,7 +334,9 @@ def validate_observation(batch: dict[str, Tensor], config: EBVLAConfig) -> None:
         _check_finite(image, key)
     if config.state_dim is not None:
         if OBS_STATE not in batch:
-            raise ValueError(f"Missing `{OBS_STATE}` of size {config.state_dim}. Batch keys: {sorted(batch)}.")
+            raise ValueError(
+                f"Missing `{OBS_STATE}` of size {config.state_dim}. Batch keys: {sorted(batch)}."
+            )
         state = batch[OBS_STATE]
         if state.ndim != 2 or state.shape[1] != config.state_dim:
             raise ValueError(f"`{OBS_STATE}` must be (B, {config.state_dim}). Got {tuple(state.shape)}.")
