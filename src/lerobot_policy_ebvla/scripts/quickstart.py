@@ -1,22 +1,29 @@
 """`ebvla-quickstart`: record, train, evaluate and monitor EB-VLA on MetaWorld in one command, on a CPU.
 
-The whole pipeline of the project, sized to run in about 15 minutes on a 2-core CPU with no network:
+The whole pipeline of the project, offline and sized for a small CPU:
 
-1. **Record** MetaWorld's scripted expert on one short task (`reach-v3` by default) as a LeRobotDataset
-   (`ebvla-record-metaworld`'s code, fast rendering, 128 px images). An existing dataset is reused.
+1. **Record** MetaWorld's scripted expert on one task (`button-press-v3`, 10 episodes, by default) as a
+   LeRobotDataset (`ebvla-record-metaworld`'s code, fast rendering, 128 px images). An existing dataset is
+   reused.
 2. **Train** `ebvla` with `lerobot-train`: the light backbone (LeRobot's Diffusion Policy ResNet-18 image
-   encoder, trained from scratch at 96x96) and a CPU-sized energy head (D=256, 8 heads, L=4 blocks, as in
-   EBT-Policy, instead of the paper's D=896).
-3. **Evaluate** with `ebvla-eval` (LeRobot's rollout) on a few seeded episodes of bounded length, recording
+   encoder, from scratch, at 64x64) and a CPU-sized energy head (D=128, 4 heads, L=2 blocks, instead of the
+   paper's D=896, L=4), 2-4 MCMC steps per training step (the paper: 8-15), 300 steps of batch 16.
+3. **Evaluate** with `ebvla-eval` (LeRobot's rollout) on 5 seeded episodes of at most 100 steps, recording
    the energy of every refined action chunk.
-4. **Summarise**: success rate, and the mean final energy E(a^(K_inf), C) per episode, for successful and
-   failed episodes.
+4. **Summarise**: success rate, and the mean initial and final energy per episode, for successful and failed
+   episodes.
+
+On a 2-core CPU shared with other jobs this took about 35 minutes, most of it training (about 5 s per step);
+300 steps are far too few for a useful policy: the quickstart shows the pipeline, not performance. Scale it
+up with `--train_steps`, `--batch_size`, `--dim_model`, `--n_blocks`, `--resize` and, with a GPU,
+`--device=cuda` (docs/benchmarks_metaworld.md: 800 steps of batch 32 on a GPU give 80% on button-press-v3).
 
 Everything goes under `--output_dir` (default `outputs/ebvla_quickstart`):
 
     <output_dir>/data/<task>/          the recorded dataset (reused when present)
     <output_dir>/train/                lerobot-train's output (checkpoints/last/pretrained_model)
     <output_dir>/eval/                 eval_info.json and energy_records.jsonl
+    <output_dir>/train.log, eval.log   the full output of lerobot-train and ebvla-eval
     <output_dir>/summary.json          the printed summary
 
 A previous training run is never replaced unless `--overwrite` is given (which then removes `train/` and
@@ -25,8 +32,8 @@ A previous training run is never replaced unless `--overwrite` is given (which t
 Example:
 
     pip install -e ".[metaworld]"
-    ebvla-quickstart                       # about 15 minutes on a 2-core CPU
-    ebvla-quickstart --train_steps=3000 --eval_episodes=10 --output_dir=outputs/qs_long
+    ebvla-quickstart
+    ebvla-quickstart --device=cuda --train_steps=3000 --batch_size=32 --output_dir=outputs/qs_gpu
 """
 
 import argparse
@@ -44,6 +51,8 @@ from pathlib import Path
 KEYPOINTS = 32
 # MCMC steps per training step (the paper samples K in [8, 15]); fewer is faster on a CPU.
 TRAIN_MCMC_STEPS = (2, 4)
+# Written into output_dir when a run starts: a second run there is refused without --overwrite.
+RUN_MARKER = "quickstart_run.json"
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -65,7 +74,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--train_steps", type=int, default=300)
     parser.add_argument("--batch_size", type=int, default=16)
     parser.add_argument("--learning_rate", type=float, default=5e-4)
-    parser.add_argument("--resize", type=int, default=64, help="Side the image encoder resizes frames to (> 32).")
+    parser.add_argument(
+        "--resize", type=int, default=64, help="Side the image encoder resizes frames to (> 32)."
+    )
     parser.add_argument("--dim_model", type=int, default=128, help="Energy-head width D (the paper: 896).")
     parser.add_argument("--n_heads", type=int, default=4, help="Attention heads of the energy head.")
     parser.add_argument("--n_blocks", type=int, default=2, help="Energy-head blocks L (the paper: 4).")
@@ -73,7 +84,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--max_episode_steps", type=int, default=100, help="Evaluation episodes end after this many steps."
     )
-    parser.add_argument("--seed", type=int, default=1000, help="Seed of training and of the first eval episode.")
+    parser.add_argument(
+        "--seed", type=int, default=1000, help="Seed of training and of the first eval episode."
+    )
     parser.add_argument("--device", default="cpu", help="Torch device for training and evaluation.")
     parser.add_argument(
         "--overwrite",
@@ -89,20 +102,26 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
+def say(text: str) -> None:
+    """Writes a line to the console at once (the subprocesses' lines interleave with ours)."""
+    sys.stdout.write(text + "\n")
+    sys.stdout.flush()
+
+
 def banner(text: str) -> None:
-    print(f"\n=== {text} ===", flush=True)
+    say(f"\n=== {text} ===")
 
 
 def run_logged(command: list[str], log_path: Path) -> None:
     """Runs a command, streaming its output to the console and to `log_path`; raises if it fails."""
-    print("$ " + " ".join(command), flush=True)
+    say("$ " + " ".join(command))
     with open(log_path, "w") as log:
         process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         for line in process.stdout:
             log.write(line)
             # lerobot-train's progress lines are the interesting part; warnings stay in the log file.
             if "INFO" in line or "Error" in line or "error" in line:
-                print("    " + line.rstrip(), flush=True)
+                say("    " + line.rstrip())
         process.wait()
     if process.returncode != 0:
         raise RuntimeError(f"Command failed with exit code {process.returncode}; see {log_path}.")
@@ -110,10 +129,12 @@ def run_logged(command: list[str], log_path: Path) -> None:
 
 def record_dataset(args: argparse.Namespace, root: Path, repo_id: str) -> None:
     if (root / "meta" / "info.json").is_file():
-        print(f"Reusing the dataset at {root}.", flush=True)
+        say(f"Reusing the dataset at {root}.")
         return
     if root.exists() and any(root.iterdir()):
-        raise FileExistsError(f"{root} exists but is not a LeRobotDataset; move it away or pick another --output_dir.")
+        raise FileExistsError(
+            f"{root} exists but is not a LeRobotDataset; move it away or pick another --output_dir."
+        )
     from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
     from lerobot_policy_ebvla.scripts.record_metaworld import RecordMetaworldConfig, record_metaworld
 
@@ -133,7 +154,9 @@ def record_dataset(args: argparse.Namespace, root: Path, repo_id: str) -> None:
 
 def train(args: argparse.Namespace, root: Path, repo_id: str, train_dir: Path) -> None:
     command = [
-        sys.executable, "-m", "lerobot.scripts.lerobot_train",
+        sys.executable,
+        "-m",
+        "lerobot.scripts.lerobot_train",
         f"--dataset.repo_id={repo_id}",
         f"--dataset.root={root}",
         "--policy.type=ebvla",
@@ -166,7 +189,9 @@ def train(args: argparse.Namespace, root: Path, repo_id: str, train_dir: Path) -
 
 def evaluate(args: argparse.Namespace, checkpoint: Path, eval_dir: Path) -> None:
     command = [
-        sys.executable, "-m", "lerobot_policy_ebvla.scripts.eval_energy",
+        sys.executable,
+        "-m",
+        "lerobot_policy_ebvla.scripts.eval_energy",
         f"--policy.path={checkpoint}",
         f"--policy.device={args.device}",
         "--env.type=metaworld_ebvla",
@@ -219,21 +244,21 @@ def summarise(eval_dir: Path) -> dict:
 
 
 def print_summary(summary: dict) -> None:
-    print(f"{'task':<16} {'episode':>7} {'seed':>6} {'success':>7} {'chunks':>6} {'E_init':>8} {'E_final':>8}")
+    say(f"{'task':<16} {'episode':>7} {'seed':>6} {'success':>7} {'chunks':>6} {'E_init':>8} {'E_final':>8}")
     for e in summary["episodes"]:
-        print(
+        say(
             f"{e['task']:<16} {e['episode']:>7} {str(e['seed']):>6} {str(e['success']):>7} {e['chunks']:>6} "
             f"{e['mean_initial_energy']:>8.3f} {e['mean_final_energy']:>8.3f}"
         )
-    print(
+    say(
         f"\nSuccess rate: {summary['n_success']}/{summary['n_episodes']} "
         f"({100 * summary['success_rate']:.0f}%)"
     )
-    print(
+    say(
         f"Mean energy per chunk: initial E(a^(0), C) = {summary['mean_initial_energy']:.3f}, "
         f"final E(a^(K), C) = {summary['mean_final_energy']:.3f} (MCMC refinement lowers it)"
     )
-    print(
+    say(
         f"Mean final energy of successful episodes: {summary['mean_final_energy_success']:.3f}, "
         f"of failed episodes: {summary['mean_final_energy_failure']:.3f} (nan: no such episode)"
     )
@@ -246,15 +271,20 @@ def main(argv: list[str] | None = None) -> None:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     output_dir = args.output_dir
     train_dir, eval_dir = output_dir / "train", output_dir / "eval"
-    if train_dir.exists() or eval_dir.exists():
+    # lerobot-train creates `train/` only when it first saves, so a run in progress is marked at once.
+    marker = output_dir / RUN_MARKER
+    if marker.exists() or train_dir.exists() or eval_dir.exists():
         if not args.overwrite:
             sys.exit(
-                f"{train_dir} already holds a training run: pass --overwrite to replace it (the dataset is "
-                "kept), or choose another --output_dir."
+                f"{output_dir} already holds a quickstart run ({RUN_MARKER}, train/ or eval/): pass --overwrite "
+                "to replace it (the dataset is kept), or choose another --output_dir."
             )
         shutil.rmtree(train_dir, ignore_errors=True)
         shutil.rmtree(eval_dir, ignore_errors=True)
     output_dir.mkdir(parents=True, exist_ok=True)
+    marker.write_text(
+        json.dumps({"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "args": sys.argv[1:]}) + "\n"
+    )
     dataset_name = args.task.replace(",", "_")
     root, repo_id = output_dir / "data" / dataset_name, f"local/metaworld_{dataset_name}"
     timings = {}
@@ -286,14 +316,13 @@ def main(argv: list[str] | None = None) -> None:
     summary["timings_s"] = {name: round(seconds, 1) for name, seconds in timings.items()}
     summary["checkpoint"] = str(checkpoint)
     print_summary(summary)
-    print(
-        "Time: "
-        + ", ".join(f"{name[:-2]} {seconds / 60:.1f} min" for name, seconds in timings.items())
-    )
+    say("Time: " + ", ".join(f"{name[:-2]} {seconds / 60:.1f} min" for name, seconds in timings.items()))
     with open(output_dir / "summary.json", "w") as f:
         json.dump(summary, f, indent=2)
-    print(f"\nCheckpoint: {checkpoint}")
-    print(f"Energy records: {eval_dir / 'energy_records.jsonl'} (see docs/monitoring.md for the OOD and failure reports)")
+    say(f"\nCheckpoint: {checkpoint}")
+    say(
+        f"Energy records: {eval_dir / 'energy_records.jsonl'} (see docs/monitoring.md for the OOD and failure reports)"
+    )
 
 
 if __name__ == "__main__":
