@@ -13,10 +13,11 @@ The whole pipeline of the project, offline and sized for a small CPU:
 4. **Summarise**: success rate, and the mean initial and final energy per episode, for successful and failed
    episodes.
 
-On a 2-core CPU shared with other jobs this took about 35 minutes, most of it training (about 5 s per step);
-300 steps are far too few for a useful policy: the quickstart shows the pipeline, not performance. Scale it
-up with `--train_steps`, `--batch_size`, `--dim_model`, `--n_blocks`, `--resize` and, with a GPU,
-`--device=cuda` (docs/benchmarks_metaworld.md: 800 steps of batch 32 on a GPU give 80% on button-press-v3).
+On a 2-core CPU shared with other jobs (load 4-8) the first full run took 33 minutes: recording 1.9 min,
+training 28.4 min (0.3 s per step when the CPU was free, 3-16 s when it was shared), evaluation 2.1 min; it
+succeeded in 3 of 5 button-press episodes. Five episodes say little: scale up with `--train_steps`,
+`--batch_size`, `--eval_episodes`, `--dim_model`, `--n_blocks`, `--resize` and, with a GPU, `--device=cuda`
+(docs/benchmarks_metaworld.md: 800 steps of batch 32 on a GPU, 3 tasks, 80% on button-press-v3).
 
 Everything goes under `--output_dir` (default `outputs/ebvla_quickstart`):
 
@@ -45,6 +46,7 @@ import shutil
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 # Spatial-softmax keypoints of the light image encoder (LeRobot's Diffusion Policy default).
@@ -113,17 +115,20 @@ def banner(text: str) -> None:
 
 
 def run_logged(command: list[str], log_path: Path) -> None:
-    """Runs a command, streaming its output to the console and to `log_path`; raises if it fails."""
+    """Runs a command with its full output in `log_path`, echoing its log lines; raises if it fails."""
     say("$ " + " ".join(command))
     with open(log_path, "w") as log:
         process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         for line in process.stdout:
             log.write(line)
-            # lerobot-train's progress lines are the interesting part; warnings stay in the log file.
-            if "INFO" in line or "Error" in line or "error" in line:
-                say("    " + line.rstrip())
+            # LeRobot's INFO lines carry the progress (tqdm bars before them are cut off); warnings stay
+            # in the log file.
+            if "INFO " in line:
+                say("    " + line[line.index("INFO ") :].rstrip())
         process.wait()
     if process.returncode != 0:
+        tail = log_path.read_text().splitlines()[-40:]
+        say("\n".join(tail))
         raise RuntimeError(f"Command failed with exit code {process.returncode}; see {log_path}.")
 
 
@@ -135,8 +140,12 @@ def record_dataset(args: argparse.Namespace, root: Path, repo_id: str) -> None:
         raise FileExistsError(
             f"{root} exists but is not a LeRobotDataset; move it away or pick another --output_dir."
         )
+    import datasets
+
     from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
     from lerobot_policy_ebvla.scripts.record_metaworld import RecordMetaworldConfig, record_metaworld
+
+    datasets.disable_progress_bars()  # one "Map" bar per saved episode
 
     cfg = RecordMetaworldConfig(
         env=MetaworldEBVLAEnv(task=args.task, fast_render=True),
@@ -268,7 +277,13 @@ def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
     # MuJoCo renders off-screen; EGL needs no display (and is inherited by the subprocesses).
     os.environ.setdefault("MUJOCO_GL", "egl")
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    from lerobot.utils.utils import init_logging
+
+    init_logging()
+    # Noise of the in-process recording: LeRobot falls back from torchcodec to PyAV (PNG frames need
+    # neither), and MetaWorld warns that its experts' gains exceed the action space (actions are clipped).
+    logging.getLogger("lerobot.utils.import_utils").setLevel(logging.ERROR)
+    warnings.filterwarnings("ignore", message=r"Constant\(s\) may be too high")
     output_dir = args.output_dir
     train_dir, eval_dir = output_dir / "train", output_dir / "eval"
     # lerobot-train creates `train/` only when it first saves, so a run in progress is marked at once.
