@@ -20,7 +20,7 @@ from .conftest import tiny_batch, tiny_config
 TOL = {"atol": 1e-5, "rtol": 1e-5}
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def policy() -> EBVLAPolicy:
     torch.manual_seed(0)
     return EBVLAPolicy(tiny_config()).eval()
@@ -88,7 +88,10 @@ def test_frozen_parameters_give_the_same_refinement(policy):
     batch = tiny_batch(policy.config, with_action=False)
     reference = refine(policy, batch)
     policy.requires_grad_(False)
-    assert_same_refinement(reference, refine(policy, batch), exact=True)
+    try:
+        assert_same_refinement(reference, refine(policy, batch), exact=True)
+    finally:
+        policy.requires_grad_(True)
 
 
 def test_detached_parameter_energy_gives_the_same_refinement(policy):
