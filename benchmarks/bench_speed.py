@@ -33,8 +33,10 @@ call, so that earlier cells' freed memory does not hide its allocations.
 
 Run (a quiet machine; `--threads 1` on a shared one, where oversubscribed threads distort everything):
 
-    python benchmarks/bench_speed.py --variants --json benchmarks/results/bench_speed.json \
-        --markdown benchmarks/results/bench_speed.md
+    python benchmarks/bench_speed.py --variants --compile --json benchmarks/results/bench_speed_cpu.json
+
+It takes about half an hour on a 2-core CPU, most of it in the default Diffusion's 100-step chunks
+(`--policies` picks fewer rows).
 
 `--quick` is a smoke test (tiny head, CPU-sized diffusion only, 2 repeats).
 """
@@ -299,7 +301,8 @@ def policy_cells(name: str, policy: nn.Module, scene: Scene, args, device: torch
 
     def setup_train():
         policy.train()
-        # EB-VLA samples K ~ U[K_min, K_max] at every step: a seeded sequence keeps re-runs comparable.
+        # Diffusion's noise and timesteps come from the global RNG (EB-VLA's K ~ U[K_min, K_max] from its own
+        # generator, seeded at construction): seeding each step keeps re-runs comparable.
         torch.manual_seed(next(seeds))
 
     def train_step():
