@@ -12,7 +12,7 @@ import torch
 from torch.func import functional_call
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
-from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
+from lerobot_policy_ebvla import EBVLAPolicy
 from lerobot_policy_ebvla.mcmc import refine_actions
 
 from .conftest import tiny_batch, tiny_config
@@ -147,10 +147,6 @@ def test_inductor_compiled_energy_gives_the_same_refinement(policy):
     assert_same_refinement((reference.actions, reference.step_energies), (got.actions, got.step_energies))
 
 
-@pytest.mark.skipif(
-    "compile_refinement" not in EBVLAConfig.__dataclass_fields__,
-    reason="`compile_refinement` not in the config",
-)
 def test_compile_refinement_gives_the_same_refinement(monkeypatch):
     """`compile_refinement=True` returns the actions and energies of the eager policy (aot_eager graph)."""
     from lerobot_policy_ebvla import modeling_ebvla

@@ -88,6 +88,9 @@ class EBVLAConfig(PreTrainedConfig):
             energy (energy as a verifier). 1 is the paper.
         early_stop_tol: Stop refining once no action moves more than this in one step. None (the paper)
             runs all K_inf steps.
+        compile_refinement: torch.compile the energy evaluated at every inference MCMC step (same actions
+            and energies up to float rounding). Each new batch size compiles again, 15-60 s per shape on a
+            CPU, so it pays off over long rollouts only.
         optimizer_lr: AdamW learning rate.
         optimizer_betas: AdamW betas.
         optimizer_eps: AdamW epsilon.
@@ -173,6 +176,7 @@ class EBVLAConfig(PreTrainedConfig):
     # Inference options beyond the paper (off by default).
     num_restarts: int = 1
     early_stop_tol: float | None = None
+    compile_refinement: bool = False
 
     # Training presets.
     optimizer_lr: float = 1e-4

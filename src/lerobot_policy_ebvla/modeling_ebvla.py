@@ -5,6 +5,7 @@ produces actions by gradient descent on it. The energy of the refined chunk is r
 confidence score: `EnergyReadout.final_energy` (higher means less expert-like, see `monitoring/`).
 """
 
+import functools
 import logging
 import math
 import os
@@ -18,12 +19,13 @@ from lerobot.configs import PreTrainedConfig
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_STATE
 from torch import Tensor, nn
+from torch.func import functional_call
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from .backbone_resnet import EBVLAResNetBackbone
 from .configuration_ebvla import EBVLAConfig
 from .energy_head import ContextKV, EBVLAEnergyHead, repeat_context_kv
-from .mcmc import RefinementResult, refine_actions, sample_initial_actions
+from .mcmc import EnergyFn, RefinementResult, refine_actions, sample_initial_actions
 
 logger = logging.getLogger(__name__)
 
@@ -194,10 +196,11 @@ class EBVLA(nn.Module):
         generator: torch.Generator | None,
         create_graph: bool = False,
         early_stop_tol: float | None = None,
+        energy_fn: EnergyFn | None = None,
     ) -> RefinementResult:
         cfg = self.config
         return refine_actions(
-            lambda a: self.head(a, kv),
+            energy_fn or (lambda a: self.head(a, kv)),
             initial_actions,
             step_sizes,
             temperature=cfg.energy_temperature,
@@ -220,6 +223,17 @@ class EBVLA(nn.Module):
             generator=generator,
         )
 
+    def _inference_energy_fn(self, kv: ContextKV) -> EnergyFn:
+        """The energy of the inference MCMC steps: the head itself, or its compiled graph if asked for."""
+        if not self.config.compile_refinement:
+            return lambda a: self.head(a, kv)
+        # Detached parameters: the compiled backward then computes grad_a only. With parameters that require
+        # grad, AOTAutograd's backward would also compute every weight gradient (the eager engine skips them).
+        params = {name: p.detach() for name, p in self.head.named_parameters()}
+        params.update(self.head.named_buffers())
+        energy = compiled_head_energy()
+        return lambda a: energy(self.head, params, a, kv)
+
     def generate_actions(
         self, batch: dict[str, Tensor], generator: torch.Generator | None = None
     ) -> tuple[Tensor, EnergyReadout]:
@@ -236,6 +250,7 @@ class EBVLA(nn.Module):
             [cfg.inference_step_size] * cfg.inference_mcmc_steps,
             generator,
             early_stop_tol=cfg.early_stop_tol,
+            energy_fn=self._inference_energy_fn(kv),
         )
         with torch.no_grad():
             final_energy = self.head(result.actions, kv).mean(dim=-1)
@@ -303,6 +318,17 @@ class EBVLA(nn.Module):
             "last_step_energy": last.step_energies[-1].mean().item(),
         }
         return loss, info
+
+
+def head_energy(head: EBVLAEnergyHead, params: dict[str, Tensor], actions: Tensor, kv: ContextKV) -> Tensor:
+    """Per-timestep energies of `actions` under `kv`, with `params` in place of the head's own."""
+    return functional_call(head, params, (actions, kv))
+
+
+@functools.cache
+def compiled_head_energy():
+    """`head_energy` under torch.compile, built once per process (`EBVLAConfig.compile_refinement`)."""
+    return torch.compile(head_energy, dynamic=False)
 
 
 def make_backbone(config: EBVLAConfig) -> nn.Module:
