@@ -140,26 +140,22 @@ def train(method: str, args: argparse.Namespace, root: Path) -> float:
 
 
 def evaluate(method: str, task: str, perturbation: str, severity: int, args: argparse.Namespace) -> float:
+    from lerobot_policy_ebvla.scripts.eval_energy import metaworld_eval_command  # imports LeRobot's eval
+
     name = "vanilla" if perturbation == "none" else f"{perturbation}{severity}"
     out = args.output_dir / "eval" / method / name / task
     checkpoint = args.output_dir / "train" / method / "checkpoints" / "last" / "pretrained_model"
-    command = [
-        sys.executable,
-        "-m",
-        "lerobot_policy_ebvla.scripts.eval_energy",
-        f"--policy.path={checkpoint}",
-        f"--policy.device={args.device}",
-        "--env.type=metaworld_ebvla",
-        f"--env.task={task}",
-        "--env.fast_render=true",
-        f"--env.max_episode_steps={args.max_episode_steps}",
-        f"--eval.n_episodes={args.eval_episodes}",
-        "--eval.batch_size=1",
-        f"--seed={args.seed}",
-        f"--output_dir={out}",
-    ]
-    if perturbation != "none":
-        command += [f"--env.camera_perturbation={perturbation}", f"--env.perturbation_severity={severity}"]
+    command = metaworld_eval_command(
+        checkpoint,
+        out,
+        task=task,
+        device=args.device,
+        max_episode_steps=args.max_episode_steps,
+        n_episodes=args.eval_episodes,
+        seed=args.seed,
+        perturbation=perturbation,
+        severity=severity,
+    )
     log = args.output_dir / "logs" / f"eval_{method}_{name}_{task}.log"
     return run(command, log)
 

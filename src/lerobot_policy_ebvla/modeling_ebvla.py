@@ -108,9 +108,7 @@ class EBVLAPolicy(PreTrainedPolicy):
         validate_observation(batch, self.config)
         # lerobot-eval runs under inference_mode, but refinement differentiates the energy w.r.t. a.
         with torch.inference_mode(False):
-            batch = {
-                k: v.clone() if isinstance(v, Tensor) and v.is_inference() else v for k, v in batch.items()
-            }
+            batch = _without_inference_tensors(batch)
             actions, readout = self.model.generate_actions(batch, generator=generator)
         return (actions, readout) if return_energy else actions
 
@@ -139,9 +137,7 @@ class EBVLAPolicy(PreTrainedPolicy):
                 f"`candidates` must be (B, N, {expected[0]}, {expected[1]}). Got {tuple(candidates.shape)}."
             )
         with torch.inference_mode(False), torch.no_grad():
-            batch = {
-                k: v.clone() if isinstance(v, Tensor) and v.is_inference() else v for k, v in batch.items()
-            }
+            batch = _without_inference_tensors(batch)
             b, n = candidates.shape[:2]
             kv = repeat_context_kv(self.model.encode_context(batch), n)
             energies = self.model.head(candidates.clone().flatten(0, 1), kv).mean(dim=-1)
@@ -378,6 +374,11 @@ def validate_actions(batch: dict[str, Tensor], config: EBVLAConfig) -> None:
     if action.ndim != 3 or tuple(action.shape[1:]) != expected:
         raise ValueError(f"`{ACTION}` must be (B, {expected[0]}, {expected[1]}). Got {tuple(action.shape)}.")
     _check_finite(action, ACTION)
+
+
+def _without_inference_tensors(batch: dict[str, Tensor]) -> dict[str, Tensor]:
+    """Clones tensors made under `torch.inference_mode` (lerobot-eval), which autograd cannot record."""
+    return {k: v.clone() if isinstance(v, Tensor) and v.is_inference() else v for k, v in batch.items()}
 
 
 def _check_finite(tensor: Tensor, key: str) -> None:

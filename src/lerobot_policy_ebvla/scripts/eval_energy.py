@@ -18,6 +18,7 @@ Unlike lerobot-eval, which always renders videos of the first 10 episodes, video
 
 import json
 import logging
+import sys
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -308,6 +309,42 @@ def main() -> None:
     init_logging()
     register_third_party_plugins()
     eval_energy_main()
+
+
+def metaworld_eval_command(
+    checkpoint: Path,
+    output_dir: Path,
+    *,
+    task: str,
+    device: str,
+    max_episode_steps: int,
+    n_episodes: int,
+    seed: int,
+    perturbation: str = "none",
+    severity: int = 0,
+) -> list[str]:
+    """The `ebvla-eval` command line of a fast-render MetaWorld evaluation, one env at a time.
+
+    The quickstart and the MetaWorld benchmark both evaluate this way, so they build the command here.
+    """
+    command = [
+        sys.executable,
+        "-m",
+        "lerobot_policy_ebvla.scripts.eval_energy",
+        f"--policy.path={checkpoint}",
+        f"--policy.device={device}",
+        "--env.type=metaworld_ebvla",
+        f"--env.task={task}",
+        "--env.fast_render=true",
+        f"--env.max_episode_steps={max_episode_steps}",
+        f"--eval.n_episodes={n_episodes}",
+        "--eval.batch_size=1",
+        f"--seed={seed}",
+        f"--output_dir={output_dir}",
+    ]
+    if perturbation != "none":
+        command += [f"--env.camera_perturbation={perturbation}", f"--env.perturbation_severity={severity}"]
+    return command
 
 
 if __name__ == "__main__":

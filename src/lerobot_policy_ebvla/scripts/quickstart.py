@@ -197,21 +197,17 @@ def train(args: argparse.Namespace, root: Path, repo_id: str, train_dir: Path) -
 
 
 def evaluate(args: argparse.Namespace, checkpoint: Path, eval_dir: Path) -> None:
-    command = [
-        sys.executable,
-        "-m",
-        "lerobot_policy_ebvla.scripts.eval_energy",
-        f"--policy.path={checkpoint}",
-        f"--policy.device={args.device}",
-        "--env.type=metaworld_ebvla",
-        f"--env.task={args.task}",
-        "--env.fast_render=true",
-        f"--env.max_episode_steps={args.max_episode_steps}",
-        f"--eval.n_episodes={args.eval_episodes}",
-        "--eval.batch_size=1",
-        f"--seed={args.seed}",
-        f"--output_dir={eval_dir}",
-    ]
+    from lerobot_policy_ebvla.scripts.eval_energy import metaworld_eval_command  # imports LeRobot's eval
+
+    command = metaworld_eval_command(
+        checkpoint,
+        eval_dir,
+        task=args.task,
+        device=args.device,
+        max_episode_steps=args.max_episode_steps,
+        n_episodes=args.eval_episodes,
+        seed=args.seed,
+    )
     run_logged(command, args.output_dir / "eval.log")
 
 
