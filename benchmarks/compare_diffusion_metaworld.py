@@ -74,10 +74,12 @@ def method_args(method: str, args: argparse.Namespace) -> list[str]:
             *encoder,
             f"--policy.crop_ratio={CROP_RATIO}",
             f"--policy.down_dims=[{','.join(str(d) for d in args.diffusion_down_dims)}]",
-            "--policy.n_obs_steps=2",
-            "--policy.horizon=16",
+            # The same observation and chunk as EB-VLA: one observation step, an 8-step chunk, all executed.
+            # Diffusion keeps its own min-max normalization: its sample clipping assumes actions in [-1, 1].
+            "--policy.n_obs_steps=1",
+            "--policy.horizon=8",
             "--policy.n_action_steps=8",
-            "--policy.drop_n_last_frames=7",
+            "--policy.drop_n_last_frames=0",
             f"--policy.scheduler_warmup_steps={min(500, args.steps // 10)}",
         ]
     raise ValueError(f"Unknown method {method!r}.")

@@ -116,7 +116,15 @@ def size_table(policy: EBVLAPolicy) -> str:
         2 * frozen + 4 * 4 * trainable_total
     )  # bf16 frozen weights, fp32 trainable + grads + moments
     bf16_static = 2 * total + 3 * 2 * trainable_total  # everything bf16 (the GPU benchmark's setting)
+    # `EBVLAPolicy._save_pretrained` stores a tensor in bf16 when bf16 holds it exactly: every frozen weight with
+    # `frozen_weights_dtype="bfloat16"`, which rounds them when the backbone is built. Trainable ones stay fp32.
+    narrow_frozen = 2 if policy.config.frozen_weights_dtype == "bfloat16" else 4
     lines += [
+        "",
+        "Checkpoint (model.safetensors, weights only):",
+        f"- frozen_weights_dtype=float32 (all fp32): {4 * total / GIB:.3f} GiB",
+        f"- frozen_weights_dtype={policy.config.frozen_weights_dtype} (frozen in that dtype, trainable fp32): "
+        f"{(narrow_frozen * frozen + 4 * trainable_total) / GIB:.3f} GiB",
         "",
         "Static training memory (weights, gradients and AdamW moments; activations excluded):",
         f"- all fp32: {fp32_static / GIB:.2f} GiB",

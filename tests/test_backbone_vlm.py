@@ -12,6 +12,7 @@ import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.factory import make_pre_post_processors
 from lerobot.utils.constants import ACTION, OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS, OBS_STATE
+from safetensors import safe_open
 from tokenizers import Tokenizer, models, pre_tokenizers, trainers
 from transformers import PreTrainedTokenizerFast, Qwen2Config
 
@@ -129,11 +130,18 @@ def test_camera_gives_256_tokens_at_224_px(tiny_lm):
     assert backbone.num_vision_tokens == 256 * len(CAMERAS)
 
 
-def test_default_context_layers_spread_over_last_hidden_states():
-    # Qwen2.5-0.5B: 24 layers + embedding = 25 hidden states; N_l = 23 (Table V), L = 4 head blocks.
-    assert default_context_layers(25, 23, 4) == (2, 9, 17, 24)
-    assert default_context_layers(25, 25, 5) == (0, 6, 12, 18, 24)
-    assert default_context_layers(25, 23, 1) == (24,)
+def test_default_context_layers_spread_over_the_first_n_l_states_embedding_included():
+    # Table V: N_l = 23 states with the embedding, i.e. states 0..22 of Qwen2.5-0.5B's 25; L = 4 head blocks.
+    assert default_context_layers(23, 4) == (0, 7, 15, 22)
+    assert default_context_layers(25, 5) == (0, 6, 12, 18, 24)
+    assert default_context_layers(23, 1) == (22,)
+
+
+def test_lora_adapts_only_the_layers_the_head_reads(tiny_lm):
+    # Hidden state 1 is layer 0's output: layer 1 never reaches the head, so it gets no adapter.
+    backbone = EBVLAVisionLanguageBackbone(vlm_config(tiny_lm, context_layers=(0, 1)))
+    adapted = {name.split(".")[1] for name, _ in backbone.lm.named_parameters() if "lora_" in name}
+    assert adapted == {"0"}
 
 
 def test_only_lora_projector_latents_and_state_projection_train(tiny_lm):
@@ -197,7 +205,7 @@ def test_language_model_config_is_recorded_in_the_policy_config(tiny_lm):
     backbone = EBVLAVisionLanguageBackbone(config)
     assert config.vlm_config["model_type"] == "qwen2"
     assert config.vlm_config["num_hidden_layers"] == 1 == len(backbone.lm.layers)
-    assert backbone.context_layers == (1, 1)  # N_l = 1: both blocks on the last hidden state
+    assert backbone.context_layers == (0, 0)  # N_l = 1: both blocks on the only extracted state
 
 
 @pytest.mark.parametrize(
@@ -271,3 +279,35 @@ def test_saved_policy_reloads_offline_with_identical_actions(tmp_path):
         preprocessor(raw_batch()), generator=torch.Generator().manual_seed(1)
     )
     torch.testing.assert_close(reloaded_actions, actions, atol=0, rtol=0)
+
+
+@pytest.mark.parametrize("frozen_weights_dtype", ["bfloat16", "float32"])
+def test_checkpoint_stores_frozen_weights_in_frozen_weights_dtype(tiny_lm, tmp_path, frozen_weights_dtype):
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(vlm_config(tiny_lm, frozen_weights_dtype=frozen_weights_dtype))
+    policy.save_pretrained(tmp_path)
+    with safe_open(tmp_path / "model.safetensors", framework="pt") as f:
+        dtypes = {key: f.get_slice(key).get_dtype() for key in f.keys()}  # noqa: SIM118
+    # Matrices: vectors such as norm weights of ones are stored in bf16 whenever that is exact.
+    frozen = {
+        f"model.backbone.{name}"
+        for name, param in policy.model.backbone.named_parameters()
+        if not param.requires_grad and param.ndim >= 2
+    }
+    assert frozen
+    assert {dtypes[key] for key in frozen} == {"BF16" if frozen_weights_dtype == "bfloat16" else "F32"}
+    assert dtypes["model.backbone.projector.mlp.0.weight"] == dtypes["model.head.action_in.weight"] == "F32"
+
+
+def test_resaving_a_checkpoint_with_float32_frozen_weights_loses_nothing(tiny_lm, tmp_path):
+    # A checkpoint saved before `frozen_weights_dtype` existed: fp32 frozen weights, no such field in its config.
+    torch.manual_seed(0)
+    EBVLAPolicy(vlm_config(tiny_lm, frozen_weights_dtype="float32")).save_pretrained(tmp_path / "old")
+    config_file = tmp_path / "old" / "config.json"
+    config_file.write_text(config_file.read_text().replace('"frozen_weights_dtype": "float32",', ""))
+    old = EBVLAPolicy.from_pretrained(tmp_path / "old")
+    assert old.config.frozen_weights_dtype == "bfloat16"  # the new default applies, yet nothing is rounded
+    old.save_pretrained(tmp_path / "new")
+    new = EBVLAPolicy.from_pretrained(tmp_path / "new")
+    for (name, tensor), (_, reloaded) in zip(old.state_dict().items(), new.state_dict().items(), strict=True):
+        assert torch.equal(tensor, reloaded), name

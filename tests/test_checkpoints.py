@@ -1,6 +1,7 @@
 """Checkpoints survive: failed saves keep the previous files, training resumes where it stopped."""
 
 import re
+from pathlib import Path
 
 import pytest
 import torch
@@ -19,12 +20,14 @@ def test_a_failed_save_leaves_the_previous_checkpoint_intact(tiny_policy, tmp_pa
     tiny_policy.save_pretrained(tmp_path)
     expected = tiny_policy.predict_action_chunk(batch, generator=torch.Generator().manual_seed(0))
 
-    def crash_midway(model, filename):
-        with open(filename, "wb") as f:
-            f.write(b"half a file")
+    def crash_midway(weights, target, **kwargs):
+        # `target` is the file (save_model_as_safetensor) or the folder (save_torch_state_dict).
+        path = Path(target) / "model.safetensors" if Path(target).is_dir() else Path(target)
+        path.write_bytes(b"half a file")
         raise OSError("disk full")
 
     monkeypatch.setattr(pretrained, "save_model_as_safetensor", crash_midway)
+    monkeypatch.setattr(pretrained, "save_torch_state_dict", crash_midway)
     with torch.no_grad():
         for p in tiny_policy.parameters():
             p.add_(1.0)

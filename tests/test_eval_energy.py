@@ -1,16 +1,23 @@
-"""`ebvla-eval`'s energy recording around LeRobot's rollout, with a scripted env and policy (no simulator)."""
+"""The energy recorder (`monitoring/recorder.py`) around LeRobot's rollout, with a scripted env and policy (no
+simulator), its opt-in baselines on a tiny EB-VLA, and `ebvla-eval`'s env perturbation."""
 
 import math
+from types import SimpleNamespace
 
 import gymnasium as gym
 import numpy as np
+import pytest
 import torch
 from lerobot.scripts.lerobot_eval import rollout
 from torch import nn
 
 from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
 from lerobot_policy_ebvla.modeling_ebvla import EnergyReadout
-from lerobot_policy_ebvla.scripts.eval_energy import EnergyRecorder, env_perturbation
+from lerobot_policy_ebvla.monitoring.recorder import EnergyRecorder
+from lerobot_policy_ebvla.monitoring.records import read_energy_records, write_energy_records
+from lerobot_policy_ebvla.scripts.eval_energy import env_perturbation
+
+from .conftest import tiny_batch
 
 N_ACTION_STEPS = 3
 
@@ -101,12 +108,59 @@ def test_recorder_restores_the_policy_select_action():
     assert "select_action" not in vars(policy)
 
 
+def recorded_actions(policy, **recorder_options):
+    """Two refinements for a batch of 2 envs; returns the executed actions and the recorder."""
+    batch = tiny_batch(policy.config, batch_size=2, with_action=False)
+    env = gym.vector.SyncVectorEnv([lambda: CountdownEnv(50)] * 2)
+    policy.eval()
+    policy.reset()
+    torch.manual_seed(1)
+    with EnergyRecorder(policy, **recorder_options) as recorder:
+        recorder.watch(env, "g", 0).reset(seed=[0, 1])
+        actions = [policy.select_action(batch) for _ in range(policy.config.n_action_steps + 1)]
+    return torch.stack(actions), recorder, batch
+
+
+def test_recorder_records_restart_spread_and_context_features(tiny_policy, tmp_path):
+    _, recorder, batch = recorded_actions(tiny_policy, restart_spread_chains=3, record_context_features=True)
+    records = recorder.records_from_successes({("g", 0): [True, False]}, n_episodes=2)
+    assert [(r.episode_index, r.chunk_index) for r in records] == [(0, 0), (0, 1), (1, 0), (1, 1)]
+    assert all(r.restart_spread > 0 for r in records)
+    with torch.no_grad():
+        pooled = tiny_policy.model.backbone(batch)[-1].mean(dim=1).numpy()
+    np.testing.assert_allclose(records[0].context_feature, pooled[0], rtol=1e-5)
+    np.testing.assert_allclose(records[3].context_feature, pooled[1], rtol=1e-5)
+    read = read_energy_records(write_energy_records(tmp_path / "energy_records.jsonl", records))
+    assert [r.restart_spread for r in read] == pytest.approx([r.restart_spread for r in records])
+    assert read[2].context_feature.shape == (tiny_policy.config.dim_model,)
+
+
+def test_recording_the_baselines_leaves_the_executed_actions_unchanged(tiny_policy):
+    plain, _, _ = recorded_actions(tiny_policy)
+    with_baselines, _, _ = recorded_actions(
+        tiny_policy, restart_spread_chains=3, record_context_features=True
+    )
+    torch.testing.assert_close(plain, with_baselines)
+
+
+def test_recorder_without_baselines_leaves_them_empty(tiny_policy):
+    _, recorder, _ = recorded_actions(tiny_policy)
+    records = recorder.records_from_successes({("g", 0): [True, True]}, n_episodes=2)
+    assert all(r.restart_spread is None and r.context_feature is None for r in records)
+
+
+def test_restart_spread_needs_at_least_two_chains(tiny_policy):
+    with pytest.raises(ValueError, match="restart_spread_chains"):
+        EnergyRecorder(tiny_policy, restart_spread_chains=1)
+
+
 def test_perturbation_of_an_env_config():
-    assert env_perturbation(MetaworldEBVLAEnv(camera_perturbation="fov", perturbation_severity=3)) == (
+    assert env_perturbation(MetaworldEBVLAEnv(perturbation="fov", perturbation_severity=3)) == (
         "fov",
         3.0,
     )
-    assert env_perturbation(MetaworldEBVLAEnv(camera_perturbation="fov", perturbation_severity=0)) == (
+    assert env_perturbation(MetaworldEBVLAEnv(perturbation="fov", perturbation_severity=0)) == (
         "none",
         0.0,
     )
+    assert env_perturbation(SimpleNamespace(task="an env without perturbations")) == ("none", 0.0)

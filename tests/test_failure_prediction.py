@@ -12,11 +12,14 @@ import numpy as np
 import pytest
 
 from lerobot_policy_ebvla.monitoring.failure import (
+    energy_matrix,
     episode_slopes,
+    evaluate_configurations,
     evaluate_failure_predictor,
     failure_prediction_sweep,
     format_failure_table,
     linear_slope,
+    select_configurations,
 )
 from lerobot_policy_ebvla.monitoring.records import EnergyRecord
 
@@ -79,12 +82,13 @@ def test_predictor_at_zero_std_matches_hand_computation():
     assert (result.accuracy, result.tpr, result.specificity) == pytest.approx((0.5, 0.5, 0.5))
 
 
-def test_predictor_calibrates_on_given_reference_episodes():
-    reference = [episode([0.0, 0.0, 0.0], True), episode([0.0, 0.2, 0.4], False)]
+def test_predictor_calibrates_on_the_successful_reference_episodes_only():
+    reference = [episode([0.0, 0.1, 0.2], True), episode([0.0, 5.0, 10.0], False)]
     result = evaluate_failure_predictor(
         EPISODES, step=3, window=3, multiplier=0.0, reference_episodes=reference
     )
-    # Reference slopes 0 and 0.2, all of them regardless of success: T = 0.1; B, C and D are flagged.
+    # The failed reference episode (slope 5) is filtered out: T = 0.1 from the successful one alone;
+    # B, C and D are flagged.
     assert result.threshold == pytest.approx(0.1)
     assert (result.tpr, result.specificity) == (1.0, 0.5)
 
@@ -100,10 +104,37 @@ def test_predictor_without_reference_slopes_is_undefined():
     assert math.isnan(result.threshold) and math.isnan(result.balanced_accuracy)
 
 
-def test_episodes_shorter_than_the_step_are_excluded():
+def test_without_carry_forward_episodes_shorter_than_the_step_are_excluded():
     episodes = [*EPISODES, episode([0.0, 9.0], False, index=4)]
-    result = evaluate_failure_predictor(episodes, step=3, window=3, multiplier=1.0)
+    result = evaluate_failure_predictor(episodes, step=3, window=3, multiplier=1.0, carry_forward=False)
     assert (result.n_episodes, result.n_failed) == (4, 2)
+
+
+def test_carry_forward_repeats_the_last_energy_after_an_episode_ends():
+    matrix = energy_matrix(
+        [episode([1.0, 2.0], True), episode([0.0, 1.0, 2.0, 3.0], False)], carry_forward=True
+    )
+    np.testing.assert_array_equal(matrix[0], [1.0, 2.0, 2.0, 2.0])
+
+
+def test_carry_forward_judges_the_same_episodes_at_every_step():
+    # Successful episodes end early, failed ones run on: without carry-forward the failure rate climbs.
+    episodes = [episode([0.0] * (3 if i % 2 else 8), bool(i % 2), index=i) for i in range(6)]
+    steps, windows, multipliers = range(1, 9), [2], [1.0]
+    kept = failure_prediction_sweep(episodes, steps, windows, multipliers, carry_forward=True)
+    assert {(r.n_episodes, r.failure_rate) for r in kept} == {(6, 0.5)}
+    dropped = failure_prediction_sweep(episodes, steps, windows, multipliers, carry_forward=False)
+    assert dropped[-1].n_episodes == 3 and dropped[-1].failure_rate == 1.0
+
+
+def test_held_out_evaluation_keeps_the_configuration_and_threshold_chosen_on_calibration():
+    calibration = EPISODES
+    chosen = select_configurations(calibration, steps=[3], windows=[2, 3], multipliers=[0.0, 1.0])
+    # Held-out: a successful episode rising like C. Its own success cannot move the threshold.
+    held_out = [episode([0.0, 2.0, 4.0], True, index=7), episode([0.0, 3.0, 6.0], False, index=8)]
+    (result,) = evaluate_configurations(held_out, chosen, reference_episodes=calibration)
+    assert (result.window, result.multiplier, result.threshold) == (2, 1.0, chosen[0].threshold)
+    assert (result.tpr, result.specificity) == (1.0, 0.0)
 
 
 def test_sweep_at_step_one_flags_nothing():
@@ -146,4 +177,5 @@ def test_sweep_over_the_default_grid_reports_steps_1_to_20():
 
 def test_format_failure_table_prints_percentages():
     result = evaluate_failure_predictor(EPISODES, step=3, window=3, multiplier=1.0)
-    assert "| 3 | 3 | 1.00 | 75.00% | 75.00% | 50.00% | 100.00% | 4 | 2 |" in format_failure_table([result])
+    table = format_failure_table([result])
+    assert "| 3 | 3 | 1.00 | 75.00% | 75.00% | 50.00% | 100.00% | 4 | 2 | 50.0% |" in table

@@ -9,10 +9,10 @@ import torch
 from lerobot_policy_ebvla.monitoring.landscape import (
     energy_landscape,
     make_policy_score_fn,
-    plot_energy_landscape,
     policy_energy_landscape,
     select_sample,
 )
+from lerobot_policy_ebvla.monitoring.plots import plot_energy_landscape
 
 H, D_A = 4, 3
 REFINED = torch.tensor([[0.5, -0.25, 1.0], [0.1, 0.2, 0.3], [0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
@@ -143,6 +143,13 @@ def test_landscape_script_writes_a_png_for_a_saved_policy(tiny_policy, tmp_path)
     torch.save(observation, tmp_path / "obs.pt")
 
     output = tmp_path / "landscape.png"
-    args = ["--policy-path", str(tmp_path / "policy"), "--observation", str(tmp_path / "obs.pt")]
-    landscape_script.main([*args, "--grid-size", "4", "--device", "cpu", "--output", str(output)])
+    args = [f"--policy_path={tmp_path / 'policy'}", f"--observation={tmp_path / 'obs.pt'}"]
+    landscape_script.main([*args, "--grid_size=4", "--device=cpu", f"--output={output}"])
     assert output.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_landscape_script_needs_exactly_one_observation_source():
+    from lerobot_policy_ebvla.scripts import landscape as landscape_script
+
+    with pytest.raises(ValueError, match="exactly one of `dataset_repo_id` and `observation`"):
+        landscape_script.main(["--policy_path=p"])

@@ -125,3 +125,46 @@ def test_same_generator_seed_gives_the_same_chain():
     r1 = refine(a0, [0.2] * 5, langevin_std=0.01, generator=torch.Generator().manual_seed(7))
     r2 = refine(a0, [0.2] * 5, langevin_std=0.01, generator=torch.Generator().manual_seed(7))
     torch.testing.assert_close(r1.actions, r2.actions, rtol=0, atol=0)
+
+
+def _scaled_quadratic(scale):
+    """e_t = scale / 2 ||a_t - target||^2: a large `scale` pushes every gradient entry past the clip."""
+    return lambda a: 0.5 * scale * ((a - TARGET) ** 2).sum(-1)
+
+
+@pytest.mark.parametrize("straight_through", [False, True])
+def test_straight_through_clip_keeps_the_forward_values(straight_through):
+    a0 = torch.full((2, H, D_A), 3.0)
+    scale = torch.tensor(100.0, requires_grad=True)
+    kwargs = {"temperature": 1e9, "langevin_std": 0.0, "grad_clip": 1.0, "action_clamp": 10.0}
+    result = refine_actions(
+        _scaled_quadratic(scale),
+        a0,
+        [0.1],
+        create_graph=True,
+        straight_through_clip=straight_through,
+        **kwargs,
+    )
+    torch.testing.assert_close(result.actions, a0 - 0.1)
+
+
+def test_hard_clip_passes_no_gradient_where_it_clips_and_straight_through_does():
+    a0 = torch.full((2, H, D_A), 3.0)
+    kwargs = {"temperature": 1e9, "langevin_std": 0.0, "grad_clip": 1.0, "action_clamp": 10.0}
+    grads = {}
+    for straight_through in (False, True):
+        scale = torch.tensor(100.0, requires_grad=True)
+        result = refine_actions(
+            _scaled_quadratic(scale),
+            a0,
+            [0.1],
+            create_graph=True,
+            straight_through_clip=straight_through,
+            **kwargs,
+        )
+        (grads[straight_through],) = torch.autograd.grad(result.actions.sum(), scale)
+    # Only exp(e_t / tau)'s path is left, and tau = 1e9 makes it vanish.
+    assert abs(grads[False].item()) < 1e-6
+    # d/dscale of -alpha * grad_a E with grad_a E = scale (a - target) / H, summed over every entry.
+    expected = -0.1 * ((a0 - TARGET) / H).sum()
+    torch.testing.assert_close(grads[True], expected)

@@ -1,4 +1,4 @@
-"""`--env.type=metaworld_ebvla`: LeRobot's MetaWorld env with fast rendering and camera perturbations."""
+"""`--env.type=metaworld_ebvla`: LeRobot's MetaWorld env with fast rendering and graded perturbations."""
 
 import os
 
@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
+from lerobot_policy_ebvla.envs.configs import PERTURBATIONS
 
 CAMERA_XML = """
 <mujoco>
@@ -18,22 +19,44 @@ CAMERA_XML = """
 
 
 def test_config_rejects_unknown_perturbations_and_severities():
-    with pytest.raises(ValueError, match="camera_perturbation"):
-        MetaworldEBVLAEnv(camera_perturbation="blur")
-    with pytest.raises(ValueError, match="perturbation_severity"):
-        MetaworldEBVLAEnv(camera_perturbation="pose", perturbation_severity=6)
-    with pytest.raises(ValueError, match="camera_perturbation"):
+    with pytest.raises(ValueError, match=r"`perturbation` must be one of \('none', 'pose'"):
+        MetaworldEBVLAEnv(perturbation="fog", perturbation_severity=1)
+    with pytest.raises(ValueError, match=r"`camera_perturbation` must be one of \('none', 'pose'"):
+        MetaworldEBVLAEnv(camera_perturbation="fog")
+    for severity in (6, -1, 2.5):
+        with pytest.raises(ValueError, match=r"`perturbation_severity` must be an int in \[0, 5\]"):
+            MetaworldEBVLAEnv(perturbation="noise", perturbation_severity=severity)
+    with pytest.raises(ValueError, match="needs a `perturbation` other than 'none'"):
         MetaworldEBVLAEnv(perturbation_severity=2)
+    with pytest.raises(ValueError, match="disagree"):
+        MetaworldEBVLAEnv(perturbation="noise", camera_perturbation="pose", perturbation_severity=1)
     with pytest.raises(ValueError, match="max_episode_steps"):
         MetaworldEBVLAEnv(max_episode_steps=501)
+
+
+def test_config_names_the_applied_perturbation_and_keeps_the_old_field_name_working():
+    old_name = MetaworldEBVLAEnv(camera_perturbation="fov", perturbation_severity=3)
+    assert (old_name.perturbation, old_name.gym_kwargs["perturbation"]) == ("fov", "fov")
+    lighting = MetaworldEBVLAEnv(perturbation="light_dim", perturbation_severity=2)
+    assert (lighting.perturbation, lighting.camera_perturbation) == ("light_dim", "light_dim")
+    # At severity 0 nothing is applied, and the config says so (energy records store this name).
+    assert MetaworldEBVLAEnv(perturbation="blur", perturbation_severity=0).perturbation == "none"
+
+
+def test_gym_env_rejects_unknown_perturbations():
+    pytest.importorskip("metaworld")
+    from lerobot_policy_ebvla.envs.metaworld import MetaworldEBVLAGymEnv
+
+    with pytest.raises(ValueError, match="`perturbation` must be one of"):
+        MetaworldEBVLAGymEnv(task="reach-v3", perturbation="fog", perturbation_severity=1)
+    with pytest.raises(ValueError, match="`perturbation_severity`"):
+        MetaworldEBVLAGymEnv(task="reach-v3", perturbation="noise", perturbation_severity=9)
 
 
 def test_config_keeps_lerobots_metaworld_features():
     from lerobot.envs.configs import MetaworldEnv
 
-    ours = MetaworldEBVLAEnv(
-        task="push-v3", fast_render=True, camera_perturbation="pose", perturbation_severity=5
-    )
+    ours = MetaworldEBVLAEnv(task="push-v3", fast_render=True, perturbation="pose", perturbation_severity=5)
     assert ours.features == MetaworldEnv(task="push-v3").features
     assert ours.features_map == MetaworldEnv(task="push-v3").features_map
 
@@ -92,29 +115,91 @@ def test_severity_zero_changes_nothing():
         np.testing.assert_array_equal(a, b)
 
 
-def test_perturbed_fast_env_keeps_observation_keys_and_shapes_but_changes_the_image():
+TASK = "push-v3"  # its puck and goal are visible, as in the gallery (benchmarks/metaworld_perturbation_gallery.py)
+GRADED_IMAGE_PERTURBATIONS = [p for p in PERTURBATIONS if p not in ("none", "blank", "robot_init")]
+
+
+def _first_observation(perturbation: str, severity: int, steps: int = 0):
+    """The observation after reset(seed=0) and `steps` zero actions, and MetaWorld's 39-d state."""
     pytest.importorskip("metaworld")
     os.environ.setdefault("MUJOCO_GL", "egl")
     from lerobot_policy_ebvla.envs.metaworld import MetaworldEBVLAGymEnv
 
-    observations = {}
-    for perturbation, severity in (("none", 0), ("pose", 2)):
-        cfg = MetaworldEBVLAEnv(
-            task="reach-v3",
-            fast_render=True,
-            camera_perturbation=perturbation,
-            perturbation_severity=severity,
-        )
-        env = MetaworldEBVLAGymEnv(task="reach-v3", **cfg.gym_kwargs)
-        observations[perturbation], _ = env.reset(seed=0)
-        assert env.state_obs.shape == (39,)  # what the scripted experts act on
+    cfg = MetaworldEBVLAEnv(task=TASK, fast_render=True)
+    kwargs = {**cfg.gym_kwargs, "perturbation": perturbation, "perturbation_severity": severity}
+    env = MetaworldEBVLAGymEnv(task=TASK, **kwargs)
+    try:
+        observation, _ = env.reset(seed=0)
+        for _ in range(steps):
+            observation, *_ = env.step(np.zeros(4, dtype=np.float32))
         assert env._env.model.light_castshadow.sum() == 0
+        return observation, env.state_obs.copy()
+    finally:
         env.close()
-    vanilla, perturbed = observations["none"], observations["pose"]
-    assert vanilla.keys() == perturbed.keys() == {"pixels", "agent_pos"}
-    assert vanilla["pixels"].shape == perturbed["pixels"].shape == (480, 480, 3)
-    np.testing.assert_array_equal(vanilla["agent_pos"], perturbed["agent_pos"])
-    assert np.abs(vanilla["pixels"].astype(int) - perturbed["pixels"].astype(int)).mean() > 5
+
+
+@pytest.fixture(scope="module")
+def vanilla():
+    return _first_observation("none", 0)
+
+
+def _pixel_change(observation, vanilla_observation) -> float:
+    return float(np.abs(observation["pixels"].astype(int) - vanilla_observation["pixels"].astype(int)).mean())
+
+
+@pytest.mark.parametrize("perturbation", PERTURBATIONS[1:])
+def test_severity_zero_leaves_the_observation_identical_to_vanilla(perturbation, vanilla):
+    observation, state = _first_observation(perturbation, 0)
+    np.testing.assert_array_equal(observation["pixels"], vanilla[0]["pixels"])
+    np.testing.assert_array_equal(state, vanilla[1])
+
+
+@pytest.mark.parametrize("perturbation", GRADED_IMAGE_PERTURBATIONS)
+def test_image_change_grows_with_severity_and_keeps_keys_and_shapes(perturbation, vanilla):
+    changes = []
+    for severity in (1, 3, 5):
+        observation, state = _first_observation(perturbation, severity)
+        assert observation.keys() == vanilla[0].keys() == {"pixels", "agent_pos"}
+        assert observation["pixels"].shape == (480, 480, 3) and observation["pixels"].dtype == np.uint8
+        assert observation["agent_pos"].shape == (4,)
+        np.testing.assert_array_equal(state, vanilla[1])  # the scene looks different, the state is the same
+        changes.append(_pixel_change(observation, vanilla[0]))
+    assert 0 < changes[0] < changes[1] < changes[2], changes
+
+
+def test_blank_camera_is_black_at_every_severity(vanilla):
+    for severity in (1, 5):
+        observation, state = _first_observation("blank", severity)
+        assert observation["pixels"].shape == vanilla[0]["pixels"].shape
+        assert not observation["pixels"].any()
+        np.testing.assert_array_equal(state, vanilla[1])
+
+
+def test_robot_init_moves_the_hand_by_a_graded_distance_and_leaves_the_objects(vanilla):
+    from lerobot_policy_ebvla.envs.metaworld import HAND_OFFSET_M_PER_LEVEL
+
+    for severity in (1, 3, 5):
+        observation, state = _first_observation("robot_init", severity)
+        moved = np.linalg.norm(observation["agent_pos"][:3] - vanilla[0]["agent_pos"][:3])
+        assert moved == pytest.approx(HAND_OFFSET_M_PER_LEVEL * severity, rel=0.1)
+        np.testing.assert_array_equal(state[4:7], vanilla[1][4:7])  # the object starts where it did
+        assert _pixel_change(observation, vanilla[0]) > 0
+
+
+def test_distractors_stay_in_every_frame():
+    clean, _ = _first_observation("none", 0, steps=2)
+    distracted, _ = _first_observation("distractor", 5, steps=2)
+    assert _pixel_change(distracted, clean) > 1.0
+
+
+def test_pixel_noise_has_the_documented_std_and_follows_the_reset_seed(vanilla):
+    from lerobot_policy_ebvla.envs.metaworld import NOISE_STD_PER_LEVEL
+
+    first, _ = _first_observation("noise", 1)
+    again, _ = _first_observation("noise", 1)
+    np.testing.assert_array_equal(first["pixels"], again["pixels"])
+    residual = first["pixels"].astype(float) - vanilla[0]["pixels"].astype(float)
+    assert residual.std() == pytest.approx(NOISE_STD_PER_LEVEL, rel=0.05)
 
 
 def test_vector_envs_follow_lerobots_task_groups():

@@ -1,16 +1,21 @@
 """Energy records: the JSON-lines contract between `ebvla-eval` and the monitoring tools."""
 
+import dataclasses
 import json
 import math
 from dataclasses import asdict
 
+import numpy as np
 import pytest
 
 from lerobot_policy_ebvla.monitoring.records import (
     ENERGY_RECORDS_FILENAME,
     EnergyRecord,
+    features_path,
     group_by_episode,
+    load_episodes,
     read_energy_records,
+    resolve_record_files,
     write_energy_records,
 )
 
@@ -37,6 +42,48 @@ def test_records_round_trip(tmp_path):
     records.append(EnergyRecord(1, 0, 0, 3.0, 1.5, False, "t", None, "none", 0.0))
     path = write_energy_records(tmp_path / ENERGY_RECORDS_FILENAME, records)
     assert read_energy_records(path) == records
+
+
+def test_restart_spread_and_context_features_round_trip(tmp_path):
+    records = [
+        dataclasses.replace(
+            record(chunk=i), restart_spread=0.1 * i, context_feature=np.full(3, i, np.float32)
+        )
+        for i in range(2)
+    ]
+    path = write_energy_records(tmp_path / ENERGY_RECORDS_FILENAME, records)
+    assert features_path(path).name == "energy_records.features.npy"
+    read = read_energy_records(path)
+    assert [r.restart_spread for r in read] == [0.0, 0.1]
+    np.testing.assert_array_equal(np.stack([r.context_feature for r in read]), [[0, 0, 0], [1, 1, 1]])
+
+
+def test_rows_without_the_baseline_fields_still_read(tmp_path):
+    row = {k: v for k, v in asdict(record()).items() if k not in ("restart_spread", "context_feature")}
+    (tmp_path / "r.jsonl").write_text(json.dumps(row) + "\n")
+    (read,) = read_energy_records(tmp_path / "r.jsonl")
+    assert read.restart_spread is None and read.context_feature is None
+
+
+def test_features_must_cover_every_record_or_none(tmp_path):
+    records = [dataclasses.replace(record(), context_feature=np.zeros(2)), record(chunk=1)]
+    with pytest.raises(ValueError, match="context_feature"):
+        write_energy_records(tmp_path / "r.jsonl", records)
+
+
+def test_rewriting_records_without_features_removes_stale_features(tmp_path):
+    path = write_energy_records(
+        tmp_path / "r.jsonl", [dataclasses.replace(record(), context_feature=np.zeros(2))]
+    )
+    write_energy_records(path, [record()], overwrite=True)
+    assert not features_path(path).exists() and read_energy_records(path)[0].context_feature is None
+
+
+def test_features_of_another_length_are_rejected(tmp_path):
+    path = write_energy_records(tmp_path / "r.jsonl", [record(), record(chunk=1)])
+    np.save(features_path(path), np.zeros((3, 2), np.float32))
+    with pytest.raises(ValueError, match="one row per record"):
+        read_energy_records(path)
 
 
 def test_infinite_energy_is_written_as_a_string_and_read_back_as_inf(tmp_path):
@@ -134,3 +181,21 @@ def test_group_by_episode_separates_tasks_with_the_same_episode_index():
 def test_group_by_episode_rejects_duplicate_chunks():
     with pytest.raises(ValueError, match="duplicate chunk indices"):
         group_by_episode([record(chunk=0), record(chunk=0)])
+
+
+def test_record_paths_accept_files_folders_and_glob_patterns(tmp_path):
+    for name in ("pose1", "pose2"):
+        write_energy_records(tmp_path / name / ENERGY_RECORDS_FILENAME, [record()])
+    files = resolve_record_files([str(tmp_path / "pose*"), tmp_path / "pose1" / ENERGY_RECORDS_FILENAME])
+    assert [f.parent.name for f in files] == ["pose1", "pose2"]
+
+
+def test_record_paths_that_match_nothing_are_an_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="energy_records.jsonl"):
+        resolve_record_files([str(tmp_path / "missing*")])
+
+
+def test_load_episodes_keeps_same_index_episodes_of_different_files_apart(tmp_path):
+    for name in ("a", "b"):
+        write_energy_records(tmp_path / name / ENERGY_RECORDS_FILENAME, [record(), record(chunk=1)])
+    assert len(load_episodes([tmp_path / "a", tmp_path / "b"])) == 2

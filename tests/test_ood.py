@@ -1,4 +1,5 @@
-"""Energy-based OOD detection (Sec. III-C): calibration (Eq. 5), run-time monitor and Table III metrics.
+"""Energy-based OOD detection (Sec. III-C): the decision rule and its thresholds (Eq. 5, conformal), the
+metrics (AUROC with bootstrap intervals), the calibration, the run-time monitor, Table III and baselines.
 
 The running example: vanilla rollout scores [1, 2, 3, 4] (mu_v = 2.5, sigma_v = sqrt(1.25)) and OOD
 rollout scores [3, 5, 6].
@@ -11,22 +12,90 @@ import numpy as np
 import pytest
 import torch
 
+from lerobot_policy_ebvla.monitoring.baselines import ContextFeatureModel, available_scores, episode_scores
+from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_interval, roc_curve
 from lerobot_policy_ebvla.monitoring.ood import (
     OOD_CALIBRATION_FILENAME,
     EnergyOODMonitor,
     OODCalibration,
-    auroc,
     format_detection_table,
     ood_detection_table,
-    roc_curve,
     rollout_score,
     rollout_scores,
 )
 from lerobot_policy_ebvla.monitoring.records import EnergyRecord
+from lerobot_policy_ebvla.monitoring.threshold import conformal_threshold, exceeds
 
 VANILLA = [1.0, 2.0, 3.0, 4.0]
 OOD = [3.0, 5.0, 6.0]
 SIGMA = math.sqrt(1.25)
+
+
+# The decision rule and its thresholds.
+
+
+def test_exceeds_flags_scores_above_the_threshold_and_non_finite_scores():
+    flags = exceeds([1.0, 2.0, 2.5, math.inf, math.nan], 2.0)
+    assert flags.tolist() == [False, False, True, True, True]
+
+
+@pytest.mark.parametrize("alpha", [0.05, 0.1, 0.2])
+def test_conformal_threshold_keeps_the_false_alarm_rate_at_most_alpha(alpha):
+    # Many calibration / test splits of the same distribution: the average false-alarm rate is <= alpha
+    # and, as scores have no ties, above alpha - 1 / (n + 1).
+    rng = np.random.default_rng(0)
+    n = 39
+    rates = []
+    for _ in range(400):
+        calibration, test = rng.normal(size=n), rng.normal(size=200)
+        rates.append(exceeds(test, conformal_threshold(calibration, alpha)).mean())
+    assert alpha - 1 / (n + 1) - 0.01 <= np.mean(rates) <= alpha + 0.01
+
+
+def test_conformal_threshold_is_the_corrected_order_statistic():
+    # n = 19, alpha = 0.1: rank ceil(20 * 0.9) = 18 of the sorted scores 1..19.
+    assert conformal_threshold(np.arange(19, 0, -1.0), 0.1) == 18.0
+
+
+def test_conformal_threshold_with_too_few_scores_flags_nothing():
+    assert conformal_threshold([1.0, 2.0, 3.0], 0.05) == math.inf
+
+
+def test_conformal_threshold_rejects_an_alpha_outside_zero_one():
+    with pytest.raises(ValueError, match="alpha"):
+        conformal_threshold([1.0, 2.0], 1.5)
+
+
+# Metrics.
+
+
+def test_bootstrap_interval_contains_the_auroc():
+    rng = np.random.default_rng(1)
+    vanilla, ood = rng.normal(size=40), rng.normal(0.8, size=40)
+    low, high = bootstrap_auroc_interval(vanilla, ood, seed=0)
+    assert low <= auroc(vanilla, ood) <= high
+
+
+def test_bootstrap_interval_shrinks_with_more_episodes():
+    rng = np.random.default_rng(2)
+
+    def width(n):
+        low, high = bootstrap_auroc_interval(rng.normal(size=n), rng.normal(0.8, size=n), seed=0)
+        return high - low
+
+    assert width(400) < width(25) / 2
+
+
+def test_bootstrap_interval_is_reproducible_with_its_seed():
+    vanilla, ood = [1.0, 2.0, 3.0, 4.0], [2.5, 5.0, 6.0]
+    assert bootstrap_auroc_interval(vanilla, ood, seed=3) == bootstrap_auroc_interval(vanilla, ood, seed=3)
+
+
+def test_bootstrap_interval_without_positives_is_nan():
+    assert all(math.isnan(v) for v in bootstrap_auroc_interval([1.0, 2.0], []))
+
+
+# Rollout scores.
 
 
 @pytest.mark.parametrize(
@@ -91,6 +160,31 @@ def test_fit_leaves_out_non_finite_scores_with_a_warning():
 def test_fit_without_finite_scores_raises():
     with pytest.raises(ValueError, match="finite"), pytest.warns(UserWarning):
         OODCalibration.fit([math.inf])
+
+
+def test_fit_with_a_false_alarm_rate_adds_the_conformal_threshold():
+    calibration = OODCalibration.fit(np.arange(1.0, 20.0), false_alarm_rate=0.1, rule="conformal")
+    assert calibration.conformal_threshold == 18.0 and calibration.threshold == 18.0
+    assert calibration.with_k(1.0).threshold == pytest.approx(calibration.mu_v + calibration.sigma_v)
+
+
+def test_conformal_rule_needs_a_conformal_threshold():
+    with pytest.raises(ValueError, match="conformal_threshold"):
+        OODCalibration(mu_v=1.0, sigma_v=1.0, rule="conformal")
+
+
+def test_a_calibration_file_without_conformal_fields_still_loads(tmp_path):
+    old = {"mu_v": 2.5, "sigma_v": 1.0, "k": 1.0, "aggregation": "mean", "n_rollouts": 4, "threshold": 3.5}
+    (tmp_path / OOD_CALIBRATION_FILENAME).write_text(json.dumps(old))
+    calibration = OODCalibration.load(tmp_path)
+    assert calibration.rule == "mean_std" and calibration.threshold == 3.5
+
+
+def test_calibration_with_an_infinite_conformal_threshold_round_trips(tmp_path):
+    calibration = OODCalibration.fit([1.0, 2.0, 3.0], false_alarm_rate=0.05)
+    assert calibration.conformal_threshold == math.inf
+    calibration.save(tmp_path)
+    assert OODCalibration.load(tmp_path) == calibration
 
 
 def test_calibration_round_trips_through_json(tmp_path):
@@ -201,6 +295,13 @@ def test_detection_table_at_zero_sigma_matches_hand_computation():
     assert row.f1 == pytest.approx(6 / 8)
 
 
+def test_detection_table_adds_the_conformal_row_of_the_calibration():
+    calibration = OODCalibration.fit(VANILLA, false_alarm_rate=0.2)  # rank ceil(5 * 0.8) = 4: T = 4
+    rows = ood_detection_table(VANILLA, OOD, multipliers=[1.0], calibration=calibration)
+    assert rows[-1].threshold == 4.0 and rows[-1].name == "conf. α=20.0%"
+    assert (rows[-1].fp, rows[-1].tp) == (0, 2)
+
+
 def test_detection_table_has_one_row_per_multiplier_of_table_iii():
     rows = ood_detection_table(VANILLA, OOD)
     assert [r.multiplier for r in rows] == [0.2, 0.5, 0.7, 0.8, 0.9, 1.0, 1.5, 2.0, 3.0]
@@ -222,6 +323,14 @@ def test_detection_table_without_vanilla_rollouts_has_nan_fpr():
 def test_format_detection_table_prints_percentages():
     table = format_detection_table(ood_detection_table(VANILLA, OOD, multipliers=[1.0]))
     assert "| 1.0σ | 3.618 | 71.4% | 70.8% | 66.7% | 25.0% | 66.7% | 1 | 1 |" in table
+
+
+def test_format_detection_table_puts_baselines_beside_the_final_energy():
+    rows = ood_detection_table(VANILLA, OOD, multipliers=[1.0])
+    baseline = ood_detection_table([1.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0], multipliers=[1.0])
+    table = format_detection_table(rows, {"initial_energy": baseline})
+    assert "Bal. Acc. initial_energy |" in table.splitlines()[0]
+    assert table.splitlines()[2].endswith("| 1 | 1 | 50.0% |")
 
 
 def test_auroc_counts_ties_as_one_half():
@@ -262,3 +371,52 @@ def test_roc_curve_area_equals_auroc():
     vanilla, ood = rng.integers(0, 5, 40).astype(float), rng.integers(2, 8, 30).astype(float)
     fpr, tpr, _ = roc_curve(vanilla, ood)
     assert np.trapezoid(tpr, fpr) == pytest.approx(auroc(vanilla, ood))
+
+
+# Baselines.
+
+
+def chunk(episode, index, final=1.0, initial=2.0, spread=None, feature=None):
+    return EnergyRecord(
+        episode,
+        index,
+        8 * index,
+        initial,
+        final,
+        True,
+        "t",
+        None,
+        restart_spread=spread,
+        context_feature=feature,
+    )
+
+
+def test_baselines_are_scored_per_rollout_like_the_final_energy():
+    episodes = {
+        0: [chunk(0, 0, spread=0.1), chunk(0, 1, spread=0.3)],
+        1: [chunk(1, 0, initial=5.0, spread=1.0)],
+    }
+    assert episode_scores(episodes, "restart_spread").tolist() == pytest.approx([0.2, 1.0])
+    assert episode_scores(episodes, "initial_energy", aggregation="max").tolist() == [2.0, 5.0]
+
+
+def test_available_scores_need_every_chunk_to_carry_the_baseline():
+    with_spread = [[chunk(0, 0, spread=0.1)], [chunk(1, 0, spread=0.2)]]
+    assert available_scores(with_spread) == ["final_energy", "initial_energy", "restart_spread"]
+    assert "restart_spread" not in available_scores([*with_spread, [chunk(2, 0)]])
+
+
+def test_feature_distances_rank_far_contexts_above_calibration_like_ones():
+    rng = np.random.default_rng(0)
+    calibration = rng.normal(size=(200, 8))
+    model = ContextFeatureModel.fit(calibration, episode_ids=[i // 10 for i in range(200)], k=3)
+    near, far = rng.normal(size=(50, 8)), rng.normal(size=(50, 8)) + np.r_[4.0, np.zeros(7)]
+    assert auroc(model.mahalanobis(near), model.mahalanobis(far)) > 0.95
+    assert auroc(model.knn(near), model.knn(far)) > 0.95
+
+
+def test_knn_skips_the_neighbours_of_the_same_episode():
+    model = ContextFeatureModel.fit(np.array([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0]]), ["a", "a", "b"], k=1)
+    assert model.knn(np.array([[1.0, 0.0]]))[0] == pytest.approx(0.0)
+    # Standardized by the calibration std (sqrt(2) / 3 in each dimension): (1, 0) and (0, 1) are 3 apart.
+    assert model.knn(np.array([[1.0, 0.0]]), episode_id="a")[0] == pytest.approx(3.0)

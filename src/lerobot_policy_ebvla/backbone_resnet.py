@@ -24,7 +24,7 @@ class EBVLAResNetBackbone(nn.Module):
         config: Reads the Diffusion-Policy encoder fields (`vision_backbone`, `resize_shape`, `crop_shape`,
             `crop_is_random`, `use_group_norm`, `pretrained_backbone_weights`,
             `spatial_softmax_num_keypoints`, `use_separate_rgb_encoder_per_camera`), the image and state
-            features, `dim_model` (the token width) and `n_blocks`.
+            features, `dim_model` (the token width), `n_blocks` and `state_dropout`.
     """
 
     def __init__(self, config: EBVLAConfig):
@@ -58,6 +58,11 @@ class EBVLAResNetBackbone(nn.Module):
         """Returns the context C of every head block, each (B, n_cameras [+ 1], D)."""
         tokens = [self.encode_cameras(batch)]
         if self.state_proj is not None:
-            tokens.append(self.state_proj(batch[OBS_STATE]).unsqueeze(1))  # p, (B, 1, D)
+            state = self.state_proj(batch[OBS_STATE]).unsqueeze(1)  # p, (B, 1, D)
+            if self.training and self.config.state_dropout > 0:
+                # Zeroing p (not dropping the token) keeps the context's length fixed for every sample.
+                keep = torch.rand(state.shape[0], 1, 1, device=state.device) >= self.config.state_dropout
+                state = state * keep
+            tokens.append(state)
         context = torch.cat(tokens, dim=1)
         return [context] * self.config.n_blocks

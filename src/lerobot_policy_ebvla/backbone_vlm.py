@@ -17,6 +17,9 @@ the linearly projected proprioceptive state (a learned token when the dataset ha
 reaches the head through h_a only: under the causal mask the vision positions never see it.
 """
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 import timm
 import torch
 import torch.nn.functional as F  # noqa: N812
@@ -27,6 +30,40 @@ from torch import Tensor, nn
 from transformers import AutoConfig, AutoModel, PretrainedConfig
 
 from .configuration_ebvla import EBVLAConfig
+
+
+class PretrainedWeightsUnavailableError(OSError):
+    """Pretrained backbone weights (or the language model's config) could not be fetched from the Hub or cache."""
+
+
+ENCODER_LABELS = {"dinov2": "DINOv2", "siglip": "SigLIP"}
+
+# How to point each field at local weights, for the error message.
+_LOCAL_FOLDER_HINTS = {
+    "dinov2_model_name": "'local-dir:/path' holding timm's config.json and model.safetensors",
+    "siglip_model_name": "'local-dir:/path' holding timm's config.json and model.safetensors",
+    "vlm_model_name": "a folder written by transformers' save_pretrained, tokenizer included",
+}
+
+
+@contextmanager
+def fetching(field: str, name: str, what: str) -> Iterator[None]:
+    """Turns a failed Hub or cache look-up of `name` (the config field `field`) into one actionable error.
+
+    With no network and an empty cache, huggingface_hub and transformers raise an `OSError` deep inside
+    timm or `from_pretrained`; the user needs to know which weights are missing and how to proceed.
+    """
+    try:
+        yield
+    except OSError as error:
+        # The cause's first line; the rest of it is chained.
+        reason = next(iter(str(error).strip().splitlines()), "").rstrip(".")
+        raise PretrainedWeightsUnavailableError(
+            f"Could not fetch the {what} `{field}={name!r}` ({type(error).__name__}: {reason}). To proceed: "
+            "download it once with network access into the Hugging Face cache (HF_HOME), set "
+            f"`--policy.{field}` to {_LOCAL_FOLDER_HINTS[field]}, or train the light backbone with "
+            "`--policy.backbone=resnet`."
+        ) from error
 
 
 class EBVLAFusedVisionEncoder(nn.Module):
@@ -50,13 +87,14 @@ class EBVLAFusedVisionEncoder(nn.Module):
         self.image_stats: dict[str, tuple[tuple[float, ...], tuple[float, ...]]] = {}
         grids = set()
         for name, model_name in (("dinov2", config.dinov2_model_name), ("siglip", config.siglip_model_name)):
-            encoder = timm.create_model(
-                model_name,
-                pretrained=config.load_pretrained_backbone,
-                img_size=self.image_size,
-                num_classes=0,
-                **config.vision_model_overrides,
-            )
+            with fetching(f"{name}_model_name", model_name, f"{ENCODER_LABELS[name]} encoder weights"):
+                encoder = timm.create_model(
+                    model_name,
+                    pretrained=config.load_pretrained_backbone,
+                    img_size=self.image_size,
+                    num_classes=0,
+                    **config.vision_model_overrides,
+                )
             if len(encoder.blocks) < 2:
                 raise ValueError(
                     f"The `{model_name}` encoder needs >= 2 blocks (features are read at the second-to-last)."
@@ -135,7 +173,8 @@ def resolve_language_model_config(config: EBVLAConfig) -> PretrainedConfig:
     `config.json` is enough to rebuild the model offline.
     """
     if config.vlm_config is None:
-        resolved = AutoConfig.from_pretrained(config.vlm_model_name).to_dict()
+        with fetching("vlm_model_name", config.vlm_model_name, "language model's config"):
+            resolved = AutoConfig.from_pretrained(config.vlm_model_name).to_dict()
         if "num_hidden_layers" in config.vlm_config_overrides:
             # The per-layer attention types are derived from the depth; a stale list would fail validation.
             resolved.pop("layer_types", None)
@@ -144,16 +183,47 @@ def resolve_language_model_config(config: EBVLAConfig) -> PretrainedConfig:
     return AutoConfig.for_model(**config.vlm_config)
 
 
-def default_context_layers(num_hidden_states: int, num_context_layers: int, n_blocks: int) -> tuple[int, ...]:
-    """Hidden-state indices l_1..l_L spread evenly over the last `num_context_layers` states, ends included.
+def default_context_layers(num_context_layers: int, n_blocks: int) -> tuple[int, ...]:
+    """Hidden-state indices l_1..l_L spread evenly over the N_l extracted states 0..N_l - 1, ends included.
 
-    For Qwen2.5-0.5B (25 hidden states), N_l = 23 and L = 4 give (2, 9, 17, 24); one block takes the last layer.
+    Table V extracts N_l = 23 states "with the embedding": states 0 (the embedding output) to 22 of Qwen2.5-0.5B's
+    25. With L = 4 blocks this gives (0, 7, 15, 22); one block takes the deepest extracted state.
     """
-    last = num_hidden_states - 1
-    first = num_hidden_states - num_context_layers
+    last = num_context_layers - 1
     if n_blocks == 1:
         return (last,)
-    return tuple(first + round(i * (last - first) / (n_blocks - 1)) for i in range(n_blocks))
+    return tuple(round(i * last / (n_blocks - 1)) for i in range(n_blocks))
+
+
+def round_frozen_weights(module: nn.Module, dtype: torch.dtype) -> None:
+    """Rounds every frozen parameter of `module` to `dtype` precision, keeping its storage dtype.
+
+    The frozen encoders and base language model then hold exactly the values a `dtype` copy holds: the policy
+    computes with the weights its checkpoint stores in `dtype` (half the bytes for bf16, see
+    `EBVLAPolicy._save_pretrained`), so a saved and reloaded policy acts exactly as the one that was trained.
+    """
+    with torch.no_grad():
+        for param in module.parameters():
+            if not param.requires_grad and param.is_floating_point() and param.dtype != dtype:
+                param.copy_(param.to(dtype))
+
+
+def resolve_context_layers(config: EBVLAConfig, num_layers: int) -> tuple[int, ...]:
+    """l_1..l_L: `context_layers` if set, else `default_context_layers`, checked against the N + 1 states."""
+    num_hidden_states = num_layers + 1
+    if config.context_layers is not None:
+        if max(config.context_layers) >= num_hidden_states:
+            raise ValueError(
+                f"`context_layers` must index the {num_hidden_states} hidden states of the language model "
+                f"(0..{num_hidden_states - 1}). Got {tuple(config.context_layers)}."
+            )
+        return tuple(config.context_layers)
+    if config.num_context_layers > num_hidden_states:
+        raise ValueError(
+            f"`num_context_layers` must be <= {num_hidden_states} (the language model's layers + the "
+            f"embedding). Got {config.num_context_layers}."
+        )
+    return default_context_layers(config.num_context_layers, config.n_blocks)
 
 
 class EBVLAVisionLanguageBackbone(nn.Module):
@@ -186,40 +256,31 @@ class EBVLAVisionLanguageBackbone(nn.Module):
         self.num_vision_tokens = self.vision.num_patches * len(self.camera_keys)
 
         lm_config = resolve_language_model_config(config)
+        self.context_dim = lm_config.hidden_size
+        self.context_layers = resolve_context_layers(config, lm_config.num_hidden_layers)
         if config.load_pretrained_backbone:
             # fp32 like the rest of the policy; cast the whole policy for bf16.
-            self.lm = AutoModel.from_pretrained(config.vlm_model_name, config=lm_config, dtype=torch.float32)
+            with fetching("vlm_model_name", config.vlm_model_name, "language model weights"):
+                self.lm = AutoModel.from_pretrained(
+                    config.vlm_model_name, config=lm_config, dtype=torch.float32
+                )
         else:
             self.lm = AutoModel.from_config(lm_config, dtype=torch.float32)
         self.lm.requires_grad_(False)
+        # Hidden state l is the output of `layers[l - 1]`: layers past the deepest l_i never reach the head, so
+        # adapters there would get no gradient.
+        deepest = max(self.context_layers)
+        read_layers = {"layers_to_transform": list(range(deepest)), "layers_pattern": "layers"}
         lora = LoraConfig(
             r=config.lora_rank,
             lora_alpha=config.lora_alpha,
             lora_dropout=config.lora_dropout,
             target_modules=list(config.lora_target_modules),
+            **(read_layers if 0 < deepest < lm_config.num_hidden_layers else {}),
         )
         self.lm = inject_adapter_in_model(lora, self.lm)
         for name, param in self.lm.named_parameters():
             param.requires_grad_("lora_" in name)
-
-        self.context_dim = lm_config.hidden_size
-        num_hidden_states = lm_config.num_hidden_layers + 1
-        if config.context_layers is not None:
-            self.context_layers = tuple(config.context_layers)
-            if max(self.context_layers) >= num_hidden_states:
-                raise ValueError(
-                    f"`context_layers` must index the {num_hidden_states} hidden states of the language model "
-                    f"(0..{num_hidden_states - 1}). Got {self.context_layers}."
-                )
-        else:
-            if config.num_context_layers > num_hidden_states:
-                raise ValueError(
-                    f"`num_context_layers` must be <= {num_hidden_states} (the language model's layers + the "
-                    f"embedding). Got {config.num_context_layers}."
-                )
-            self.context_layers = default_context_layers(
-                num_hidden_states, config.num_context_layers, config.n_blocks
-            )
 
         self.projector = EBVLAVisionProjector(self.vision.embed_dim, self.context_dim)
         # Initialised like the language model's own embeddings.
@@ -232,6 +293,8 @@ class EBVLAVisionLanguageBackbone(nn.Module):
         else:
             self.state_proj = None
             self.state_token = nn.Parameter(torch.randn(1, self.context_dim) * lm_config.initializer_range)
+        if config.frozen_weights_dtype != "float32":
+            round_frozen_weights(self, getattr(torch, config.frozen_weights_dtype))
 
     def encode_images(self, batch: dict[str, Tensor]) -> Tensor:
         """Projected vision tokens of all cameras, camera after camera: (B, K_t, D)."""

@@ -10,8 +10,13 @@ from dataclasses import dataclass, field
 
 from lerobot.configs import NormalizationMode, PreTrainedConfig
 from lerobot.optim import AdamWConfig, CosineDecayWithWarmupSchedulerConfig
+from lerobot.utils.constants import ACTION, OBS_STATE
 
 BACKBONES = ("vlm", "resnet")
+STEP_SIZE_SAMPLINGS = ("per_chain", "per_mcmc_step")
+OOD_RESPONSES = ("continue", "hold", "raise")
+HOLD_ACTIONS = ("zero_delta", "current_state")
+FROZEN_WEIGHTS_DTYPES = ("bfloat16", "float32")
 
 
 @PreTrainedConfig.register_subclass("ebvla")
@@ -39,12 +44,18 @@ class EBVLAConfig(PreTrainedConfig):
         use_group_norm: Replace the ResNet's BatchNorm by GroupNorm (needs `pretrained_backbone_weights=None`).
         spatial_softmax_num_keypoints: Keypoints of the light backbone's spatial-softmax pooling.
         use_separate_rgb_encoder_per_camera: One light image encoder per camera instead of a shared one.
+        state_dropout: Probability of hiding the state token p from the light backbone's context for a
+            training sample. When the state alone predicts the expert well, a policy trained with it never
+            learns to read its cameras; hiding it now and then makes the images pay. 0 (the paper) never hides it.
         vlm_model_name: Hugging Face id (or local folder) of the language model and its tokenizer
             (Qwen2.5-0.5B). Read only when `vlm_config` is None, when loading pretrained weights, and when
             the pre-processor is first built; checkpoints carry the rest.
-        dinov2_model_name: timm name of the DINOv2 encoder of the fused vision encoder.
-        siglip_model_name: timm name of the SigLIP encoder of the fused vision encoder.
-        load_pretrained_backbone: Load the VLM and vision weights from the Hub (or the local cache). False
+        dinov2_model_name: timm name of the DINOv2 encoder of the fused vision encoder, or a local folder in
+            timm's Hub format (config.json + model.safetensors) as 'local-dir:/path'.
+        siglip_model_name: timm name of the SigLIP encoder (or 'local-dir:/path'). The `.webli` tag pins the
+            original SigLIP of Prismatic and OpenVLA-OFT: untagged, recent timm resolves to SigLIP 2.
+        load_pretrained_backbone: Load the VLM and vision weights from the Hub, the local cache or the local
+            folders the names point to; without them it raises `PretrainedWeightsUnavailableError`. False
             builds them with random weights from their configs (tests, meta-device sizing, and
             `EBVLAPolicy.from_pretrained`, whose checkpoint holds every weight).
         vlm_config: The language model's resolved config (`PretrainedConfig.to_diff_dict()`). None resolves
@@ -58,16 +69,22 @@ class EBVLAConfig(PreTrainedConfig):
         vision_image_size: Side of the square images the vision encoders see (224 in Prismatic). Each
             camera gives (vision_image_size / 14)^2 tokens, 256 at 224 px.
         freeze_vision_encoder: Keep the DINOv2 and SigLIP weights frozen (the paper's setting).
+        frozen_weights_dtype: Precision of the frozen weights (vision encoders when frozen, base language
+            model): "bfloat16" rounds them to bf16 when the backbone is built, the precision they run at
+            on a GPU, so checkpoints store them in bf16 at no loss (about half the size at full scale);
+            "float32" keeps them as loaded, and checkpoints then store them in fp32.
         lora_rank: LoRA rank of the language model's adapters.
-        lora_alpha: LoRA scaling alpha.
+        lora_alpha: LoRA scaling alpha (updates scaled by alpha / rank). 128 = 2 x rank is VLA-Adapter's
+            choice for this Qwen2.5-0.5B backbone; OpenVLA-OFT uses min(rank, 16) on its 7B model.
         lora_dropout: LoRA dropout.
         lora_target_modules: Language-model modules that receive LoRA adapters.
         num_latent_tokens: Number K_a of learned latent embeddings appended to the prompt.
         tokenizer_max_length: Number of prompt tokens of the task instruction (padded or truncated to it).
         context_layers: Hidden-state index l_i (0 is the embedding output, N_layers the last layer) whose
             h_a, h_t feed head block i; one entry per head block. None spreads the blocks evenly over the
-            last `num_context_layers` hidden states, both ends included: (2, 9, 17, 24) for Qwen2.5-0.5B.
-        num_context_layers: Number N_l of hidden states extracted (embedding included) when
+            first `num_context_layers` hidden states 0..N_l - 1, both ends included: (0, 7, 15, 22) for
+            Qwen2.5-0.5B (Table V). LoRA adapts only the layers up to the deepest l_i.
+        num_context_layers: Number N_l of hidden states extracted, the embedding output included, when
             `context_layers` is None; at most the language model's layers + 1.
         dim_model: Hidden dimension D of the energy head.
         n_heads: Attention heads of the energy head.
@@ -82,6 +99,21 @@ class EBVLAConfig(PreTrainedConfig):
         action_clamp: Bound a_max of the refined (normalized) actions.
         inference_step_size: Constant step size alpha at inference.
         train_step_size_range: [alpha_min, alpha_max] of the step size sampled at every training step.
+        train_step_size_sampling: "per_chain" draws one alpha per training step, constant along its MCMC
+            chain as at inference (our reading of the paper's "resample the base step size each step");
+            "per_mcmc_step" draws a new alpha for every MCMC step of the chain.
+        train_straight_through_clip: In training, differentiate the element-wise gradient clip c as the
+            identity (the forward values stay clipped). The paper's hard clip passes no learning signal
+            through any gradient entry it clips. Inference is unchanged.
+        energy_contrastive_weight: Weight lambda of an added InfoNCE term that ranks the expert chunk a*
+            below negatives under the same context: the expert chunks of the batch's other observations
+            and `energy_contrastive_negatives` noisy copies of a*. 0 (the paper) trains the energy only
+            through the refined chunk's L1 loss (Eq. 4), which constrains its gradient, not its level.
+        energy_contrastive_negatives: Noisy copies of a* per observation used as negatives.
+        energy_contrastive_noise_std: Std of the noise of those copies (normalized action units).
+        energy_contrastive_temperature: Temperature of the InfoNCE logits -E / T. The energy level also sets
+            the MCMC step length exp(e_t / tau) (Eq. 3); a small T asks for small energy gaps only, so the
+            ranking does not inflate the energies that drive refinement.
         train_mcmc_steps_range: [K_min, K_max] of the number of MCMC steps sampled at every training step.
         inference_mcmc_steps: Number K_inf of MCMC steps at inference.
         num_restarts: Refine this many chains per observation and keep the one with the lowest final
@@ -91,6 +123,18 @@ class EBVLAConfig(PreTrainedConfig):
         compile_refinement: torch.compile the energy evaluated at every inference MCMC step (same actions
             and energies up to float rounding). Each new batch size compiles again, 15-60 s per shape on a
             CPU, so it pays off over long rollouts only.
+        ood_response: What the policy does with a refined chunk whose final energy exceeds the OOD
+            threshold T of the checkpoint's `ood_calibration.json` (see `ood_response.py`): "continue"
+            executes it and logs a warning (the default; without a calibration nothing is checked), "hold"
+            executes `hold_action` instead, "raise" raises `EnergyOODError`.
+        hold_action: The action a held chunk repeats, required with `ood_response="hold"` because it depends
+            on the action space: "zero_delta" (raw action 0) for end-effector delta actions (LIBERO,
+            MetaWorld), "current_state" (the observed `observation.state`) for absolute joint targets
+            (SO-100); the latter needs state and action of the same size and, when known, the same names.
+        ood_threshold_k: Multiplier k of T = mu_v + k * sigma_v (Eq. 5); None uses the calibration's own k.
+        action_feature_names: Names of the action dimensions, filled from the dataset by LeRobot's
+            `make_policy`; `lerobot-rollout` maps actions to robot motors with them.
+        state_feature_names: Names of the `observation.state` dimensions, filled from the dataset.
         optimizer_lr: AdamW learning rate.
         optimizer_betas: AdamW betas.
         optimizer_eps: AdamW epsilon.
@@ -126,19 +170,21 @@ class EBVLAConfig(PreTrainedConfig):
     use_group_norm: bool = True
     spatial_softmax_num_keypoints: int = 32
     use_separate_rgb_encoder_per_camera: bool = False
+    state_dropout: float = 0.0
 
     # VLM backbone (Sec. II-A).
     vlm_model_name: str = "Qwen/Qwen2.5-0.5B"
     dinov2_model_name: str = "vit_large_patch14_reg4_dinov2.lvd142m"
-    siglip_model_name: str = "vit_so400m_patch14_siglip_224"
+    siglip_model_name: str = "vit_so400m_patch14_siglip_224.webli"
     load_pretrained_backbone: bool = True
     vlm_config: dict | None = None
     vlm_config_overrides: dict = field(default_factory=dict)
     vision_model_overrides: dict = field(default_factory=dict)
     vision_image_size: int = 224
     freeze_vision_encoder: bool = True
+    frozen_weights_dtype: str = "bfloat16"
     lora_rank: int = 64
-    lora_alpha: int = 64
+    lora_alpha: int = 128
     lora_dropout: float = 0.0
     lora_target_modules: tuple[str, ...] = (
         "q_proj",
@@ -173,10 +219,25 @@ class EBVLAConfig(PreTrainedConfig):
     train_mcmc_steps_range: tuple[int, int] = (8, 15)
     inference_mcmc_steps: int = 15
 
+    # Training signal beyond the paper (off by default).
+    train_step_size_sampling: str = "per_chain"
+    train_straight_through_clip: bool = False
+    energy_contrastive_weight: float = 0.0
+    energy_contrastive_negatives: int = 8
+    energy_contrastive_noise_std: float = 0.5
+    energy_contrastive_temperature: float = 0.1
+
     # Inference options beyond the paper (off by default).
     num_restarts: int = 1
     early_stop_tol: float | None = None
     compile_refinement: bool = False
+
+    # Deployment.
+    ood_response: str = "continue"
+    hold_action: str | None = None
+    ood_threshold_k: float | None = None
+    action_feature_names: list[str] | None = None
+    state_feature_names: list[str] | None = None
 
     # Training presets.
     optimizer_lr: float = 1e-4
@@ -230,6 +291,8 @@ class EBVLAConfig(PreTrainedConfig):
                 raise ValueError(f"`{name}` must be > 0. Got {getattr(self, name)}.")
         if self.langevin_noise_std < 0:
             raise ValueError(f"`langevin_noise_std` must be >= 0. Got {self.langevin_noise_std}.")
+        if not 0 <= self.state_dropout < 1:
+            raise ValueError(f"`state_dropout` must be in [0, 1). Got {self.state_dropout}.")
         if not 0 <= self.dropout < 1:
             raise ValueError(f"`dropout` must be in [0, 1). Got {self.dropout}.")
         alpha_min, alpha_max = self.train_step_size_range
@@ -241,6 +304,27 @@ class EBVLAConfig(PreTrainedConfig):
         if not 1 <= k_min <= k_max:
             raise ValueError(
                 f"`train_mcmc_steps_range` must satisfy 1 <= K_min <= K_max. Got {self.train_mcmc_steps_range}."
+            )
+        if self.train_step_size_sampling not in STEP_SIZE_SAMPLINGS:
+            raise ValueError(
+                f"`train_step_size_sampling` must be one of {STEP_SIZE_SAMPLINGS}. "
+                f"Got {self.train_step_size_sampling!r}."
+            )
+        if self.energy_contrastive_weight < 0:
+            raise ValueError(
+                f"`energy_contrastive_weight` must be >= 0. Got {self.energy_contrastive_weight}."
+            )
+        if self.energy_contrastive_negatives < 0:
+            raise ValueError(
+                f"`energy_contrastive_negatives` must be >= 0. Got {self.energy_contrastive_negatives}."
+            )
+        if not self.energy_contrastive_temperature > 0:
+            raise ValueError(
+                f"`energy_contrastive_temperature` must be > 0. Got {self.energy_contrastive_temperature}."
+            )
+        if not self.energy_contrastive_noise_std > 0:
+            raise ValueError(
+                f"`energy_contrastive_noise_std` must be > 0. Got {self.energy_contrastive_noise_std}."
             )
         if self.early_stop_tol is not None and self.early_stop_tol <= 0:
             raise ValueError(f"`early_stop_tol` must be > 0 or None. Got {self.early_stop_tol}.")
@@ -255,6 +339,10 @@ class EBVLAConfig(PreTrainedConfig):
             )
         if self.num_context_layers < 1:
             raise ValueError(f"`num_context_layers` must be >= 1. Got {self.num_context_layers}.")
+        if self.frozen_weights_dtype not in FROZEN_WEIGHTS_DTYPES:
+            raise ValueError(
+                f"`frozen_weights_dtype` must be one of {FROZEN_WEIGHTS_DTYPES}. Got {self.frozen_weights_dtype!r}."
+            )
         if self.vision_image_size < 14:
             raise ValueError(f"`vision_image_size` must be >= 14 (one patch). Got {self.vision_image_size}.")
         if not self.lora_alpha > 0:
@@ -263,6 +351,23 @@ class EBVLAConfig(PreTrainedConfig):
             raise ValueError(f"`lora_dropout` must be in [0, 1). Got {self.lora_dropout}.")
         if not self.lora_target_modules:
             raise ValueError("`lora_target_modules` must name at least one language-model module.")
+        if self.ood_response not in OOD_RESPONSES:
+            raise ValueError(f"`ood_response` must be one of {OOD_RESPONSES}. Got {self.ood_response!r}.")
+        if self.hold_action is not None and self.hold_action not in HOLD_ACTIONS:
+            raise ValueError(
+                f"`hold_action` must be one of {HOLD_ACTIONS} or None. Got {self.hold_action!r}."
+            )
+        if self.ood_response == "hold" and self.hold_action is None:
+            raise ValueError(
+                "`ood_response='hold'` needs an explicit `hold_action`, as holding depends on the action space: "
+                "'zero_delta' (a zero raw action) for end-effector delta actions such as LIBERO's and "
+                "MetaWorld's, 'current_state' (the observed `observation.state`) for absolute joint targets "
+                "such as SO-100's."
+            )
+        if self.ood_threshold_k is not None and not 0 <= self.ood_threshold_k < float("inf"):
+            raise ValueError(
+                f"`ood_threshold_k` must be finite and >= 0, or None. Got {self.ood_threshold_k}."
+            )
         if self.use_group_norm and self.pretrained_backbone_weights:
             raise ValueError(
                 "`use_group_norm=True` would discard the BatchNorm statistics of "
@@ -311,11 +416,33 @@ class EBVLAConfig(PreTrainedConfig):
                     "`resize_shape`/`crop_shape`): smaller ones give a 1x1 ResNet feature map whose keypoints "
                     "carry no information."
                 )
+        if self.ood_response == "hold" and self.hold_action == "current_state":
+            self._validate_current_state_hold()
         if self.backbone == "resnet" and len({f.shape for f in self.image_features.values()}) > 1:
             raise ValueError(
                 "The light backbone needs all cameras at the same shape (set `resize_shape`). Got "
                 f"{ {k: tuple(f.shape) for k, f in self.image_features.items()} }."
             )
+
+    def _validate_current_state_hold(self) -> None:
+        """Holding the current state sends `observation.state` as the action: both must mean the same."""
+        if self.state_dim != self.action_dim:
+            raise ValueError(
+                "`hold_action='current_state'` sends `observation.state` as the action, so both must have the "
+                f"same size. Got state {self.state_dim} and action {self.action_dim}: use 'zero_delta' for "
+                "delta actions."
+            )
+        names = (self.state_feature_names, self.action_feature_names)
+        if None not in names and list(names[0]) != list(names[1]):
+            raise ValueError(
+                "`hold_action='current_state'` needs `state_feature_names` and `action_feature_names` to match, "
+                f"dimension by dimension. Got {names[0]} and {names[1]}."
+            )
+
+    def set_dataset_feature_metadata(self, features: dict[str, dict]) -> None:
+        """Records the dataset's state and action names; LeRobot's `make_policy` calls it with the dataset."""
+        self.state_feature_names = _names(features, OBS_STATE)
+        self.action_feature_names = _names(features, ACTION)
 
     @property
     def action_dim(self) -> int:
@@ -337,3 +464,11 @@ class EBVLAConfig(PreTrainedConfig):
     @property
     def reward_delta_indices(self) -> None:
         return None
+
+
+def _names(features: dict[str, dict], key: str) -> list[str] | None:
+    """The per-dimension names of a dataset feature (LeRobot's `names`), None when it has none."""
+    names = features.get(key, {}).get("names")
+    if isinstance(names, dict):  # {"motors": [...]} in some datasets
+        names = next(iter(names.values()), None)
+    return None if names is None else [str(n) for n in names]

@@ -27,12 +27,23 @@ def repeat_context_kv(kv: ContextKV, repeats: int) -> ContextKV:
 
 
 class EBVLARotaryEmbedding(nn.Module):
-    """Rotary position embedding over the H action timesteps (RoFormer)."""
+    """Rotary position embedding over the H action timesteps (RoFormer); frequencies always in fp32."""
 
     def __init__(self, head_dim: int, base: float):
         super().__init__()
-        inv_freq = 1.0 / (base ** (torch.arange(0, head_dim, 2, dtype=torch.float32) / head_dim))
-        self.register_buffer("inv_freq", inv_freq, persistent=False)
+        self.head_dim, self.base = head_dim, base
+        self.register_buffer("inv_freq", self._frequencies(torch.device("cpu")), persistent=False)
+
+    def _frequencies(self, device: torch.device) -> Tensor:
+        exponents = torch.arange(0, self.head_dim, 2, device=device, dtype=torch.float32) / self.head_dim
+        return 1.0 / self.base**exponents
+
+    def _apply(self, fn, recurse=True):
+        # `policy.to(torch.bfloat16)` would round the frequencies, and with them every angle: recompute them in
+        # fp32 on the new device instead.
+        super()._apply(fn, recurse)
+        self.inv_freq = self._frequencies(self.inv_freq.device)
+        return self
 
     def forward(self, seq_len: int, device: torch.device, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
         positions = torch.arange(seq_len, device=device, dtype=torch.float32)
@@ -161,9 +172,17 @@ class EBVLAEnergyHead(nn.Module):
         return [block.cross_attn.context_kv(c) for block, c in zip(self.blocks, contexts, strict=True)]
 
     def forward(self, actions: Tensor, kv: ContextKV) -> Tensor:
-        """Returns the per-timestep energies e_t (B, H) of action chunks (B, H, d_a) under `kv` of batch B."""
-        z = self.action_in(actions)  # (B, H, D)
+        """Returns the per-timestep energies e_t (B, H) of action chunks (B, H, d_a) under `kv` of batch B.
+
+        Actions come in and energies go out in fp32 whatever the head's dtype: the MCMC iterate, its Langevin
+        noise (sigma_L = 0.001 is below bf16's spacing near 1) and the energy readout stay fp32 in a bf16
+        policy. The input projection runs in fp32 too (under autocast as well), so a + eps reaches z before
+        any rounding.
+        """
+        weight, bias = self.action_in.weight, self.action_in.bias
+        with torch.autocast(actions.device.type, enabled=False):
+            z = F.linear(actions.float(), weight.float(), bias.float()).to(weight.dtype)  # (B, H, D)
         cos, sin = self.rotary(actions.shape[1], actions.device, z.dtype)
         for block, block_kv in zip(self.blocks, kv, strict=True):
             z = block(z, block_kv, cos, sin)
-        return self.energy_out(self.final_norm(z)).squeeze(-1)  # (B, H)
+        return self.energy_out(self.final_norm(z)).squeeze(-1).float()  # (B, H)

@@ -10,6 +10,11 @@ One step k, for a chunk a^(k) in R^{H x d_a}:
 Every step starts from a detached a^(k), so gradients only ever flow within one step: at inference this keeps
 memory flat in K, and in training it is the paper's "detach the graph at every step except the last"
 (the caller asks for `create_graph=True` on the last step only).
+
+In training the loss reaches the energy's parameters (and through them the backbone) only through that last
+step's update alpha exp(e_t / tau) clip(g, -c, c). Where the clip is active its derivative is zero, so the
+direction g carries no learning signal there and only the step length exp(e_t / tau) does. `straight_through_clip`
+keeps the clipped value in the forward pass and lets the backward pass treat the clip as the identity.
 """
 
 from collections.abc import Callable, Sequence
@@ -66,6 +71,7 @@ def refine_actions(
     generator: torch.Generator | None = None,
     create_graph: bool = False,
     early_stop_tol: float | None = None,
+    straight_through_clip: bool = False,
 ) -> RefinementResult:
     """Runs len(step_sizes) energy-scaled gradient steps (Eq. 2-3) from `initial_actions`.
 
@@ -81,6 +87,8 @@ def refine_actions(
         create_graph: Keep each step's update differentiable with respect to the energy's parameters
             (second-order training). Gradients never flow from one step into the previous one.
         early_stop_tol: Stop once no action entry moved more than this in a step. None runs every step.
+        straight_through_clip: With `create_graph`, differentiate the clip as the identity (same forward
+            values); without it the clip passes no gradient wherever |g| > c.
 
     Returns:
         The refined chunk, the energy seen at every step and which chunks diverged.
@@ -99,7 +107,10 @@ def refine_actions(
         with torch.set_grad_enabled(create_graph):
             if not create_graph:
                 e, grad = e.detach(), grad.detach()
-            step = alpha * torch.exp(e / temperature).unsqueeze(-1) * grad.clamp(-grad_clip, grad_clip)
+            clipped = grad.clamp(-grad_clip, grad_clip)
+            if straight_through_clip:
+                clipped = grad + (clipped - grad).detach()
+            step = alpha * torch.exp(e / temperature).unsqueeze(-1) * clipped
             updated = (a - step).clamp(-action_clamp, action_clamp)
             finite = torch.isfinite(energy) & torch.isfinite(grad).flatten(1).all(dim=1)
             finite &= torch.isfinite(updated).flatten(1).all(dim=1)

@@ -26,6 +26,7 @@ from .backbone_resnet import EBVLAResNetBackbone
 from .configuration_ebvla import EBVLAConfig
 from .energy_head import ContextKV, EBVLAEnergyHead, repeat_context_kv
 from .mcmc import EnergyFn, RefinementResult, refine_actions, sample_initial_actions
+from .ood_response import EnergyOODResponse, OODResponseDecision, respond_to_energy
 
 logger = logging.getLogger(__name__)
 
@@ -57,6 +58,8 @@ class EBVLAPolicy(PreTrainedPolicy):
         config.validate_features()
         self.config = config
         self.model = EBVLA(config)
+        # Set by `from_pretrained` from the checkpoint's ood_calibration.json (see `ood_response.py`).
+        self.ood_response: EnergyOODResponse | None = None
         self.reset()
 
     @classmethod
@@ -68,17 +71,30 @@ class EBVLAPolicy(PreTrainedPolicy):
         strict: bool = True,
         **kwargs,
     ) -> "EBVLAPolicy":
-        """Loads a saved policy; every weight comes from the checkpoint, so no backbone is downloaded."""
+        """Loads a saved policy; every weight comes from the checkpoint, so no backbone is downloaded.
+
+        The OOD response (`config.ood_response`) takes its threshold from the checkpoint's
+        `ood_calibration.json`, if there is one.
+        """
         if config is None:
             config = PreTrainedConfig.from_pretrained(pretrained_name_or_path, **kwargs)
         config.load_pretrained_backbone = False
-        return super().from_pretrained(pretrained_name_or_path, config=config, strict=strict, **kwargs)
+        policy = super().from_pretrained(pretrained_name_or_path, config=config, strict=strict, **kwargs)
+        policy.ood_response = EnergyOODResponse.from_pretrained(policy.config, pretrained_name_or_path)
+        return policy
 
     def _save_pretrained(self, save_directory: Path, state_dict: dict[str, Tensor] | None = None) -> None:
         """Saves config and weights so that a save that fails midway leaves the previous files intact.
 
         Everything is written to a temporary folder beside `save_directory` first, then moved into place.
+        Every fp32 tensor that bf16 holds exactly is stored in bf16: with `frozen_weights_dtype="bfloat16"`
+        that is all the frozen backbone weights, which halves a full-size checkpoint and loses nothing
+        (loading casts them back to the parameters' dtype).
         """
+        state_dict = dict(self.state_dict() if state_dict is None else state_dict)
+        for name, tensor in state_dict.items():
+            if tensor.dtype == torch.float32 and torch.equal(tensor.to(torch.bfloat16).float(), tensor):
+                state_dict[name] = tensor.to(torch.bfloat16)
         with tempfile.TemporaryDirectory(dir=save_directory.parent, prefix=f".{save_directory.name}-") as tmp:
             super()._save_pretrained(Path(tmp), state_dict=state_dict)
             for file in Path(tmp).iterdir():
@@ -91,6 +107,7 @@ class EBVLAPolicy(PreTrainedPolicy):
         """Clears the action queue; call it on `env.reset()`."""
         self._action_queue: deque[Tensor] = deque(maxlen=self.config.n_action_steps)
         self.last_energy: EnergyReadout | None = None
+        self.last_ood_decision: OODResponseDecision | None = None
 
     def predict_action_chunk(
         self,
@@ -100,6 +117,10 @@ class EBVLAPolicy(PreTrainedPolicy):
     ) -> Tensor | tuple[Tensor, EnergyReadout]:
         """Refines a chunk of (normalized) actions, (B, chunk_size, action_dim), for each observation.
 
+        The chunk's energies are kept in `self.last_energy` and the OOD response to them (`ood_response.py`:
+        continue, hold or raise `EnergyOODError`) in `self.last_ood_decision`; held chunks are returned
+        replaced by the hold action.
+
         Args:
             batch: A pre-processed observation batch.
             generator: Seeds a^(0) and the Langevin noise; on the policy's device.
@@ -108,15 +129,20 @@ class EBVLAPolicy(PreTrainedPolicy):
         validate_observation(batch, self.config)
         # lerobot-eval runs under inference_mode, but refinement differentiates the energy w.r.t. a.
         with torch.inference_mode(False):
-            batch = _without_inference_tensors(batch)
-            actions, readout = self.model.generate_actions(batch, generator=generator)
+            refine_batch = _without_inference_tensors(batch)
+            actions, readout = self.model.generate_actions(refine_batch, generator=generator)
+        self.last_energy = readout
+        actions, self.last_ood_decision = respond_to_energy(
+            self.ood_response, self.config, actions, readout.final_energy, batch
+        )
         return (actions, readout) if return_energy else actions
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], generator: torch.Generator | None = None) -> Tensor:
         """Returns the next action (B, action_dim), refining a new chunk every `n_action_steps` calls.
 
-        After each refinement `self.last_energy` holds a new `EnergyReadout` for the refined chunk.
+        After each refinement `self.last_energy` holds a new `EnergyReadout` for the refined chunk and
+        `self.last_ood_decision` the OOD response to it.
         """
         if len(self._action_queue) == 0:
             actions, self.last_energy = self.predict_action_chunk(
@@ -193,6 +219,7 @@ class EBVLA(nn.Module):
         create_graph: bool = False,
         early_stop_tol: float | None = None,
         energy_fn: EnergyFn | None = None,
+        straight_through_clip: bool = False,
     ) -> RefinementResult:
         cfg = self.config
         return refine_actions(
@@ -206,16 +233,19 @@ class EBVLA(nn.Module):
             generator=generator,
             create_graph=create_graph,
             early_stop_tol=early_stop_tol,
+            straight_through_clip=straight_through_clip,
         )
 
     def _initial_actions(
         self, batch_size: int, reference: Tensor, generator: torch.Generator | None
     ) -> Tensor:
+        """a^(0) on `reference`'s device, always fp32: the whole refinement (a, eps, updates) stays fp32 in a
+        bf16 policy, where steps of alpha g and noise of sigma_L = 0.001 would round away near |a| = 1."""
         return sample_initial_actions(
             (batch_size, self.config.chunk_size, self.config.action_dim),
             self.config.init_action_std,
             device=reference.device,
-            dtype=reference.dtype,
+            dtype=torch.float32,
             generator=generator,
         )
 
@@ -268,7 +298,7 @@ class EBVLA(nn.Module):
     def compute_loss(
         self, batch: dict[str, Tensor], generator: torch.Generator | None = None
     ) -> tuple[Tensor, dict]:
-        """Training: K ~ U[K_min, K_max] steps with alpha ~ U[alpha_min, alpha_max] each, L1 on a^(K) (Eq. 4).
+        """Training: K ~ U[K_min, K_max] steps with alpha ~ U[alpha_min, alpha_max], L1 on a^(K) (Eq. 4).
 
         Without a `generator`, the randomness comes from `training_generator`.
 
@@ -281,14 +311,10 @@ class EBVLA(nn.Module):
         device = target.device
         if generator is None:
             generator = self.training_generator(device)
-        k_min, k_max = cfg.train_mcmc_steps_range
-        num_steps = int(torch.randint(k_min, k_max + 1, (1,), generator=generator, device=device).item())
-        alpha_min, alpha_max = cfg.train_step_size_range
-        step_sizes = (
-            alpha_min + (alpha_max - alpha_min) * torch.rand(num_steps, generator=generator, device=device)
-        ).tolist()
+        step_sizes = sample_training_step_sizes(cfg, generator)
+        num_steps = len(step_sizes)
 
-        # a^(0) takes the head's dtype (bf16 policies), the L1 loss is taken in float32.
+        # a^(0) and the refinement are fp32 even in a bf16 policy; the L1 loss is taken in float32.
         actions = self._initial_actions(target.shape[0], kv[0][0], generator)
         initial_energy = None
         if num_steps > 1:
@@ -297,7 +323,14 @@ class EBVLA(nn.Module):
             actions, initial_energy = warmup.actions, warmup.step_energies[0]
         # CPU (and fused GPU) attention kernels have no double backward; the math kernel does.
         with sdpa_kernel(SDPBackend.MATH):
-            last = self._refine(kv, actions, step_sizes[-1:], generator, create_graph=True)
+            last = self._refine(
+                kv,
+                actions,
+                step_sizes[-1:],
+                generator,
+                create_graph=True,
+                straight_through_clip=cfg.train_straight_through_clip,
+            )
         if initial_energy is None:
             initial_energy = last.step_energies[0]
 
@@ -313,7 +346,50 @@ class EBVLA(nn.Module):
             "initial_energy": initial_energy.mean().item(),
             "last_step_energy": last.step_energies[-1].mean().item(),
         }
+        if cfg.energy_contrastive_weight > 0:
+            contrastive = self.contrastive_energy_loss(kv, target, generator)
+            loss = loss + cfg.energy_contrastive_weight * contrastive
+            info["contrastive_loss"] = contrastive.item()
         return loss, info
+
+    def contrastive_energy_loss(self, kv: ContextKV, target: Tensor, generator: torch.Generator) -> Tensor:
+        """InfoNCE over chunks: under each context C_i, the expert chunk a*_i must have the lowest energy.
+
+        Candidates for C_i are a*_i (the positive), the other observations' expert chunks a*_j (a mismatched
+        action for this context) and noisy copies a*_i + sigma n (a nearby worse action), so that E(a, C) ranks
+        how well a chunk fits its context rather than only shaping the descent direction.
+        """
+        cfg = self.config
+        batch_size = target.shape[0]
+        noise = torch.randn(
+            (batch_size, cfg.energy_contrastive_negatives, *target.shape[1:]),
+            generator=generator,
+            device=target.device,
+            dtype=target.dtype,
+        )
+        noisy = target.unsqueeze(1) + cfg.energy_contrastive_noise_std * noise  # (B, N_noisy, H, d_a)
+        # Row i: a*_i first (the positive), then a*_{i+1}, ..., a*_{i-1} (mismatched), then the noisy copies.
+        rows = torch.arange(batch_size, device=target.device)
+        order = (rows[:, None] + rows[None, :]) % batch_size  # (B, B)
+        candidates = torch.cat([target[order], noisy], dim=1)  # (B, B + N_noisy, H, d_a)
+        num_candidates = candidates.shape[1]
+        energies = self.head(candidates.flatten(0, 1), repeat_context_kv(kv, num_candidates)).mean(dim=-1)
+        logits = -energies.view(batch_size, num_candidates).float() / cfg.energy_contrastive_temperature
+        return nn.functional.cross_entropy(
+            logits, torch.zeros(batch_size, dtype=torch.long, device=target.device)
+        )
+
+
+def sample_training_step_sizes(config: EBVLAConfig, generator: torch.Generator) -> list[float]:
+    """The step sizes alpha^(k) of one training chain: K ~ U{K_min..K_max} of them, alpha ~ U[alpha_min, alpha_max]
+    drawn once for the chain ("per_chain") or for every step ("per_mcmc_step")."""
+    k_min, k_max = config.train_mcmc_steps_range
+    device = generator.device
+    num_steps = int(torch.randint(k_min, k_max + 1, (1,), generator=generator, device=device).item())
+    num_alphas = 1 if config.train_step_size_sampling == "per_chain" else num_steps
+    alpha_min, alpha_max = config.train_step_size_range
+    alphas = alpha_min + (alpha_max - alpha_min) * torch.rand(num_alphas, generator=generator, device=device)
+    return alphas.expand(num_steps).tolist()
 
 
 def head_energy(head: EBVLAEnergyHead, params: dict[str, Tensor], actions: Tensor, kv: ContextKV) -> Tensor:

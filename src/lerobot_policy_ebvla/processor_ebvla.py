@@ -42,7 +42,10 @@ class EBVLATokenizerProcessorStep(TokenizerProcessorStep):
         if self.tokenizer is not None:
             self.input_tokenizer = self.tokenizer
         elif self.tokenizer_name is not None:
-            self.input_tokenizer = AutoTokenizer.from_pretrained(self.tokenizer_name)
+            from .backbone_vlm import fetching  # the same one-line error as the backbone's when offline
+
+            with fetching("vlm_model_name", self.tokenizer_name, "tokenizer"):
+                self.input_tokenizer = AutoTokenizer.from_pretrained(self.tokenizer_name)
         if self.input_tokenizer is not None and self.input_tokenizer.pad_token is None:
             self.input_tokenizer.pad_token = self.input_tokenizer.eos_token
 

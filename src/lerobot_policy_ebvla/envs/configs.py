@@ -1,4 +1,4 @@
-"""`--env.type=metaworld_ebvla`: LeRobot's MetaWorld env with fast rendering and camera perturbations.
+"""`--env.type=metaworld_ebvla`: LeRobot's MetaWorld env with fast rendering and graded perturbations.
 
 The config extends LeRobot's `metaworld` env config, so every `--env.*` option of `--env.type=metaworld`
 works unchanged and the observation keys and shapes are the same: a policy trained on data recorded with
@@ -11,10 +11,35 @@ from dataclasses import dataclass
 from lerobot.envs.configs import EnvConfig, _make_vec_env_cls
 from lerobot.envs.configs import MetaworldEnv as LeRobotMetaworldEnvConfig
 
-CAMERA_PERTURBATIONS = ("none", "pose", "fov", "pose_fov")
+# The perturbation dimensions of LIBERO-Plus that MetaWorld allows, by name (magnitudes: envs/metaworld.py).
+CAMERA_PERTURBATIONS = ("pose", "fov", "pose_fov")
+LIGHTING_PERTURBATIONS = ("light_dim", "light_bright", "light_color", "light_direction")
+SENSOR_PERTURBATIONS = ("noise", "blur", "blank")
+SCENE_PERTURBATIONS = ("table_color", "table_texture", "distractor")
+ROBOT_PERTURBATIONS = ("robot_init",)
+PERTURBATIONS = (
+    "none",
+    *CAMERA_PERTURBATIONS,
+    *LIGHTING_PERTURBATIONS,
+    *SENSOR_PERTURBATIONS,
+    *SCENE_PERTURBATIONS,
+    *ROBOT_PERTURBATIONS,
+)
 MAX_SEVERITY = 5
 # MetaWorld truncates every episode after `max_path_length` = 500 steps; an env step past it raises.
 METAWORLD_MAX_PATH_LENGTH = 500
+
+
+def check_perturbation(perturbation: str, severity: int) -> None:
+    """Raises a ValueError naming the field and its allowed values if (perturbation, severity) is invalid."""
+    if perturbation not in PERTURBATIONS:
+        raise ValueError(f"`perturbation` must be one of {PERTURBATIONS}, got {perturbation!r}.")
+    if isinstance(severity, bool) or not isinstance(severity, int) or not 0 <= severity <= MAX_SEVERITY:
+        raise ValueError(f"`perturbation_severity` must be an int in [0, {MAX_SEVERITY}], got {severity!r}.")
+    if perturbation == "none" and severity != 0:
+        raise ValueError(
+            f"`perturbation_severity` > 0 needs a `perturbation` other than 'none' (one of {PERTURBATIONS[1:]})."
+        )
 
 
 @EnvConfig.register_subclass("metaworld_ebvla")
@@ -22,42 +47,50 @@ METAWORLD_MAX_PATH_LENGTH = 500
 class MetaworldEBVLAEnv(LeRobotMetaworldEnvConfig):
     """LeRobot's MetaWorld env (`--env.type=metaworld`) plus the scene options EB-VLA's experiments need.
 
-    The camera perturbations follow LIBERO-Plus's camera dimension (pose shifts and focal changes of the
-    evaluation camera, at graded severities). They move the camera LeRobot renders from (`corner2`) and
-    keep the image size, so observation keys and shapes are those of `--env.type=metaworld`.
+    The perturbations follow LIBERO-Plus's dimensions where MetaWorld allows (camera viewpoint, lighting,
+    sensor noise, background/table appearance, distractor objects, robot initial state), each at severities
+    1 to 5; the magnitudes per level are the constants of `envs/metaworld.py`, tabulated in docs/metaworld.md.
+    They keep the image size, so observation keys and shapes are those of `--env.type=metaworld`.
 
     Args:
         fast_render: Turn off the scene's shadows and reflections, which renders about 3x faster. Images
             look different (no shadows), so record and evaluate with the same setting.
-        camera_perturbation: "none"; "pose" orbits the camera around the point of the table it looks at,
-            by 5 degrees of azimuth and 3 degrees of elevation per severity level; "fov" widens the field
-            of view by 10% per level (a shorter focal length); "pose_fov" applies both.
-        perturbation_severity: Severity level, 0 (no change) to 5.
+        perturbation: One of `PERTURBATIONS`: "none"; camera "pose", "fov", "pose_fov"; lighting
+            "light_dim", "light_bright", "light_color", "light_direction"; sensor "noise", "blur", "blank"
+            (a black image, to check that a policy uses its camera); scene "table_color", "table_texture",
+            "distractor"; robot "robot_init" (the hand starts elsewhere).
+        perturbation_severity: Severity level, 0 (no change) to 5. At 0 `perturbation` is set to "none",
+            so `perturbation` always names the perturbation actually applied (what energy records store).
+        camera_perturbation: Older name of `perturbation`, kept so existing commands work; after
+            construction both fields hold the same value.
         max_episode_steps: Steps after which an episode is cut; None keeps LeRobot's 500 (MetaWorld's own
             limit, which is also the maximum).
     """
 
     task: str = "reach-v3"
     fast_render: bool = False
-    camera_perturbation: str = "none"
+    perturbation: str = "none"
     perturbation_severity: int = 0
+    camera_perturbation: str = "none"
     max_episode_steps: int | None = None
 
     def __post_init__(self):
         super().__post_init__()
-        if self.camera_perturbation not in CAMERA_PERTURBATIONS:
+        if self.camera_perturbation not in PERTURBATIONS:
             raise ValueError(
-                f"`camera_perturbation` must be one of {CAMERA_PERTURBATIONS}, got {self.camera_perturbation!r}."
+                f"`camera_perturbation` must be one of {PERTURBATIONS}, got {self.camera_perturbation!r}."
             )
-        if not 0 <= self.perturbation_severity <= MAX_SEVERITY:
-            raise ValueError(
-                f"`perturbation_severity` must be in [0, {MAX_SEVERITY}], got {self.perturbation_severity}."
-            )
-        if self.camera_perturbation == "none" and self.perturbation_severity != 0:
-            raise ValueError(
-                "`perturbation_severity` > 0 needs a `camera_perturbation` other than 'none' "
-                f"(one of {CAMERA_PERTURBATIONS[1:]})."
-            )
+        if self.camera_perturbation != "none":
+            if self.perturbation not in ("none", self.camera_perturbation):
+                raise ValueError(
+                    f"`perturbation` ({self.perturbation!r}) and its older name `camera_perturbation` "
+                    f"({self.camera_perturbation!r}) disagree: set only `perturbation`."
+                )
+            self.perturbation = self.camera_perturbation
+        check_perturbation(self.perturbation, self.perturbation_severity)
+        if self.perturbation_severity == 0:
+            self.perturbation = "none"
+        self.camera_perturbation = self.perturbation
         if self.max_episode_steps is not None and not 0 < self.max_episode_steps <= METAWORLD_MAX_PATH_LENGTH:
             raise ValueError(
                 f"`max_episode_steps` must be in [1, {METAWORLD_MAX_PATH_LENGTH}] or None, "
@@ -65,16 +98,11 @@ class MetaworldEBVLAEnv(LeRobotMetaworldEnvConfig):
             )
 
     @property
-    def perturbation(self) -> str:
-        """Name of the applied perturbation: "none" when no camera change is applied (severity 0)."""
-        return "none" if self.perturbation_severity == 0 else self.camera_perturbation
-
-    @property
     def gym_kwargs(self) -> dict:
         return {
             **super().gym_kwargs,
             "fast_render": self.fast_render,
-            "camera_perturbation": self.camera_perturbation,
+            "perturbation": self.perturbation,
             "perturbation_severity": self.perturbation_severity,
             "max_episode_steps": self.max_episode_steps,
         }

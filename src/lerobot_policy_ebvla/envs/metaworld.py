@@ -1,10 +1,15 @@
-"""LeRobot's MetaWorld gym env with fast rendering and camera perturbations (`--env.type=metaworld_ebvla`).
+"""LeRobot's MetaWorld gym env with fast rendering and graded perturbations (`--env.type=metaworld_ebvla`).
 
-`MetaworldEBVLAGymEnv` is LeRobot's `MetaworldEnv` with two scene edits applied to the MuJoCo model right after
+`MetaworldEBVLAGymEnv` is LeRobot's `MetaworldEnv` with scene edits applied to the MuJoCo model right after
 the simulator is built (inside the worker process of an async vector env):
 
 - `disable_shadows_and_reflections`: the fast-render setting.
-- `perturb_camera`: LIBERO-Plus-style camera pose and field-of-view changes at graded severities.
+- `perturb_model`: LIBERO-Plus-style camera (pose, field of view), lighting and table/background edits.
+
+and three perturbations applied while the env runs: `perturb_image` (sensor noise, blur, blackout) on every
+observation, `distractor_markers` (extra objects drawn into every rendered frame) and `displaced_hand_position`
+(the hand starts elsewhere after each reset). Every perturbation is graded by a severity 1..5 (0: none); the
+per-level magnitudes are the constants below, tabulated in docs/metaworld.md.
 
 Observations are LeRobot's (`pixels` 480x480 from `corner2`, `agent_pos`), so observation keys and shapes
 do not change.
@@ -14,18 +19,65 @@ from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Any
 
+import cv2
 import gymnasium as gym
 import mujoco
 import numpy as np
 from lerobot.envs.metaworld import DIFFICULTY_TO_TASKS, MetaworldEnv
 from lerobot.envs.utils import _LazyAsyncVectorEnv
 
-# Per severity level: degrees of azimuth and elevation of the "pose" orbit, relative widening of "fov".
+from .configs import CAMERA_PERTURBATIONS, MAX_SEVERITY, check_perturbation
+
+# Camera. Per severity level: degrees of azimuth and elevation of the "pose" orbit, relative widening of "fov".
 AZIMUTH_DEG_PER_LEVEL = 5.0
 ELEVATION_DEG_PER_LEVEL = 3.0
 FOVY_GROWTH_PER_LEVEL = 0.10
 # MetaWorld's table top is the z = 0 plane; the "pose" orbit pivots where the optical axis meets it.
 TABLE_HEIGHT = 0.0
+
+# Lighting: intensity factor of every light (the three scene lights and the headlight) per level,
+# 1 - 0.16 s for "light_dim" (0.2 at severity 5) and 1 + 0.3 s for "light_bright" (2.5 at severity 5).
+LIGHT_DIM_PER_LEVEL = 0.16
+LIGHT_BRIGHT_PER_LEVEL = 0.30
+# "light_color": the lights' colour moves linearly from white to this warm tint (reached at severity 5).
+LIGHT_TINT_RGB = (1.0, 0.6, 0.25)
+# "light_direction": the direction of every scene light moves linearly (then renormalized) from its own to
+# this low, grazing direction (from the robot's left, 14 degrees above the table), reached at severity 5.
+LIGHT_GRAZING_DIR = (1.0, 0.0, -0.25)
+
+# Sensor: standard deviation of the Gaussian pixel noise (uint8 levels) and of the Gaussian blur (pixels of
+# the 480x480 frame) per level.
+NOISE_STD_PER_LEVEL = 8.0
+BLUR_SIGMA_PX_PER_LEVEL = 1.5
+
+# Table/background appearance. "table_color": the colour multiplying the table's wood texture and the
+# floor/wall materials moves linearly towards these tints (reached at severity 5); the sky behind the scene
+# (the skybox texture) is multiplied by the same kind of tint.
+TABLE_MATERIAL = "table_wood"
+MATERIAL_TINTS = {
+    TABLE_MATERIAL: (0.25, 0.45, 1.0),  # blue table
+    "basic_floor": (1.0, 0.45, 0.55),  # pink floor and walls
+    "wall_metal": (1.0, 0.45, 0.55),
+}
+SKY_TINT_RGB = (0.55, 0.8, 1.0)  # light blue sky
+# "table_texture": the table's wood texture is blended with a black-and-white checkerboard, by 0.2 per level.
+CHECKER_BLEND_PER_LEVEL = 0.2
+CHECKER_SQUARE_TEXELS = 32
+
+# Distractors: severity s draws the first s of these objects on the table (geom type, centre xyz in metres,
+# MuJoCo size, rgba); each is 8-16 cm across, about the size of MetaWorld's task objects.
+# They are drawn into the rendered frames only: they are not part of the physics and collide with nothing.
+DISTRACTORS = (
+    (mujoco.mjtGeom.mjGEOM_BOX, (-0.2, 0.55, 0.05), (0.05, 0.05, 0.05), (0.95, 0.85, 0.1, 1.0)),
+    (mujoco.mjtGeom.mjGEOM_CYLINDER, (0.2, 0.6, 0.06), (0.045, 0.06, 0.0), (0.1, 0.3, 0.95, 1.0)),
+    (mujoco.mjtGeom.mjGEOM_SPHERE, (-0.15, 0.85, 0.05), (0.05, 0.05, 0.05), (0.6, 0.2, 0.8, 1.0)),
+    (mujoco.mjtGeom.mjGEOM_BOX, (0.25, 0.85, 0.04), (0.08, 0.04, 0.04), (1.0, 0.5, 0.0, 1.0)),
+    (mujoco.mjtGeom.mjGEOM_CAPSULE, (0.0, 0.45, 0.11), (0.04, 0.07, 0.0), (1.0, 0.4, 0.7, 1.0)),
+)
+
+# Robot initial state: the hand's reset position moves by this many metres per level, in a random direction
+# (drawn per episode from the reset seed) that never points down towards the objects.
+HAND_OFFSET_M_PER_LEVEL = 0.03
 
 
 def disable_shadows_and_reflections(model: mujoco.MjModel) -> None:
@@ -88,8 +140,8 @@ def perturb_camera(model: mujoco.MjModel, camera_name: str, kind: str, severity:
         kind: "none", "pose" (orbit the camera), "fov" (widen its field of view) or "pose_fov" (both).
         severity: 0 (no change) to 5; the change grows linearly with it.
     """
-    if kind not in ("none", "pose", "fov", "pose_fov"):
-        raise ValueError(f"Unknown camera perturbation {kind!r}.")
+    if kind != "none" and kind not in CAMERA_PERTURBATIONS:
+        raise ValueError(f"Unknown camera perturbation {kind!r}; expected one of {CAMERA_PERTURBATIONS}.")
     if kind == "none" or severity == 0:
         return
     camera_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera_name)
@@ -101,29 +153,171 @@ def perturb_camera(model: mujoco.MjModel, camera_name: str, kind: str, severity:
         model.cam_fovy[camera_id] *= 1.0 + FOVY_GROWTH_PER_LEVEL * severity
 
 
+def scale_lights(model: mujoco.MjModel, rgb_factor: Sequence[float]) -> None:
+    """Multiplies the ambient, diffuse and specular colour of every light, the headlight included."""
+    factor = np.asarray(rgb_factor, dtype=float)
+    for colour in (model.light_ambient, model.light_diffuse, model.light_specular):
+        colour *= factor
+    headlight = model.vis.headlight
+    headlight.ambient = headlight.ambient * factor
+    headlight.diffuse = headlight.diffuse * factor
+    headlight.specular = headlight.specular * factor
+
+
+def turn_lights(model: mujoco.MjModel, fraction: float) -> None:
+    """Turns every scene light towards `LIGHT_GRAZING_DIR` by `fraction` (the headlight follows the camera).
+
+    The lights of MetaWorld's scene are directional, so only their direction matters, not their position.
+    """
+    target = np.asarray(LIGHT_GRAZING_DIR) / np.linalg.norm(LIGHT_GRAZING_DIR)
+    for light_id in range(model.nlight):
+        direction = (1.0 - fraction) * model.light_dir[light_id] + fraction * target
+        model.light_dir[light_id] = direction / np.linalg.norm(direction)
+
+
+def _material_id(model: mujoco.MjModel, name: str) -> int:
+    material_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_MATERIAL, name)
+    if material_id < 0:
+        raise ValueError(f"The scene has no material named {name!r}; is it a MetaWorld scene?")
+    return material_id
+
+
+def tint_table_and_background(model: mujoco.MjModel, fraction: float) -> None:
+    """Moves the colour of the table, floor, walls and sky towards their tints by `fraction` (0 to 1).
+
+    A material's rgba multiplies its texture, so the wood grain stays visible under the new colour. Textures
+    are uploaded to the renderer when its context is created (the first render), so this must run before the
+    first frame, as `MetaworldEBVLAGymEnv` does.
+    """
+    for name, tint in MATERIAL_TINTS.items():
+        rgb = model.mat_rgba[_material_id(model, name), :3]
+        rgb += fraction * (np.asarray(tint) - rgb)
+    sky_factor = 1.0 + fraction * (np.asarray(SKY_TINT_RGB) - 1.0)
+    for texture_id in np.flatnonzero(model.tex_type == mujoco.mjtTexture.mjTEXTURE_SKYBOX):
+        texels = _texels(model, texture_id)
+        texels[:] = np.round(texels * sky_factor).astype(np.uint8)
+
+
+def _texels(model: mujoco.MjModel, texture_id: int) -> np.ndarray:
+    """A writable (height, width, channels) view of a texture's data in `model.tex_data`."""
+    texture = model.texture(texture_id)
+    height, width, channels = texture.height[0], texture.width[0], texture.nchannel[0]
+    start = texture.adr[0]
+    return model.tex_data[start : start + height * width * channels].reshape(height, width, channels)
+
+
+def checker_table(model: mujoco.MjModel, fraction: float) -> None:
+    """Blends the table's texture with a black-and-white checkerboard: 0 keeps the wood, 1 is the board.
+
+    Like `tint_table_and_background`, it must run before the first frame is rendered.
+    """
+    texture_id = model.mat_texid[_material_id(model, TABLE_MATERIAL), mujoco.mjtTextureRole.mjTEXROLE_RGB]
+    if texture_id < 0:
+        raise ValueError(f"The material {TABLE_MATERIAL!r} has no texture.")
+    texels = _texels(model, texture_id)
+    rows, cols = np.indices(texels.shape[:2]) // CHECKER_SQUARE_TEXELS
+    board = np.where((rows + cols)[..., None] % 2 == 0, 235.0, 20.0)
+    texels[:] = np.round((1.0 - fraction) * texels + fraction * board).astype(np.uint8)
+
+
+def perturb_model(model: mujoco.MjModel, camera_name: str, perturbation: str, severity: int) -> None:
+    """Applies the camera, lighting and table/background perturbations to `model`; others leave it alone.
+
+    Args:
+        model: The MuJoCo model, edited in place, before the first frame is rendered.
+        camera_name: The camera observations are rendered from (LeRobot's MetaWorld env uses "corner2").
+        perturbation: A name of `configs.PERTURBATIONS`.
+        severity: 0 (no change) to 5; every change grows linearly with it.
+    """
+    check_perturbation(perturbation, severity)
+    level = severity / MAX_SEVERITY
+    if perturbation in CAMERA_PERTURBATIONS:
+        perturb_camera(model, camera_name, perturbation, severity)
+    elif perturbation == "light_dim":
+        scale_lights(model, [1.0 - LIGHT_DIM_PER_LEVEL * severity] * 3)
+    elif perturbation == "light_bright":
+        scale_lights(model, [1.0 + LIGHT_BRIGHT_PER_LEVEL * severity] * 3)
+    elif perturbation == "light_color":
+        scale_lights(model, 1.0 + level * (np.asarray(LIGHT_TINT_RGB) - 1.0))
+    elif perturbation == "light_direction":
+        turn_lights(model, level)
+    elif perturbation == "table_color":
+        tint_table_and_background(model, level)
+    elif perturbation == "table_texture":
+        checker_table(model, CHECKER_BLEND_PER_LEVEL * severity)
+
+
+def perturb_image(
+    image: np.ndarray, perturbation: str, severity: int, rng: np.random.Generator
+) -> np.ndarray:
+    """Applies the sensor perturbations ("noise", "blur", "blank") to an (H, W, 3) uint8 frame.
+
+    Other perturbations return `image` unchanged. "blank" (a black frame) is the same at every severity >= 1.
+    """
+    if severity == 0 or perturbation not in ("noise", "blur", "blank"):
+        return image
+    if perturbation == "blank":
+        return np.zeros_like(image)
+    if perturbation == "blur":
+        return cv2.GaussianBlur(image, (0, 0), sigmaX=BLUR_SIGMA_PX_PER_LEVEL * severity)
+    noisy = image + rng.normal(0.0, NOISE_STD_PER_LEVEL * severity, image.shape)
+    return np.clip(np.round(noisy), 0, 255).astype(np.uint8)
+
+
+def distractor_markers(severity: int) -> list[dict[str, Any]]:
+    """The first `severity` objects of `DISTRACTORS`, as marker arguments of Gymnasium's MuJoCo renderer."""
+    return [
+        {"type": geom_type, "pos": np.array(pos), "size": np.array(size), "rgba": np.array(rgba)}
+        for geom_type, pos, size, rgba in DISTRACTORS[:severity]
+    ]
+
+
+def displaced_hand_position(
+    hand_init_pos: np.ndarray, severity: int, rng: np.random.Generator, low: np.ndarray, high: np.ndarray
+) -> np.ndarray:
+    """The hand's reset position moved by `HAND_OFFSET_M_PER_LEVEL * severity` metres in a random direction.
+
+    The direction is uniform on the upper half sphere (the hand is never pushed down into the objects); an
+    axis on which the move would leave MetaWorld's mocap box [low, high] is reversed, then clipped.
+    """
+    direction = rng.normal(size=3)
+    direction[2] = abs(direction[2])
+    direction /= np.linalg.norm(direction)
+    offset = HAND_OFFSET_M_PER_LEVEL * severity * direction
+    moved = hand_init_pos + offset
+    outside = (moved < low) | (moved > high)
+    moved = np.where(outside, hand_init_pos - offset, moved)
+    return np.clip(moved, low, high)
+
+
 class MetaworldEBVLAGymEnv(MetaworldEnv):
     """LeRobot's MetaWorld env with the scene edits of `MetaworldEBVLAEnv` (see its docstring for the args).
 
     It also keeps MetaWorld's 39-d state of the last observation (`state_obs`), which the scripted expert
-    policies (`expert_policy.get_action(state_obs)`) act on.
+    policies (`expert_policy.get_action(state_obs)`) act on. The sensor perturbations change the observed
+    `pixels` only; `render()` (lerobot-eval's videos) shows the scene with its model edits and distractors.
     """
 
     def __init__(
         self,
         task: str,
         fast_render: bool = False,
-        camera_perturbation: str = "none",
+        perturbation: str = "none",
         perturbation_severity: int = 0,
         max_episode_steps: int | None = None,
         **kwargs: Any,
     ):
+        check_perturbation(perturbation, perturbation_severity)
         super().__init__(task, **kwargs)
         self.fast_render = fast_render
-        self.camera_perturbation = camera_perturbation
+        self.perturbation = perturbation
         self.perturbation_severity = perturbation_severity
         if max_episode_steps is not None:
             self._max_episode_steps = max_episode_steps
         self.state_obs: np.ndarray | None = None
+        # Draws the pixel noise and the hand's displacement; reseeded by `reset(seed=...)`.
+        self._rng = np.random.default_rng(0)
+        self._hand_init_pos: np.ndarray | None = None
 
     def _ensure_env(self) -> None:
         if self._env is not None:
@@ -132,11 +326,45 @@ class MetaworldEBVLAGymEnv(MetaworldEnv):
         model = self._env.model
         if self.fast_render:
             disable_shadows_and_reflections(model)
-        perturb_camera(model, self.camera_name, self.camera_perturbation, self.perturbation_severity)
+        perturb_model(model, self.camera_name, self.perturbation, self.perturbation_severity)
+        self._hand_init_pos = np.array(self._env.hand_init_pos, dtype=float)
+
+    def reset(self, seed: int | None = None, **kwargs: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+        self._ensure_env()
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        if self.perturbation == "robot_init" and self.perturbation_severity > 0:
+            # MetaWorld's `reset_model` drives the mocap (and so the hand) to `hand_init_pos`.
+            self._env.hand_init_pos = displaced_hand_position(
+                self._hand_init_pos,
+                self.perturbation_severity,
+                self._rng,
+                self._env.mocap_low,
+                self._env.mocap_high,
+            )
+        return super().reset(seed=seed, **kwargs)
+
+    def _add_distractors(self) -> None:
+        if self.perturbation != "distractor" or self.perturbation_severity == 0:
+            return
+        # Gymnasium's offscreen viewer draws its markers into the next frame only, then forgets them.
+        viewer = self._env.mujoco_renderer._get_viewer(self._env.render_mode)
+        for marker in distractor_markers(self.perturbation_severity):
+            viewer.add_marker(**marker)
+
+    def render(self) -> np.ndarray:
+        self._ensure_env()
+        self._add_distractors()
+        return super().render()
 
     def _format_raw_obs(self, raw_obs: np.ndarray) -> dict[str, Any]:
         self.state_obs = raw_obs
-        return super()._format_raw_obs(raw_obs)
+        self._add_distractors()
+        observation = super()._format_raw_obs(raw_obs)
+        observation["pixels"] = perturb_image(
+            observation["pixels"], self.perturbation, self.perturbation_severity, self._rng
+        )
+        return observation
 
 
 def task_groups(task: str) -> dict[str, list[str]]:

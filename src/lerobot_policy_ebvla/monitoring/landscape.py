@@ -7,7 +7,6 @@ context C encoded once. A well-shaped head shows a basin at the refined action.
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -103,56 +102,6 @@ def energy_landscape(
         dims=(int(dims[0]), int(dims[1])),
         timestep=int(timestep),
     )
-
-
-def plot_energy_landscape(
-    landscape: EnergyLandscape, path: str | Path, kind: str = "both", title: str | None = None
-) -> Path:
-    """Saves the landscape as a PNG: a 3-D surface, a filled contour map, or both side by side.
-
-    The refined action is marked with a star.
-
-    Args:
-        landscape: The output of `energy_landscape`.
-        path: Destination PNG file; its folder is created.
-        kind: "surface", "contour" or "both".
-        title: Figure title.
-    """
-    if kind not in ("surface", "contour", "both"):
-        raise ValueError(f"`kind` must be 'surface', 'contour' or 'both', got {kind!r}.")
-    import matplotlib
-
-    matplotlib.use("Agg")  # files only: no display on robots and CI machines
-    import matplotlib.pyplot as plt
-
-    grid_x, grid_y = np.meshgrid(landscape.x, landscape.y)
-    # Energies can be +inf where the head diverged; mask them so the colour scale stays readable.
-    energies = np.ma.masked_invalid(landscape.energies)
-    x_label, y_label = (f"action[{landscape.timestep}, {d}]" for d in landscape.dims)
-    kinds = ["surface", "contour"] if kind == "both" else [kind]
-    fig = plt.figure(figsize=(6 * len(kinds), 5))
-    for i, panel in enumerate(kinds, start=1):
-        if panel == "surface":
-            ax = fig.add_subplot(1, len(kinds), i, projection="3d")
-            ax.plot_surface(grid_x, grid_y, energies, cmap="viridis", linewidth=0, antialiased=True)
-            ax.scatter(*landscape.center, landscape.center_energy, color="red", marker="*", s=150)
-            ax.set_zlabel("energy")
-        else:
-            ax = fig.add_subplot(1, len(kinds), i)
-            contour = ax.contourf(grid_x, grid_y, energies, levels=30, cmap="viridis")
-            fig.colorbar(contour, ax=ax, label="energy")
-            ax.plot(*landscape.center, marker="*", color="red", markersize=14, label="refined action")
-            ax.legend(loc="upper right")
-        ax.set_xlabel(x_label)
-        ax.set_ylabel(y_label)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
 
 
 def select_sample(batch: dict[str, Any], index: int) -> dict[str, Any]:

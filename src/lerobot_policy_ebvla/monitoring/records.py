@@ -8,19 +8,42 @@
 JSON has no infinity, and the policy reports `+inf` when refinement went non-finite, so non-finite energies
 are written as the strings "inf", "-inf" and "nan". Reading accepts those strings, plain numbers and the
 `Infinity`/`NaN` tokens Python's `json` module emits, so a file round-trips exactly.
+
+Two opt-in baselines of the recorder (`monitoring/recorder.py`) add to a row:
+- `restart_spread`: written in the row when recorded (older files and rows without it read as None);
+- `context_feature`: a (D,) vector per row, stored compactly beside the records as float32 rows of
+  `energy_records.features.npy` (row i belongs to line i of the records), attached to the records on read.
 """
 
+import dataclasses
+import glob
 import json
 import math
 import os
 import tempfile
 from collections.abc import Iterable
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import numpy as np
+
 ENERGY_RECORDS_FILENAME = "energy_records.jsonl"
 VANILLA_PERTURBATION = "none"
+FEATURES_SUFFIX = ".features.npy"
+# Fields every row has had since the first version of the format; later fields are optional on read.
+_REQUIRED_FIELDS = (
+    "episode_index",
+    "chunk_index",
+    "env_step",
+    "initial_energy",
+    "final_energy",
+    "success",
+    "task",
+    "seed",
+    "perturbation",
+    "severity",
+)
 
 _NON_FINITE_TO_STR = {math.inf: "inf", -math.inf: "-inf"}
 _STR_TO_NON_FINITE = {"inf": math.inf, "+inf": math.inf, "-inf": -math.inf, "nan": math.nan}
@@ -41,6 +64,10 @@ class EnergyRecord:
         seed: Environment seed of the episode, None when unseeded.
         perturbation: Name of the applied perturbation, "none" for vanilla (in-distribution) rollouts.
         severity: Perturbation severity, 0 for vanilla rollouts.
+        restart_spread: Baseline: the spread (std over chains, mean over the chunk) of N refined chunks for
+            the same observation; None when not recorded.
+        context_feature: Baseline: the (D,) pooled backbone context of the observation; None when not
+            recorded. Stored in the `.features.npy` file beside the records, not in the JSON row.
     """
 
     episode_index: int
@@ -53,6 +80,8 @@ class EnergyRecord:
     seed: int | None
     perturbation: str = VANILLA_PERTURBATION
     severity: float = 0.0
+    restart_spread: float | None = None
+    context_feature: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     @property
     def is_vanilla(self) -> bool:
@@ -80,10 +109,41 @@ def _energy_to_json(value: float) -> float | str:
 
 def record_to_json(record: EnergyRecord) -> str:
     """Serializes one record to a JSON line (without the newline), non-finite energies as strings."""
-    row = asdict(record)
+    row = {name: getattr(record, name) for name in _REQUIRED_FIELDS}
     row["initial_energy"] = _energy_to_json(record.initial_energy)
     row["final_energy"] = _energy_to_json(record.final_energy)
+    if record.restart_spread is not None:
+        row["restart_spread"] = _energy_to_json(record.restart_spread)
     return json.dumps(row, allow_nan=False)
+
+
+def features_path(records_path: str | Path) -> Path:
+    """Where the context features of a records file live: `energy_records.features.npy` beside it."""
+    records_path = Path(records_path)
+    return records_path.with_name(records_path.stem + FEATURES_SUFFIX)
+
+
+def _stack_features(records: list[EnergyRecord]) -> np.ndarray | None:
+    with_feature = [r.context_feature is not None for r in records]
+    if not any(with_feature):
+        return None
+    if not all(with_feature):
+        raise ValueError(
+            f"{with_feature.count(False)} of {len(records)} records have no `context_feature`: record "
+            "features for every chunk or for none."
+        )
+    return np.stack([np.asarray(r.context_feature, dtype=np.float32) for r in records])
+
+
+def _write_atomically(path: Path, write) -> None:
+    fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        os.replace(tmp_name, path)
+    except BaseException:
+        Path(tmp_name).unlink(missing_ok=True)
+        raise
 
 
 def write_energy_records(path: str | Path, records: Iterable[EnergyRecord], overwrite: bool = False) -> Path:
@@ -106,15 +166,15 @@ def write_energy_records(path: str | Path, records: Iterable[EnergyRecord], over
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} already exists; pass overwrite=True to replace it.")
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            for record in records:
-                f.write(record_to_json(record) + "\n")
-        os.replace(tmp_name, path)
-    except BaseException:
-        Path(tmp_name).unlink(missing_ok=True)
-        raise
+    records = list(records)
+    features = _stack_features(records)
+    text = "".join(record_to_json(record) + "\n" for record in records).encode("utf-8")
+    # Features first: a reader that finds the new records also finds their features.
+    if features is None:
+        features_path(path).unlink(missing_ok=True)  # a previous run's features no longer match
+    else:
+        _write_atomically(features_path(path), lambda f: np.save(f, features))
+    _write_atomically(path, lambda f: f.write(text))
     return path
 
 
@@ -147,7 +207,7 @@ def record_from_json(row: dict[str, Any], where: str = "record") -> EnergyRecord
     """
     if not isinstance(row, dict):
         raise ValueError(f"{where}: expected a JSON object, got {type(row).__name__}.")
-    missing = [f.name for f in fields(EnergyRecord) if f.name not in row]
+    missing = [name for name in _REQUIRED_FIELDS if name not in row]
     if missing:
         raise ValueError(f"{where}: missing field(s) {', '.join(f'`{m}`' for m in missing)}.")
     if not isinstance(row["success"], bool):
@@ -167,6 +227,9 @@ def record_from_json(row: dict[str, Any], where: str = "record") -> EnergyRecord
         seed=None if seed is None else _parse_int(seed, "seed", where),
         perturbation=row["perturbation"],
         severity=_parse_float(row["severity"], "severity", where),
+        restart_spread=None
+        if row.get("restart_spread") is None
+        else _parse_float(row["restart_spread"], "restart_spread", where),
     )
 
 
@@ -195,6 +258,14 @@ def read_energy_records(path: str | Path) -> list[EnergyRecord]:
             except json.JSONDecodeError as e:
                 raise ValueError(f"{where}: invalid JSON ({e.msg}).") from e
             records.append(record_from_json(row, where))
+    if features_path(path).exists():
+        features = np.load(features_path(path))
+        if features.ndim != 2 or features.shape[0] != len(records):
+            raise ValueError(
+                f"{features_path(path)}: expected ({len(records)}, D) context features, one row per record "
+                f"of {path}, got shape {features.shape}."
+            )
+        records = [dataclasses.replace(r, context_feature=f) for r, f in zip(records, features, strict=True)]
     return records
 
 
@@ -218,4 +289,44 @@ def group_by_episode(records: Iterable[EnergyRecord]) -> dict[EpisodeKey, list[E
             raise ValueError(f"Episode {key} has duplicate chunk indices; were two record files merged?")
         if len({r.success for r in chunks}) > 1:
             raise ValueError(f"Episode {key} has rows that disagree on `success`.")
+    return episodes
+
+
+def resolve_record_files(paths: Iterable[str | Path]) -> list[Path]:
+    """The record files named by paths: files, eval folders (their `energy_records.jsonl`) or glob patterns.
+
+    Raises:
+        FileNotFoundError: A path or pattern names no record file.
+    """
+    files = []
+    for pattern in paths:
+        pattern = str(pattern)
+        matches = (
+            [Path(m) for m in sorted(glob.glob(pattern))] if glob.has_magic(pattern) else [Path(pattern)]
+        )
+        found = [m / ENERGY_RECORDS_FILENAME if m.is_dir() else m for m in matches]
+        found = [f.resolve() for f in found if f.is_file()]  # one spelling per file: overlaps are found
+        if not found:
+            raise FileNotFoundError(f"No {ENERGY_RECORDS_FILENAME} found at {pattern}.")
+        files += found
+    return list(dict.fromkeys(files))
+
+
+def load_episodes(
+    paths: Iterable[str | Path], perturbations: Iterable[str] | None = None
+) -> dict[tuple[str, EpisodeKey], list[EnergyRecord]]:
+    """The episodes of record files, keyed by (file, episode): episode indices restart in every run.
+
+    Args:
+        paths: See `resolve_record_files`.
+        perturbations: Keep only rows with these perturbation names (e.g. ["none"]); None keeps all.
+    """
+    keep = None if perturbations is None else set(perturbations)
+    episodes = {}
+    for path in resolve_record_files(paths):
+        records = read_energy_records(path)
+        if keep is not None:
+            records = [r for r in records if r.perturbation in keep]
+        for key, chunks in group_by_episode(records).items():
+            episodes[(str(path), key)] = chunks
     return episodes

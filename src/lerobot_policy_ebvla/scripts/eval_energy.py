@@ -1,16 +1,19 @@
 """`ebvla-eval`: lerobot-eval that also records the energy of every action chunk the policy refines.
 
-It takes lerobot-eval's arguments and runs LeRobot's own evaluation (`eval_policy_all` and its `rollout`).
-Alongside `eval_info.json` it writes `energy_records.jsonl`: one `EnergyRecord` per episode and predicted
-chunk, with the env step of the prediction, the initial and final energies, the episode's success and seed,
-and the camera perturbation of the env (`--env.type=metaworld_ebvla`; "none" for other envs).
+It takes lerobot-eval's arguments and runs LeRobot's own evaluation (`eval_policy_all` and its `rollout`)
+under `monitoring.recorder.EnergyRecorder`. Alongside `eval_info.json` it writes `energy_records.jsonl`: one
+`EnergyRecord` per episode and predicted chunk, with the env step of the prediction, the initial and final
+energies, the episode's success and seed, and the perturbation of the env (`--env.type=metaworld_ebvla`;
+"none" for other envs). `--restart_spread_chains=N` and `--record_context_features=true` also record the
+baselines of the OOD report (see `monitoring/baselines.py`).
 
 Example:
 
     MUJOCO_GL=egl ebvla-eval --policy.path=outputs/train/ebvla_reach/checkpoints/last/pretrained_model \\
         --env.type=metaworld_ebvla --env.task=reach-v3 --env.fast_render=true \\
-        --env.camera_perturbation=pose --env.perturbation_severity=3 \\
-        --eval.n_episodes=10 --eval.batch_size=1 --output_dir=outputs/eval/reach_pose3
+        --env.perturbation=pose --env.perturbation_severity=3 \\
+        --eval.n_episodes=10 --eval.batch_size=1 --output_dir=outputs/eval/reach_pose3 \\
+        --restart_spread_chains=8 --record_context_features=true
 
 Unlike lerobot-eval, which always renders videos of the first 10 episodes, videos are off unless
 `--max_episodes_rendered` is set: rendering them doubles the cost of an env step.
@@ -25,7 +28,6 @@ from pathlib import Path
 from pprint import pformat
 from typing import Any
 
-import numpy as np
 import torch
 from lerobot.configs import parser
 from lerobot.configs.eval import EvalPipelineConfig
@@ -37,11 +39,10 @@ from lerobot.utils.import_utils import register_third_party_plugins
 from lerobot.utils.random_utils import set_seed
 from lerobot.utils.utils import init_logging
 
-from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
+from lerobot_policy_ebvla.monitoring.recorder import EnergyRecorder
 from lerobot_policy_ebvla.monitoring.records import (
     ENERGY_RECORDS_FILENAME,
     VANILLA_PERTURBATION,
-    EnergyRecord,
     write_energy_records,
 )
 
@@ -52,187 +53,18 @@ logger = logging.getLogger(__name__)
 class EnergyEvalPipelineConfig(EvalPipelineConfig):
     # Episodes rendered to videos in `<output_dir>/videos` (lerobot-eval renders 10).
     max_episodes_rendered: int = 0
-
-
-@dataclass
-class _Chunk:
-    task_group: str
-    task_id: int
-    task: str
-    episode_index: int
-    chunk_index: int
-    env_step: int
-    initial_energy: float
-    final_energy: float
-    seed: int | None
-
-
-class _WatchedVecEnv:
-    """Forwards everything to a vector env, and tracks the step count and which sub-envs are done.
-
-    LeRobot's `rollout` keeps stepping sub-envs whose episode ended until the whole batch is done; only
-    chunks predicted for sub-envs that are still running belong to an episode.
-    """
-
-    def __init__(self, env: Any, recorder: "EnergyRecorder", task_group: str, task_id: int):
-        self._env = env
-        self._recorder = recorder
-        self.task_group = task_group
-        self.task_id = task_id
-        self.batch_index = -1
-        self.step_index = 0
-        self.done = np.zeros(env.num_envs, dtype=bool)
-        self.seeds: list[int | None] = [None] * env.num_envs
-        self.chunk_counts = np.zeros(env.num_envs, dtype=int)
-        self.task = ""
-
-    def __getattr__(self, name: str) -> Any:
-        if name == "_env":  # not set yet (e.g. while unpickling): avoid recursing
-            raise AttributeError(name)
-        return getattr(self._env, name)
-
-    def reset(self, **kwargs: Any) -> Any:
-        result = self._env.reset(**kwargs)
-        seeds = kwargs.get("seed")
-        self.batch_index += 1
-        self.step_index = 0
-        self.done[:] = False
-        self.chunk_counts[:] = 0
-        self.seeds = list(seeds) if isinstance(seeds, list | tuple | range) else [seeds] * self.num_envs
-        self.task = _task_name(self._env, default=f"{self.task_group}_{self.task_id}")
-        self._recorder.watching = self
-        return result
-
-    def step(self, actions: Any) -> Any:
-        result = self._env.step(actions)
-        _, _, terminated, truncated, _ = result
-        self.done |= np.asarray(terminated, dtype=bool) | np.asarray(truncated, dtype=bool)
-        self.step_index += 1
-        return result
-
-    def close(self) -> None:
-        self._env.close()
-
-
-def _task_name(env: Any, default: str) -> str:
-    for attribute in ("task", "task_description"):
-        try:
-            return str(env.call(attribute)[0])
-        except (AttributeError, NotImplementedError):
-            continue
-    return default
-
-
-class EnergyRecorder:
-    """Records `policy.last_energy` after each chunk refinement during LeRobot's rollout.
-
-    EB-VLA's `select_action` sets `last_energy` to a new `EnergyReadout` each time it refines a chunk, so a
-    refinement is detected by object identity. While active (`with EnergyRecorder(policy) as recorder`),
-    the policy's `select_action` is wrapped; envs passed through `watch` report their steps and resets.
-    """
-
-    def __init__(self, policy: Any):
-        self.policy = policy
-        self.watching: _WatchedVecEnv | None = None
-        self.chunks: list[_Chunk] = []
-        self._last_readout: Any = None
-        self._n_select_action_calls = 0
-
-    def __enter__(self) -> "EnergyRecorder":
-        select_action = self.policy.select_action
-
-        def select_action_and_record(*args: Any, **kwargs: Any) -> Any:
-            action = select_action(*args, **kwargs)
-            self._n_select_action_calls += 1
-            self._record(getattr(self.policy, "last_energy", None))
-            return action
-
-        # An instance attribute shadows the method: `rollout` calls `policy.select_action(observation)`.
-        self.policy.select_action = select_action_and_record
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        del self.policy.select_action
-        if self._n_select_action_calls and not self.chunks:
-            logger.warning("The policy exposes no `last_energy`: no energy was recorded.")
-
-    def watch(self, env: Any, task_group: str, task_id: int) -> _WatchedVecEnv:
-        return _WatchedVecEnv(env, self, task_group, task_id)
-
-    def _record(self, readout: Any) -> None:
-        if readout is None or readout is self._last_readout:
-            return
-        self._last_readout = readout
-        env = self.watching
-        if env is None:
-            raise RuntimeError("Energies were produced for an env that `EnergyRecorder.watch` did not wrap.")
-        initial = readout.initial_energy.detach().float().cpu().reshape(-1).tolist()
-        final = readout.final_energy.detach().float().cpu().reshape(-1).tolist()
-        if len(initial) != env.num_envs or len(final) != env.num_envs:
-            raise ValueError(
-                f"Expected energies of shape ({env.num_envs},), got {len(initial)} and {len(final)}."
-            )
-        for i in np.flatnonzero(~env.done):
-            self.chunks.append(
-                _Chunk(
-                    task_group=env.task_group,
-                    task_id=env.task_id,
-                    task=env.task,
-                    episode_index=env.batch_index * env.num_envs + int(i),
-                    chunk_index=int(env.chunk_counts[i]),
-                    env_step=env.step_index,
-                    initial_energy=initial[i],
-                    final_energy=final[i],
-                    seed=None if env.seeds[i] is None else int(env.seeds[i]),
-                )
-            )
-            env.chunk_counts[i] += 1
-
-    def records(
-        self,
-        eval_info: dict,
-        n_episodes: int,
-        perturbation: str = VANILLA_PERTURBATION,
-        severity: float = 0.0,
-    ) -> list[EnergyRecord]:
-        """The recorded chunks as `EnergyRecord`s, with each episode's success from lerobot's `eval_info`.
-
-        Episodes past `n_episodes` (the unused rest of the last batch) are dropped, as lerobot-eval does.
-        """
-        successes = {
-            (task["task_group"], task["task_id"]): task["metrics"]["successes"]
-            for task in eval_info["per_task"]
-        }
-        # Chunks were recorded step by step, interleaving the envs of a batch: list them episode by episode.
-        task_order = {
-            key: i for i, key in enumerate(dict.fromkeys((c.task_group, c.task_id) for c in self.chunks))
-        }
-        chunks = sorted(
-            self.chunks, key=lambda c: (task_order[c.task_group, c.task_id], c.episode_index, c.chunk_index)
-        )
-        return [
-            EnergyRecord(
-                episode_index=chunk.episode_index,
-                chunk_index=chunk.chunk_index,
-                env_step=chunk.env_step,
-                initial_energy=chunk.initial_energy,
-                final_energy=chunk.final_energy,
-                success=bool(successes[(chunk.task_group, chunk.task_id)][chunk.episode_index]),
-                task=chunk.task,
-                seed=chunk.seed,
-                perturbation=perturbation,
-                severity=float(severity),
-            )
-            for chunk in chunks
-            if chunk.episode_index < n_episodes
-        ]
+    # Baseline for the OOD report: also refine N independent chunks per observation and record their
+    # spread (`restart_spread`). 0 = off; N >= 2 costs N extra refinements per chunk.
+    restart_spread_chains: int = 0
+    # Baseline for the OOD report: record each chunk's pooled backbone context (energy_records.features.npy).
+    record_context_features: bool = False
 
 
 def env_perturbation(env_cfg: Any) -> tuple[str, float]:
-    """(perturbation name, severity) of an env config: the camera perturbation of `metaworld_ebvla`."""
-    if isinstance(env_cfg, MetaworldEBVLAEnv):
-        return env_cfg.perturbation, float(env_cfg.perturbation_severity)
-    return VANILLA_PERTURBATION, 0.0
+    """(perturbation name, severity) of an env config with `perturbation` and `perturbation_severity` fields
+    (`metaworld_ebvla`, `libero_ebvla`); ("none", 0) for envs without perturbations."""
+    perturbation = getattr(env_cfg, "perturbation", VANILLA_PERTURBATION)
+    return perturbation, float(getattr(env_cfg, "perturbation_severity", 0))
 
 
 @parser.wrap()
@@ -269,7 +101,13 @@ def eval_energy_main(cfg: EnergyEvalPipelineConfig) -> None:
     recording_dir = output_dir / "recordings" if cfg.eval.recording else None
 
     amp = torch.autocast(device_type=device.type) if cfg.policy.use_amp else nullcontext()
-    with EnergyRecorder(policy) as recorder, torch.no_grad(), amp:
+    recorder = EnergyRecorder(
+        policy,
+        restart_spread_chains=cfg.restart_spread_chains,
+        record_context_features=cfg.record_context_features,
+        seed=cfg.seed or 0,
+    )
+    with recorder, torch.no_grad(), amp:
         watched = {
             group: {task_id: recorder.watch(env, group, task_id) for task_id, env in tasks.items()}
             for group, tasks in envs.items()

@@ -1,0 +1,83 @@
+"""Renders the first frame of a MetaWorld task under every `--env.type=metaworld_ebvla` perturbation.
+
+One row per perturbation, one column per severity (severity 0, the vanilla frame, first), saved as one PNG
+grid. Each cell is titled with the mean absolute pixel difference to the vanilla frame (0-255 scale), and for
+`robot_init` with the distance the hand moved.
+
+    MUJOCO_GL=egl python benchmarks/metaworld_perturbation_gallery.py \\
+        --task push-v3 --severities 1 3 5 --output docs/figures/metaworld_perturbations.png
+"""
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def first_frame(task: str, perturbation: str, severity: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(pixels, agent_pos) of the first observation of an episode, as a policy would see them."""
+    from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
+    from lerobot_policy_ebvla.envs.metaworld import MetaworldEBVLAGymEnv
+
+    cfg = MetaworldEBVLAEnv(
+        task=task, fast_render=True, perturbation=perturbation, perturbation_severity=severity
+    )
+    env = MetaworldEBVLAGymEnv(task=task, **cfg.gym_kwargs)
+    try:
+        observation, _ = env.reset(seed=seed)
+    finally:
+        env.close()
+    return observation["pixels"], observation["agent_pos"]
+
+
+def main() -> None:
+    from lerobot_policy_ebvla.envs.configs import PERTURBATIONS
+
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--task", default="push-v3")
+    parser.add_argument("--severities", type=int, nargs="+", default=[1, 3, 5])
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--output", type=Path, default=Path("docs/figures/metaworld_perturbations.png"))
+    args = parser.parse_args()
+    os.environ.setdefault("MUJOCO_GL", "egl")
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    start = time.perf_counter()
+    vanilla, vanilla_pos = first_frame(args.task, "none", 0, args.seed)
+    perturbations = [p for p in PERTURBATIONS if p != "none"]
+    columns = [0, *args.severities]
+    fig, axes = plt.subplots(
+        len(perturbations), len(columns), figsize=(1.7 * len(columns), 1.9 * len(perturbations))
+    )
+    for row, perturbation in enumerate(perturbations):
+        for col, severity in enumerate(columns):
+            if severity == 0:
+                frame, pos = vanilla, vanilla_pos
+            else:
+                frame, pos = first_frame(args.task, perturbation, severity, args.seed)
+            difference = np.abs(frame.astype(float) - vanilla.astype(float)).mean()
+            title = f"{perturbation} s={severity}\n|dpix| {difference:.1f}"
+            if perturbation == "robot_init":
+                title += f", hand {100 * np.linalg.norm(pos[:3] - vanilla_pos[:3]):.1f} cm"
+            print(title.replace("\n", "  "), flush=True)
+            ax = axes[row, col]
+            ax.imshow(frame)
+            ax.set_title(title, fontsize=6.5)
+            ax.axis("off")
+    fig.suptitle(f"metaworld_ebvla perturbations, {args.task}, seed {args.seed}, fast_render", fontsize=10)
+    fig.tight_layout(rect=(0, 0, 1, 0.985))
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.output, dpi=90, pil_kwargs={"optimize": True})
+    print(f"Saved {args.output} ({time.perf_counter() - start:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,221 @@
+"""What the policy does with a chunk its energy flags as out of distribution (beyond the paper).
+
+After each refinement, the final energy E(a^(K_inf), C) of every chunk is compared to the threshold
+T = mu_v + k * sigma_v (Eq. 5) of the checkpoint's `ood_calibration.json`, with the same rule as
+`EnergyOODMonitor`: only E <= T is in distribution, so +inf (diverged refinement) and NaN are flagged.
+`EBVLAConfig.ood_response` picks what happens to a flagged chunk:
+
+- "continue": it is executed and a warning is logged (the default).
+- "hold": each of its H actions is replaced by the hold action; the next refinement checks again.
+- "raise": `EnergyOODError` is raised, carrying the energies and T.
+
+The policy returns normalized actions and the post-processor unnormalizes them, so the hold action is built
+in normalized space with the normalization statistics of the checkpoint's pre-processor (LeRobot's
+`NormalizerProcessorStep`, which holds both the state and the action statistics):
+
+    zero_delta:     a_hold = normalize_action(0)                      = -mean_a / std_a  (mean/std)
+    current_state:  a_hold = normalize_action(unnormalize_state(s))  = (s * std_s + mean_s - mean_a) / std_a
+
+so that after the post-processor the robot receives exactly a zero delta, or its observed state.
+"""
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from lerobot.lerobot_types import TransitionKey
+from lerobot.processor import (
+    NormalizerProcessorStep,
+    PolicyProcessorPipeline,
+    UnnormalizerProcessorStep,
+)
+from lerobot.processor.converters import create_transition
+from lerobot.utils.constants import OBS_STATE, POLICY_PREPROCESSOR_DEFAULT_NAME
+from torch import Tensor
+
+from .configuration_ebvla import EBVLAConfig
+from .monitoring import OOD_CALIBRATION_FILENAME, EnergyOODMonitor, OODCalibration
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class OODResponseDecision:
+    """The response to one refined chunk per batch element, exposed as `policy.last_ood_decision`.
+
+    Attributes:
+        response: The configured `ood_response`.
+        threshold: The threshold T the final energies were compared to.
+        flagged: (B,) bool, the final energy exceeds T (or is not finite).
+        held: (B,) bool, the chunk was replaced by the hold action (flagged and `response == "hold"`).
+    """
+
+    response: str
+    threshold: float
+    flagged: Tensor
+    held: Tensor
+
+
+class EnergyOODError(RuntimeError):
+    """Raised with `ood_response="raise"` when a refined chunk's final energy exceeds the OOD threshold.
+
+    Attributes:
+        energy: The highest final energy among the flagged chunks.
+        threshold: The threshold T it exceeded.
+        decision: The full per-batch-element decision.
+    """
+
+    def __init__(self, energy: float, threshold: float, decision: OODResponseDecision):
+        super().__init__(
+            f"EB-VLA refined a chunk with final energy {energy:.4g} above the OOD threshold {threshold:.4g} "
+            "(`ood_response='raise'`): the observation looks out of distribution."
+        )
+        self.energy = energy
+        self.threshold = threshold
+        self.decision = decision
+
+
+class HoldAction:
+    """The hold action of each observation, in normalized action space (see the module docstring).
+
+    Args:
+        kind: "zero_delta" or "current_state".
+        normalizer: The pre-processor's normalizer: the statistics and modes of state and action.
+    """
+
+    def __init__(self, kind: str, normalizer: NormalizerProcessorStep):
+        self.kind = kind
+        self.normalizer = normalizer
+        self.unnormalizer = UnnormalizerProcessorStep(
+            features=normalizer.features, norm_map=normalizer.norm_map, stats=normalizer.stats
+        )
+
+    @classmethod
+    def from_pretrained(cls, kind: str, pretrained_name_or_path: str | Path) -> "HoldAction":
+        """Takes the normalizer of the pre-processor saved beside the policy's weights."""
+        preprocessor = PolicyProcessorPipeline.from_pretrained(
+            pretrained_name_or_path, config_filename=f"{POLICY_PREPROCESSOR_DEFAULT_NAME}.json"
+        )
+        normalizers = [s for s in preprocessor.steps if isinstance(s, NormalizerProcessorStep)]
+        if not normalizers:
+            raise ValueError(
+                f"The pre-processor of {pretrained_name_or_path} has no normalizer step, so the hold action "
+                "cannot be mapped to the normalized action space the policy outputs."
+            )
+        return cls(kind, normalizers[0])
+
+    def __call__(self, batch: dict[str, Tensor], batch_size: int, action_dim: int) -> Tensor:
+        """The normalized hold action, (B, action_dim), for a pre-processed observation batch."""
+        if self.kind == "zero_delta":
+            raw = torch.zeros(batch_size, action_dim)
+        else:
+            normalized_state = {OBS_STATE: batch[OBS_STATE].float()}
+            raw = self.unnormalizer(create_transition(observation=normalized_state))
+            raw = raw[TransitionKey.OBSERVATION][OBS_STATE]
+        return self.normalizer(create_transition(action=raw.float()))[TransitionKey.ACTION]
+
+
+class EnergyOODResponse:
+    """Applies `EBVLAConfig.ood_response` to refined chunks, with a checkpoint's calibrated threshold.
+
+    Args:
+        response: "continue", "hold" or "raise".
+        monitor: The OOD monitor holding the calibration and the threshold T.
+        hold_action: The hold action; required for "hold".
+    """
+
+    def __init__(self, response: str, monitor: EnergyOODMonitor, hold_action: HoldAction | None = None):
+        if response == "hold" and hold_action is None:
+            raise ValueError("`ood_response='hold'` needs a `hold_action`.")
+        self.response = response
+        self.monitor = monitor
+        self.hold_action = hold_action
+
+    @classmethod
+    def from_pretrained(
+        cls, config: EBVLAConfig, pretrained_name_or_path: str | Path
+    ) -> "EnergyOODResponse | None":
+        """The response of a checkpoint: its `ood_calibration.json`, with `config.ood_threshold_k` if set.
+
+        Returns None for `ood_response="continue"` when the checkpoint has no calibration.
+
+        Raises:
+            FileNotFoundError: "hold" or "raise" and the checkpoint has no calibration.
+        """
+        try:
+            calibration = OODCalibration.from_pretrained(pretrained_name_or_path)
+        except FileNotFoundError as e:
+            if config.ood_response == "continue":
+                return None
+            raise FileNotFoundError(
+                f"`ood_response={config.ood_response!r}` compares energies to the threshold saved in "
+                f"{OOD_CALIBRATION_FILENAME} beside the weights, and {pretrained_name_or_path} has none: "
+                "calibrate it with `ebvla-ood-report --calibrate_to=<pretrained_model>` on vanilla rollouts."
+            ) from e
+        if config.ood_threshold_k is not None:
+            calibration = calibration.with_k(config.ood_threshold_k)
+        hold_action = None
+        if config.ood_response == "hold":
+            hold_action = HoldAction.from_pretrained(config.hold_action, pretrained_name_or_path)
+        return cls(config.ood_response, EnergyOODMonitor(calibration), hold_action)
+
+    @property
+    def threshold(self) -> float:
+        return self.monitor.threshold
+
+    def __call__(
+        self, actions: Tensor, final_energy: Tensor, batch: dict[str, Tensor]
+    ) -> tuple[Tensor, OODResponseDecision]:
+        """Checks each chunk (B, H, action_dim) against T and continues, holds or raises.
+
+        Returns the chunks to execute (held ones replaced) and the decision.
+        """
+        decisions = self.monitor.check(final_energy.detach().float().cpu().reshape(-1))
+        flagged = torch.tensor([d.is_ood for d in decisions], dtype=torch.bool)
+        held = flagged if self.response == "hold" else torch.zeros_like(flagged)
+        decision = OODResponseDecision(self.response, self.threshold, flagged, held)
+        if not flagged.any():
+            return actions, decision
+        energy = max(d.energy for d in decisions if d.is_ood)
+        if self.response == "raise":
+            raise EnergyOODError(energy, self.threshold, decision)
+        logger.warning(
+            "EB-VLA: %d of %d chunks have a final energy above the OOD threshold %.4g (highest %.4g): %s.",
+            int(flagged.sum()),
+            flagged.numel(),
+            self.threshold,
+            energy,
+            "holding them"
+            if self.response == "hold"
+            else "executing them anyway (`ood_response='continue'`)",
+        )
+        if self.response == "hold":
+            batch_size, _, action_dim = actions.shape
+            hold = self.hold_action(batch, batch_size, action_dim).to(actions.device, actions.dtype)
+            mask = held.to(actions.device)[:, None, None]  # (B, 1, 1)
+            actions = torch.where(mask, hold[:, None, :].expand_as(actions), actions)
+        return actions, decision
+
+
+def respond_to_energy(
+    response: EnergyOODResponse | None,
+    config: EBVLAConfig,
+    actions: Tensor,
+    final_energy: Tensor,
+    batch: dict[str, Tensor],
+) -> tuple[Tensor, OODResponseDecision | None]:
+    """The policy's entry point: applies `response`, or checks that none is needed without a calibration.
+
+    Raises:
+        ValueError: `config.ood_response` is "hold" or "raise" and the policy has no calibrated response.
+    """
+    if response is None:
+        if config.ood_response != "continue":
+            raise ValueError(
+                f"`ood_response={config.ood_response!r}` needs the threshold of an OOD calibration: load the "
+                f"policy with `EBVLAPolicy.from_pretrained` from a checkpoint holding {OOD_CALIBRATION_FILENAME}, "
+                "or set `policy.ood_response = EnergyOODResponse(...)`."
+            )
+        return actions, None
+    return response(actions, final_energy, batch)

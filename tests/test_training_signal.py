@@ -1,0 +1,102 @@
+"""The training-signal options: how alpha is drawn along a chain, the straight-through clip, the contrastive term."""
+
+import pytest
+import torch
+
+from lerobot_policy_ebvla import EBVLAPolicy
+from lerobot_policy_ebvla.modeling_ebvla import sample_training_step_sizes
+
+from .conftest import tiny_batch, tiny_config
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_per_chain_sampling_keeps_alpha_constant_along_the_chain(seed):
+    config = tiny_config(train_step_size_sampling="per_chain", train_mcmc_steps_range=(4, 9))
+    steps = sample_training_step_sizes(config, torch.Generator().manual_seed(seed))
+    assert 4 <= len(steps) <= 9
+    assert len(set(steps)) == 1
+    assert config.train_step_size_range[0] <= steps[0] <= config.train_step_size_range[1]
+
+
+def test_per_mcmc_step_sampling_draws_a_new_alpha_at_every_step():
+    config = tiny_config(train_step_size_sampling="per_mcmc_step", train_mcmc_steps_range=(6, 6))
+    steps = sample_training_step_sizes(config, torch.Generator().manual_seed(0))
+    alpha_min, alpha_max = config.train_step_size_range
+    assert len(set(steps)) == 6
+    assert all(alpha_min <= alpha <= alpha_max for alpha in steps)
+
+
+def test_unknown_step_size_sampling_is_rejected_by_name():
+    with pytest.raises(ValueError, match="train_step_size_sampling"):
+        tiny_config(train_step_size_sampling="per_episode")
+
+
+def test_straight_through_clip_does_not_change_inference():
+    batch = tiny_batch(tiny_config(), with_action=False)
+    chunks = []
+    for straight_through in (False, True):
+        torch.manual_seed(0)
+        policy = EBVLAPolicy(tiny_config(train_straight_through_clip=straight_through)).eval()
+        chunks.append(policy.predict_action_chunk(batch, generator=torch.Generator().manual_seed(1)))
+    torch.testing.assert_close(chunks[0], chunks[1])
+
+
+def test_straight_through_clip_gives_the_backbone_a_larger_gradient_when_clips_are_active():
+    """With a tiny clip c every gradient entry is clipped: the hard clip leaves only exp(e_t / tau)'s path."""
+    norms = {}
+    for straight_through in (False, True):
+        torch.manual_seed(0)
+        policy = EBVLAPolicy(tiny_config(grad_clip=1e-6, train_straight_through_clip=straight_through))
+        loss, _ = policy.model.compute_loss(
+            tiny_batch(policy.config), generator=torch.Generator().manual_seed(0)
+        )
+        loss.backward()
+        grads = [p.grad.norm() for p in policy.model.backbone.parameters() if p.grad is not None]
+        norms[straight_through] = torch.stack(grads).norm().item()
+    assert norms[True] > 10 * norms[False]
+
+
+def test_contrastive_term_is_added_and_reported():
+    batch = tiny_batch(tiny_config(), batch_size=4)
+    losses = {}
+    for weight in (0.0, 1.0):
+        torch.manual_seed(0)
+        policy = EBVLAPolicy(tiny_config(energy_contrastive_weight=weight))
+        losses[weight] = policy.model.compute_loss(batch, generator=torch.Generator().manual_seed(0))
+    (plain, plain_info), (with_term, info) = losses[0.0], losses[1.0]
+    assert "contrastive_loss" not in plain_info
+    assert with_term.item() == pytest.approx(plain.item() + info["contrastive_loss"], rel=1e-5)
+    # Chance level of the InfoNCE over B in-batch chunks plus the noisy copies is log(B + N_noisy).
+    assert 0 < info["contrastive_loss"] < 3 * torch.log(torch.tensor(4.0 + 8.0)).item()
+
+
+def test_training_with_the_contrastive_term_lowers_it_on_a_fixed_batch():
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(tiny_config(energy_contrastive_weight=1.0))
+    batch = tiny_batch(policy.config, batch_size=4)
+    optimizer = torch.optim.Adam(policy.parameters(), lr=3e-3)
+    contrastive = []
+    for step in range(30):
+        loss, info = policy.model.compute_loss(batch, generator=torch.Generator().manual_seed(step))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        contrastive.append(info["contrastive_loss"])
+    assert sum(contrastive[-5:]) / 5 < 0.5 * sum(contrastive[:5]) / 5
+
+
+def test_state_dropout_hides_the_state_token_in_training_only():
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(tiny_config(state_dropout=0.5))
+    batch = tiny_batch(policy.config, batch_size=64, with_action=False)
+    backbone = policy.model.backbone.train()
+    state_tokens = backbone(batch)[0][:, -1]  # p is the last context token, (B, D)
+    hidden = (state_tokens == 0).all(dim=1)
+    assert 0.2 < hidden.float().mean().item() < 0.8
+    backbone.eval()
+    assert not (backbone(batch)[0][:, -1] == 0).all(dim=1).any()
+
+
+def test_state_dropout_outside_zero_one_is_rejected_by_name():
+    with pytest.raises(ValueError, match="state_dropout"):
+        tiny_config(state_dropout=1.0)
