@@ -1,12 +1,13 @@
-"""The policy learns: the loss falls on a fixed batch, the paper's recipe reads the camera when only the camera
-tells the expert chunk, and the contrastive term ranks each observation's expert chunk below the others'.
+"""The policy learns: the loss falls on a fixed batch, and the paper's recipe reads the camera when only the
+camera tells the expert chunk.
 
 The toy scene is a black image with one white square at a random position; the expert chunk is a ramp towards
-the square's position, and the state is noise. Margins are wide (several seeds on AMD and Intel CPUs sit far
-from them), so float differences between CPUs cannot flip these tests.
+the square's position, and the state is noise. The margins are wide: with this test's settings and seeds 0, 1
+and 2 (2-core AMD EPYC, one torch thread) the refined chunk's L1 was 0.19-0.25 of the blind baseline's (the
+test asks < 0.6) and the chunk moved by 100-123% with the camera blanked (the test asks > 30%), so float
+differences between CPUs cannot flip these tests.
 """
 
-import pytest
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 
@@ -15,8 +16,8 @@ from lerobot_policy_ebvla.monitoring.vision import camera_dependence
 
 from .conftest import tiny_config
 
-IMAGE = (3, 40, 40)
-SQUARE = 10
+IMAGE = (3, 48, 48)
+SQUARE = 12
 CHUNK = 8
 
 
@@ -42,6 +43,8 @@ def scene_config(**overrides):
             "observation.state": PolicyFeature(FeatureType.STATE, (4,)),
         },
         output_features={"action": PolicyFeature(FeatureType.ACTION, (2,))},
+        dim_model=64,
+        n_heads=4,
         train_mcmc_steps_range=(3, 5),
         inference_mcmc_steps=10,
         **overrides,
@@ -74,30 +77,13 @@ def test_loss_goes_down_on_a_fixed_batch():
     assert sum(losses[-10:]) / 10 < 0.7 * sum(losses[:10]) / 10
 
 
-@pytest.fixture(scope="module")
-def trained_on_the_square_scene():
-    """One policy per variant, trained once for the tests below."""
-    policies = {}
-    for name, overrides in {"paper": {}, "contrastive": {"energy_contrastive_weight": 1.0}}.items():
-        torch.manual_seed(0)
-        policy = EBVLAPolicy(scene_config(**overrides))
-        train(policy, square_scene(256, seed=1), steps=200)
-        policies[name] = policy.eval()
-    return policies, square_scene(64, seed=2)
-
-
-def test_policy_reads_its_camera_when_only_the_camera_tells_the_chunk(trained_on_the_square_scene):
-    policies, test = trained_on_the_square_scene
-    policy = policies["paper"]
+def test_policy_reads_its_camera_when_only_the_camera_tells_the_chunk():
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(scene_config())
+    train(policy, square_scene(512, seed=1), steps=300, batch_size=32)
+    policy.eval()
+    test = square_scene(64, seed=2)
     chunk = policy.predict_action_chunk(observations(test), generator=torch.Generator().manual_seed(0))
     blind_l1 = (test["action"] - test["action"].mean(dim=0)).abs().mean()
     assert (chunk - test["action"]).abs().mean() < 0.6 * blind_l1
     assert camera_dependence(policy, observations(test)).chunk_change > 0.3
-
-
-def test_contrastive_energy_ranks_each_expert_chunk_below_another_observations(trained_on_the_square_scene):
-    policies, test = trained_on_the_square_scene
-    policy, observation, expert = policies["contrastive"], observations(test), test["action"]
-    own = policy.score_action_chunks(observation, expert[:, None])[:, 0]
-    others = policy.score_action_chunks(observation, expert.roll(1, dims=0)[:, None])[:, 0]
-    assert (own < others).float().mean() >= 0.9
