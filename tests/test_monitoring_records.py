@@ -15,6 +15,8 @@ from lerobot_policy_ebvla.monitoring.records import (
     group_by_episode,
     load_episodes,
     read_energy_records,
+    record_from_json,
+    record_to_json,
     resolve_record_files,
     write_energy_records,
 )
@@ -199,3 +201,16 @@ def test_load_episodes_keeps_same_index_episodes_of_different_files_apart(tmp_pa
     for name in ("a", "b"):
         write_energy_records(tmp_path / name / ENERGY_RECORDS_FILENAME, [record(), record(chunk=1)])
     assert len(load_episodes([tmp_path / "a", tmp_path / "b"])) == 2
+
+
+def test_held_flag_round_trips_and_a_non_boolean_is_rejected(tmp_path):
+    path = tmp_path / "records.jsonl"
+    records = [
+        dataclasses.replace(record(chunk=0), held=True),
+        dataclasses.replace(record(chunk=1), held=False),
+        record(chunk=2),
+    ]
+    write_energy_records(path, records)
+    assert [r.held for r in read_energy_records(path)] == [True, False, None]
+    with pytest.raises(ValueError, match="`held`"):
+        record_from_json({**json.loads(record_to_json(record())), "held": "yes"})

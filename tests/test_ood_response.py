@@ -250,3 +250,22 @@ def _zeros():
     features = {ACTION: PolicyFeature(FeatureType.ACTION, (2,))}
     normalizer = NormalizerProcessorStep(features, {FeatureType.ACTION: NormalizationMode.IDENTITY}, stats={})
     return HoldAction("zero_delta", normalizer)
+
+
+@pytest.mark.parametrize(("checkpoint", "held"), [("below", True), ("above", False)])
+def test_energy_records_count_the_held_chunks(metaworld_env, checkpoints, checkpoint, held):
+    from lerobot.scripts.lerobot_eval import rollout
+
+    from lerobot_policy_ebvla.monitoring import EnergyRecorder
+
+    env, (env_preprocessor, env_postprocessor) = metaworld_env
+    policy, preprocessor, postprocessor = load(
+        checkpoints[checkpoint], ood_response="hold", hold_action="zero_delta"
+    )
+    torch.manual_seed(0)
+    with EnergyRecorder(policy) as recorder:
+        watched = recorder.watch(env, task_group="reach-v3", task_id=0)
+        rollout(watched, policy, env_preprocessor, env_postprocessor, preprocessor, postprocessor, seeds=[0])
+    records = recorder.records_from_successes({("reach-v3", 0): [False]}, n_episodes=1)
+    assert len(records) == math.ceil(EPISODE_STEPS / CHUNK)
+    assert all(record.held is held for record in records)

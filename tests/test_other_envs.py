@@ -44,10 +44,21 @@ def test_pusht_env_features_and_real_env_observations():
 
 
 def test_libero_features_two_cameras_8d_state_7d_action():
-    """LIBERO's LeRobot datasets and env processor give two 256 px cameras, an 8-dim state, 7-dim actions."""
+    """LeRobot's LIBERO observations, through its own env processing, fit a policy with HuggingFaceVLA/libero's
+    features: two cameras (`image`: agent view, `image2`: wrist), an 8-d state, 7-d actions.
+
+    The raw observation has the layout of LeRobot's `LiberoEnv` (`pixels` by mapped camera name, nested
+    `robot_state`); no simulator is needed.
+    """
+    from lerobot.envs.configs import LiberoEnv
+    from lerobot.processor import LiberoProcessorStep
+
     from lerobot_policy_ebvla import EBVLAConfig
 
-    camera = PolicyFeature(FeatureType.VISUAL, (3, 256, 256))
+    env_cfg = LiberoEnv(observation_height=128, observation_width=128)
+    assert env_cfg.features_map["pixels/agentview_image"] == "observation.images.image"
+    assert env_cfg.features_map["pixels/robot0_eye_in_hand_image"] == "observation.images.image2"
+    camera = PolicyFeature(FeatureType.VISUAL, (3, 256, 256))  # the dataset's size; the policy resizes
     config = EBVLAConfig(
         backbone="resnet",
         device="cpu",
@@ -62,11 +73,29 @@ def test_libero_features_two_cameras_8d_state_7d_action():
         **TINY_HEAD,
     )
     policy = EBVLAPolicy(config).eval()
-    batch = {
-        "observation.images.image": torch.rand(2, 3, 256, 256),
-        "observation.images.image2": torch.rand(2, 3, 256, 256),
-        "observation.state": torch.randn(2, 8),
+    rng = np.random.default_rng(0)
+    quat = rng.normal(size=(2, 4))
+    raw = {
+        "pixels": {
+            name: rng.integers(0, 256, (2, 128, 128, 3), dtype=np.uint8) for name in ("image", "image2")
+        },
+        "robot_state": {
+            "eef": {
+                "pos": rng.normal(size=(2, 3)),
+                "quat": quat / np.linalg.norm(quat, axis=1, keepdims=True),
+                "mat": np.tile(np.eye(3), (2, 1, 1)),
+            },
+            "gripper": {"qpos": rng.normal(size=(2, 2)), "qvel": rng.normal(size=(2, 2))},
+            "joints": {"pos": rng.normal(size=(2, 7)), "vel": rng.normal(size=(2, 7))},
+        },
     }
+    batch = LiberoProcessorStep().observation(preprocess_observation(raw))
+    assert batch["observation.state"].shape == (2, 8)
+    assert (
+        batch["observation.images.image"].shape
+        == batch["observation.images.image2"].shape
+        == (2, 3, 128, 128)
+    )
     with torch.inference_mode():
         actions = [policy.select_action(batch) for _ in range(3)]
     assert all(a.shape == (2, 7) and torch.isfinite(a).all() for a in actions)

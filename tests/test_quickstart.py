@@ -1,5 +1,6 @@
-"""`ebvla-quickstart`: its guards and its summary (the full pipeline is exercised by running it)."""
+"""`ebvla-quickstart`: its command line, its guards, its summary, and the whole pipeline at a tiny size."""
 
+import json
 import math
 
 import pytest
@@ -7,24 +8,86 @@ import pytest
 from lerobot_policy_ebvla.monitoring import EnergyRecord, write_energy_records
 from lerobot_policy_ebvla.scripts import quickstart
 
+# The whole pipeline in about 30 s on a 2-core CPU: one expert episode, two training steps of a tiny head,
+# one 8-step rollout per condition, two frames for the camera check.
+TINY = [
+    "--record_episodes=1",
+    "--image_size=48",
+    "--steps=2",
+    "--batch_size=2",
+    "--eval_episodes=1",
+    "--max_episode_steps=8",
+    "--vision_frames=2",
+    "--perturbation=light_dim",
+    "--perturbation_severity=5",
+    "--policy.dim_model=16",
+    "--policy.n_heads=2",
+    "--policy.n_blocks=1",
+    "--policy.resize_shape=[40,40]",
+    "--policy.spatial_softmax_num_keypoints=4",
+    "--policy.inference_mcmc_steps=2",
+    "--policy.train_mcmc_steps_range=[1,1]",
+]
+
+
+def test_policy_flags_override_the_light_policy_and_keep_its_other_values():
+    cfg = quickstart.parse_config(["--policy.dim_model=64", "--task=push-v3"])
+
+    assert cfg.task == "push-v3" and cfg.policy.dim_model == 64
+    for name in ("backbone", "n_heads", "n_blocks", "resize_shape", "train_mcmc_steps_range"):
+        assert getattr(cfg.policy, name) == quickstart.LIGHT_POLICY[name], name
+
+
+def test_defaults_are_the_light_policy_from_the_command_line_and_from_python():
+    from_cli, from_python = quickstart.parse_config([]), quickstart.QuickstartConfig()
+
+    for name, value in quickstart.LIGHT_POLICY.items():
+        assert getattr(from_cli.policy, name) == getattr(from_python.policy, name) == value, name
+
+
+def test_help_lists_the_quickstart_options(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        quickstart.parse_config(["--help"])
+
+    assert exit_info.value.code == 0
+    help_text = capsys.readouterr().out
+    for option in ("--task", "--output_dir", "--steps", "--perturbation", "--policy.dim_model"):
+        assert option in help_text, option
+
+
+@pytest.mark.parametrize(
+    ("argument", "field"),
+    [
+        ("--steps=0", "steps"),
+        ("--eval_episodes=0", "eval_episodes"),
+        ("--policy.resize_shape=[32,32]", "resize_shape"),
+        ("--perturbation=rain", "perturbation"),
+        ("--policy.backbone=vlm", "backbone"),
+    ],
+)
+def test_rejects_invalid_values_naming_the_field(argument, field):
+    with pytest.raises(ValueError, match=field):
+        quickstart.parse_config([argument])
+
+
+def test_perturbed_condition_is_evaluated_beside_vanilla_and_blank():
+    cfg = quickstart.parse_config(["--perturbation=fov", "--perturbation_severity=4"])
+
+    assert cfg.conditions() == {"vanilla": ("none", 0), "blank": ("blank", 1), "fov_s4": ("fov", 4)}
+    assert list(quickstart.parse_config(["--perturbation=none"]).conditions()) == ["vanilla", "blank"]
+
 
 def test_refuses_to_replace_a_previous_run_without_overwrite(tmp_path):
     (tmp_path / "train").mkdir()
     with pytest.raises(SystemExit, match="--overwrite"):
-        quickstart.main(["--output_dir", str(tmp_path)])
+        quickstart.main([f"--output_dir={tmp_path}"])
     assert (tmp_path / "train").is_dir()
 
 
 def test_refuses_a_run_in_progress_before_train_dir_exists(tmp_path):
     (tmp_path / quickstart.RUN_MARKER).write_text("{}\n")
     with pytest.raises(SystemExit, match="--overwrite"):
-        quickstart.main(["--output_dir", str(tmp_path)])
-
-
-@pytest.mark.parametrize("argument", [["--resize", "32"], ["--train_steps", "0"], ["--eval_episodes", "0"]])
-def test_rejects_invalid_sizes(argument):
-    with pytest.raises(SystemExit):
-        quickstart.parse_args(argument)
+        quickstart.main([f"--output_dir={tmp_path}"])
 
 
 def test_summary_splits_final_energy_by_episode_outcome(tmp_path):
@@ -41,3 +104,20 @@ def test_summary_splits_final_energy_by_episode_outcome(tmp_path):
     assert math.isclose(summary["mean_final_energy_success"], 1.0)
     assert math.isclose(summary["mean_final_energy_failure"], 3.0)
     assert [e["chunks"] for e in summary["episodes"]] == [2, 1]
+
+
+@pytest.mark.slow
+def test_records_trains_evaluates_three_conditions_and_checks_the_camera(tmp_path, capsys):
+    quickstart.main([f"--output_dir={tmp_path}", *TINY])
+
+    summary = json.loads((tmp_path / quickstart.SUMMARY_FILENAME).read_text())
+    assert list(summary["conditions"]) == ["vanilla", "blank", "light_dim_s5"]
+    for name, condition in summary["conditions"].items():
+        assert condition["n_episodes"] == 1, name
+        assert math.isfinite(condition["mean_final_energy"]), name
+        assert (tmp_path / "eval" / name / "energy_records.jsonl").is_file()
+    assert summary["camera_check"]["num_frames"] == 2
+    assert math.isfinite(summary["camera_check"]["energy_blank"])
+    assert (tmp_path / "train" / "checkpoints" / "last" / "pretrained_model" / "model.safetensors").is_file()
+    printed = capsys.readouterr().out
+    assert "Camera check on 2 dataset frames" in printed and "light_dim_s5" in printed

@@ -143,6 +143,8 @@ class EBVLAConfig(PreTrainedConfig):
         scheduler_warmup_steps: Linear warm-up steps of the cosine schedule.
         scheduler_decay_steps: Cosine decay steps.
         scheduler_decay_lr: Learning rate at the end of the decay.
+
+    Every field is checked in `__post_init__`, which raises a ValueError naming it.
     """
 
     # Inputs / output structure.

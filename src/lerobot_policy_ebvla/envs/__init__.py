@@ -5,5 +5,6 @@
 """
 
 from .configs import CAMERA_PERTURBATIONS, MAX_SEVERITY, MetaworldEBVLAEnv
+from .libero_configs import LiberoEBVLAEnv  # noqa: F401  (registers `--env.type=libero_ebvla`)
 
 __all__ = ["CAMERA_PERTURBATIONS", "MAX_SEVERITY", "MetaworldEBVLAEnv"]

@@ -49,6 +49,7 @@ class _Chunk:
     final_energy: float
     seed: int | None
     restart_spread: float | None = None
+    held: bool | None = None
     context_feature: np.ndarray | None = None
 
 
@@ -219,6 +220,9 @@ class EnergyRecorder:
                 f"Expected energies of shape ({env.num_envs},), got {len(initial)} and {len(final)}."
             )
         spread, features = self._baselines(batch)
+        # Set with `last_energy` by an EB-VLA policy that has an OOD response (`ood_response.py`).
+        decision = getattr(self.policy, "last_ood_decision", None)
+        held = None if decision is None else decision.held.reshape(-1).tolist()
         for i in np.flatnonzero(~env.done):
             self.chunks.append(
                 _Chunk(
@@ -232,6 +236,7 @@ class EnergyRecorder:
                     final_energy=final[i],
                     seed=None if env.seeds[i] is None else int(env.seeds[i]),
                     restart_spread=None if spread is None else spread[i],
+                    held=None if held is None else bool(held[i]),
                     context_feature=None if features is None else features[i],
                 )
             )
@@ -282,6 +287,7 @@ class EnergyRecorder:
                 perturbation=perturbation,
                 severity=float(severity),
                 restart_spread=chunk.restart_spread,
+                held=chunk.held,
                 context_feature=chunk.context_feature,
             )
             for chunk in chunks

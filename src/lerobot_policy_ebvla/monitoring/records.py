@@ -11,6 +11,7 @@ are written as the strings "inf", "-inf" and "nan". Reading accepts those string
 
 Two opt-in baselines of the recorder (`monitoring/recorder.py`) add to a row:
 - `restart_spread`: written in the row when recorded (older files and rows without it read as None);
+- `held`: written when the policy has an OOD response: whether it replaced the chunk by its hold action;
 - `context_feature`: a (D,) vector per row, stored compactly beside the records as float32 rows of
   `energy_records.features.npy` (row i belongs to line i of the records), attached to the records on read.
 """
@@ -66,6 +67,8 @@ class EnergyRecord:
         severity: Perturbation severity, 0 for vanilla rollouts.
         restart_spread: Baseline: the spread (std over chains, mean over the chunk) of N refined chunks for
             the same observation; None when not recorded.
+        held: Whether the policy's OOD response (`EBVLAConfig.ood_response="hold"`) replaced this chunk by
+            the hold action; None when the policy has no OOD response.
         context_feature: Baseline: the (D,) pooled backbone context of the observation; None when not
             recorded. Stored in the `.features.npy` file beside the records, not in the JSON row.
     """
@@ -81,6 +84,7 @@ class EnergyRecord:
     perturbation: str = VANILLA_PERTURBATION
     severity: float = 0.0
     restart_spread: float | None = None
+    held: bool | None = None
     context_feature: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     @property
@@ -114,6 +118,8 @@ def record_to_json(record: EnergyRecord) -> str:
     row["final_energy"] = _energy_to_json(record.final_energy)
     if record.restart_spread is not None:
         row["restart_spread"] = _energy_to_json(record.restart_spread)
+    if record.held is not None:
+        row["held"] = record.held
     return json.dumps(row, allow_nan=False)
 
 
@@ -230,7 +236,14 @@ def record_from_json(row: dict[str, Any], where: str = "record") -> EnergyRecord
         restart_spread=None
         if row.get("restart_spread") is None
         else _parse_float(row["restart_spread"], "restart_spread", where),
+        held=_parse_optional_bool(row.get("held"), "held", where),
     )
+
+
+def _parse_optional_bool(value: Any, name: str, where: str) -> bool | None:
+    if value is not None and not isinstance(value, bool):
+        raise ValueError(f"{where}: field `{name}` must be true, false or absent, got {value!r}.")
+    return value
 
 
 def read_energy_records(path: str | Path) -> list[EnergyRecord]:

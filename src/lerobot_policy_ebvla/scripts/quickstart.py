@@ -1,111 +1,185 @@
 """`ebvla-quickstart`: record, train, evaluate and monitor EB-VLA on MetaWorld in one command, on a CPU.
 
-The whole pipeline of the project, offline and sized for a small CPU:
+The whole pipeline of the project, offline and sized for a small CPU, in one process:
 
-1. **Record** MetaWorld's scripted expert on one task (`button-press-v3`, 10 episodes, by default) as a
-   LeRobotDataset (`ebvla-record-metaworld`'s code, fast rendering, 128 px images). An existing dataset is
-   reused.
-2. **Train** `ebvla` with `lerobot-train`: the light backbone (LeRobot's Diffusion Policy ResNet-18 image
-   encoder, from scratch, at 64x64) and a CPU-sized energy head (D=128, 4 heads, L=2 blocks, instead of the
-   paper's D=896, L=4), 2-4 MCMC steps per training step (the paper: 8-15), 300 steps of batch 16.
-3. **Evaluate** with `ebvla-eval` (LeRobot's rollout) on 5 seeded episodes of at most 100 steps, recording
-   the energy of every refined action chunk.
-4. **Summarise**: success rate, and the mean initial and final energy per episode, for successful and failed
-   episodes.
-
-On a 2-core CPU shared with other jobs (load 4-8) the first full run took 33 minutes: recording 1.9 min,
-training 28.4 min (0.3 s per step when the CPU was free, 3-16 s when it was shared), evaluation 2.1 min; it
-succeeded in 3 of 5 button-press episodes. Five episodes say little: scale up with `--train_steps`,
-`--batch_size`, `--eval_episodes`, `--dim_model`, `--n_blocks`, `--resize` and, with a GPU, `--device=cuda`
-(docs/benchmarks_metaworld.md: 800 steps of batch 32 on a GPU, 3 tasks, 80% on button-press-v3).
+1. **Record** MetaWorld's scripted expert (`ebvla-record-metaworld`'s `record_metaworld`, fast rendering) as
+   a LeRobotDataset. An existing dataset is reused.
+2. **Train** `ebvla` with LeRobot's own `train` (the function behind `lerobot-train`), given a
+   `TrainPipelineConfig` composed here: the dataset, and the light `EBVLAConfig` of `LIGHT_POLICY` (LeRobot's
+   Diffusion Policy ResNet-18 image encoder from scratch and a CPU-sized energy head).
+3. **Evaluate** with `ebvla-eval`'s in-process evaluation (LeRobot's `eval_policy_all` under the
+   `EnergyRecorder`), recording the energy of every refined chunk, in three conditions: the vanilla scene,
+   a blanked camera (`--env.perturbation=blank`: does success depend on the camera?) and one perturbed scene
+   (`--perturbation`, `--perturbation_severity`). Then the camera check on dataset frames
+   (`monitoring.vision.camera_dependence`): how much the refined chunk and its final energy change when the
+   camera is replaced by a black image, with the same MCMC noise.
+4. **Summarise**: per condition, the success rate and the mean initial and final energy; the camera check;
+   the final energy of successful and failed episodes. Written to `summary.json` as well.
 
 Everything goes under `--output_dir` (default `outputs/ebvla_quickstart`):
 
     <output_dir>/data/<task>/          the recorded dataset (reused when present)
-    <output_dir>/train/                lerobot-train's output (checkpoints/last/pretrained_model)
-    <output_dir>/eval/                 eval_info.json and energy_records.jsonl
-    <output_dir>/train.log, eval.log   the full output of lerobot-train and ebvla-eval
+    <output_dir>/train/                LeRobot's training output (checkpoints/last/pretrained_model)
+    <output_dir>/eval/<condition>/     eval_info.json and energy_records.jsonl of each condition
     <output_dir>/summary.json          the printed summary
 
-A previous training run is never replaced unless `--overwrite` is given (which then removes `train/` and
+A previous training run is never replaced unless `--overwrite=true` is given (which then removes `train/` and
 `eval/` only; the dataset is always kept).
 
 Example:
 
     pip install -e ".[metaworld]"
     ebvla-quickstart
-    ebvla-quickstart --device=cuda --train_steps=3000 --batch_size=32 --output_dir=outputs/qs_gpu
+    ebvla-quickstart --task=push-v3 --steps=3000 --batch_size=32 --policy.device=cuda --output_dir=outputs/qs_gpu
+    ebvla-quickstart --policy.dim_model=256 --policy.n_blocks=4 --perturbation=light_dim --perturbation_severity=5
+
+Every `--policy.*` field of `EBVLAConfig` can be set; the quickstart's own values (`LIGHT_POLICY`) are the
+defaults of the ones it changes.
 """
 
-import argparse
 import json
 import logging
 import math
 import os
 import shutil
-import subprocess
 import sys
 import time
 import warnings
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-# Spatial-softmax keypoints of the light image encoder (LeRobot's Diffusion Policy default).
-KEYPOINTS = 32
-# MCMC steps per training step (the paper samples K in [8, 15]); fewer is faster on a CPU.
-TRAIN_MCMC_STEPS = (2, 4)
+import draccus
+
+from lerobot_policy_ebvla.configuration_ebvla import EBVLAConfig
+from lerobot_policy_ebvla.envs.configs import MetaworldEBVLAEnv
+from lerobot_policy_ebvla.scripts.record_metaworld import RecordMetaworldConfig
+
+# The quickstart's policy, where it differs from `EBVLAConfig`'s defaults (the paper's full VLA): LeRobot's
+# Diffusion Policy ResNet-18 encoder, from scratch, at 64x64, and a CPU-sized energy head (D=128, 4 heads,
+# L=2 blocks instead of D=896, L=4) trained with 2-4 MCMC steps (the paper: 8-15). This is the one place its
+# sizes and training recipe live; every field can be overridden with `--policy.<field>=...`.
+LIGHT_POLICY = {
+    "backbone": "resnet",
+    "resize_shape": (64, 64),
+    "dim_model": 128,
+    "n_heads": 4,
+    "n_blocks": 2,
+    "train_mcmc_steps_range": (2, 4),
+    "optimizer_lr": 5e-4,
+    "push_to_hub": False,
+}
 # Written into output_dir when a run starts: a second run there is refused without --overwrite.
 RUN_MARKER = "quickstart_run.json"
+SUMMARY_FILENAME = "summary.json"
+VANILLA, BLANK = "vanilla", "blank"
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
-        prog="ebvla-quickstart",
-        description=(
-            "Record MetaWorld expert demonstrations, train EB-VLA (light backbone) with lerobot-train, "
-            "evaluate it with ebvla-eval and print the success rate and energy statistics. Offline, on a CPU."
-        ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    parser.add_argument("--output_dir", type=Path, default=Path("outputs/ebvla_quickstart"))
-    parser.add_argument(
-        "--task",
-        default="button-press-v3",
-        help="MetaWorld v3 task (or comma-separated tasks). Not reach-v3: its goal is invisible in the images.",
-    )
-    parser.add_argument("--record_episodes", type=int, default=10, help="Expert episodes recorded per task.")
-    parser.add_argument("--train_steps", type=int, default=300)
-    parser.add_argument("--batch_size", type=int, default=16)
-    parser.add_argument("--learning_rate", type=float, default=5e-4)
-    parser.add_argument(
-        "--resize", type=int, default=64, help="Side the image encoder resizes frames to (> 32)."
-    )
-    parser.add_argument("--dim_model", type=int, default=128, help="Energy-head width D (the paper: 896).")
-    parser.add_argument("--n_heads", type=int, default=4, help="Attention heads of the energy head.")
-    parser.add_argument("--n_blocks", type=int, default=2, help="Energy-head blocks L (the paper: 4).")
-    parser.add_argument("--eval_episodes", type=int, default=5, help="Evaluation episodes per task.")
-    parser.add_argument(
-        "--max_episode_steps", type=int, default=100, help="Evaluation episodes end after this many steps."
-    )
-    parser.add_argument(
-        "--seed", type=int, default=1000, help="Seed of training and of the first eval episode."
-    )
-    parser.add_argument("--device", default="cpu", help="Torch device for training and evaluation.")
-    parser.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="Replace a previous training run (and its evaluation) in output_dir. The dataset is kept.",
-    )
-    args = parser.parse_args(argv)
-    for name in ("record_episodes", "train_steps", "batch_size", "eval_episodes", "max_episode_steps"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name} must be >= 1, got {getattr(args, name)}.")
-    if args.resize <= 32:
-        parser.error(f"--resize must be > 32 (the ResNet downsamples 32x), got {args.resize}.")
-    return args
+def light_policy() -> EBVLAConfig:
+    return EBVLAConfig(**LIGHT_POLICY)
+
+
+@dataclass
+class QuickstartConfig:
+    """Record MetaWorld demonstrations, train ebvla, evaluate it with energies and print a summary."""
+
+    # MetaWorld v3 task, or comma-separated tasks. Pick one whose goal is visible in the images (not reach-v3).
+    task: str = "button-press-v3"
+    # Folder of the dataset, the training run, the evaluations and summary.json.
+    output_dir: Path = Path("outputs/ebvla_quickstart")
+    # Expert episodes recorded per task.
+    record_episodes: int = 10
+    # Side of the square images stored in the dataset (the policy resizes them to `policy.resize_shape`).
+    image_size: int = RecordMetaworldConfig.image_size
+    # Training steps. The policy's cosine schedule decays over them, with a warm-up of at most a tenth.
+    steps: int = 300
+    # Training batch size.
+    batch_size: int = 16
+    # Evaluation episodes per task and condition (vanilla, blanked camera, perturbed).
+    eval_episodes: int = 5
+    # Evaluation episodes end after this many env steps (MetaWorld's own limit is 500).
+    max_episode_steps: int = 100
+    # The perturbed evaluation condition: one of `--env.type=metaworld_ebvla`'s perturbations (docs/metaworld.md),
+    # or "none" to skip it.
+    perturbation: str = "pose"
+    # Its severity, 1 to 5.
+    perturbation_severity: int = 3
+    # Dataset frames of the camera check (real vs blanked camera, same MCMC noise).
+    vision_frames: int = 16
+    # Seed of training, of the first evaluation episode and of the camera check's MCMC noise.
+    seed: int = 1000
+    # Replace a previous training run (and its evaluations) in output_dir. The dataset is kept.
+    overwrite: bool = False
+    # The policy: `LIGHT_POLICY` over `EBVLAConfig`'s defaults; any `--policy.<field>=...` overrides it.
+    policy: EBVLAConfig = field(default_factory=light_policy)
+
+    def __post_init__(self):
+        for name in (
+            "record_episodes",
+            "steps",
+            "batch_size",
+            "eval_episodes",
+            "max_episode_steps",
+            "vision_frames",
+        ):
+            if getattr(self, name) < 1:
+                raise ValueError(f"`{name}` must be >= 1, got {getattr(self, name)}.")
+        resize = self.policy.resize_shape or (self.image_size, self.image_size)
+        if min(resize) <= 32:
+            raise ValueError(
+                f"The images the ResNet sees must be larger than 32 px (it downsamples 32x): got "
+                f"`policy.resize_shape`={self.policy.resize_shape}, `image_size`={self.image_size}."
+            )
+        if self.policy.backbone != "resnet":
+            raise ValueError(
+                f"The quickstart trains the light backbone offline: `policy.backbone` must be 'resnet', "
+                f"got {self.policy.backbone!r}."
+            )
+        # The env config checks the perturbation's name and severity, naming the field.
+        self.perturbed_env(self.perturbation, self.perturbation_severity)
+
+    def perturbed_env(self, perturbation: str, severity: int) -> MetaworldEBVLAEnv:
+        """The evaluation env of one condition."""
+        return MetaworldEBVLAEnv(
+            task=self.task,
+            fast_render=True,
+            max_episode_steps=self.max_episode_steps,
+            perturbation=perturbation,
+            perturbation_severity=severity if perturbation != "none" else 0,
+        )
+
+    def conditions(self) -> dict[str, tuple[str, int]]:
+        """{condition name: (perturbation, severity)} of the evaluations, vanilla first."""
+        conditions = {VANILLA: ("none", 0), BLANK: ("blank", 1)}
+        if self.perturbation not in ("none", "blank"):
+            conditions[f"{self.perturbation}_s{self.perturbation_severity}"] = (
+                self.perturbation,
+                self.perturbation_severity,
+            )
+        return conditions
+
+
+def parse_config(args: list[str]) -> QuickstartConfig:
+    """Parses the command line into a `QuickstartConfig`; an invalid value raises a ValueError naming it.
+
+    draccus builds a nested config from its class defaults plus the flags given, ignoring the field's
+    `default_factory` once any `--policy.*` flag is given; `LIGHT_POLICY` therefore goes first on the
+    command line, where the user's own flags override it.
+    """
+    defaults = [f"--policy.{name}={json.dumps(value)}" for name, value in LIGHT_POLICY.items()]
+    if "--help" in args or "-h" in args:
+        # argparse type-checks flags when printing help; `LIGHT_POLICY` is not needed for that.
+        defaults = []
+    try:
+        return draccus.parse(QuickstartConfig, args=defaults + list(args), prog="ebvla-quickstart")
+    except draccus.utils.ParsingError as error:
+        # draccus wraps the config's own ValueError (which names the field) in a generic message.
+        if isinstance(error.__cause__, ValueError):
+            raise error.__cause__ from None
+        raise
 
 
 def say(text: str) -> None:
-    """Writes a line to the console at once (the subprocesses' lines interleave with ours)."""
+    """Writes a line to the console at once, between LeRobot's log lines."""
     sys.stdout.write(text + "\n")
     sys.stdout.flush()
 
@@ -114,25 +188,8 @@ def banner(text: str) -> None:
     say(f"\n=== {text} ===")
 
 
-def run_logged(command: list[str], log_path: Path) -> None:
-    """Runs a command with its full output in `log_path`, echoing its log lines; raises if it fails."""
-    say("$ " + " ".join(command))
-    with open(log_path, "w") as log:
-        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        for line in process.stdout:
-            log.write(line)
-            # LeRobot's INFO lines carry the progress (tqdm bars before them are cut off); warnings stay
-            # in the log file.
-            if "INFO " in line:
-                say("    " + line[line.index("INFO ") :].rstrip())
-        process.wait()
-    if process.returncode != 0:
-        tail = log_path.read_text().splitlines()[-40:]
-        say("\n".join(tail))
-        raise RuntimeError(f"Command failed with exit code {process.returncode}; see {log_path}.")
-
-
-def record_dataset(args: argparse.Namespace, root: Path, repo_id: str) -> None:
+def record_dataset(cfg: QuickstartConfig, root: Path, repo_id: str) -> None:
+    """Records the expert dataset unless `root` already holds one."""
     if (root / "meta" / "info.json").is_file():
         say(f"Reusing the dataset at {root}.")
         return
@@ -142,73 +199,93 @@ def record_dataset(args: argparse.Namespace, root: Path, repo_id: str) -> None:
         )
     import datasets
 
-    from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
-    from lerobot_policy_ebvla.scripts.record_metaworld import RecordMetaworldConfig, record_metaworld
+    from lerobot_policy_ebvla.scripts.record_metaworld import record_metaworld
 
     datasets.disable_progress_bars()  # one "Map" bar per saved episode
-
-    cfg = RecordMetaworldConfig(
-        env=MetaworldEBVLAEnv(task=args.task, fast_render=True),
-        repo_id=repo_id,
-        root=root,
-        episodes_per_task=args.record_episodes,
-        seed=0,
-        image_size=128,
-        overwrite=root.exists(),  # an empty folder left by an interrupted run
+    report = record_metaworld(
+        RecordMetaworldConfig(
+            env=MetaworldEBVLAEnv(task=cfg.task, fast_render=True),
+            repo_id=repo_id,
+            root=root,
+            episodes_per_task=cfg.record_episodes,
+            image_size=cfg.image_size,
+            overwrite=root.exists(),  # an empty folder left by an interrupted run
+        )
     )
-    report = record_metaworld(cfg)
     if report["n_kept"] == 0:
         raise RuntimeError("The expert failed every episode: nothing to train on.")
 
 
-def train(args: argparse.Namespace, root: Path, repo_id: str, train_dir: Path) -> None:
-    command = [
-        sys.executable,
-        "-m",
-        "lerobot.scripts.lerobot_train",
-        f"--dataset.repo_id={repo_id}",
-        f"--dataset.root={root}",
-        "--policy.type=ebvla",
-        "--policy.backbone=resnet",
-        "--policy.vision_backbone=resnet18",
-        "--policy.pretrained_backbone_weights=null",
-        "--policy.use_group_norm=true",
-        f"--policy.resize_shape=[{args.resize},{args.resize}]",
-        f"--policy.spatial_softmax_num_keypoints={KEYPOINTS}",
-        f"--policy.dim_model={args.dim_model}",
-        f"--policy.n_heads={args.n_heads}",
-        f"--policy.n_blocks={args.n_blocks}",
-        f"--policy.train_mcmc_steps_range=[{TRAIN_MCMC_STEPS[0]},{TRAIN_MCMC_STEPS[1]}]",
-        f"--policy.optimizer_lr={args.learning_rate}",
-        f"--policy.scheduler_warmup_steps={min(100, args.train_steps // 10)}",
-        f"--policy.scheduler_decay_steps={args.train_steps}",
-        f"--policy.device={args.device}",
-        "--policy.push_to_hub=false",
-        f"--steps={args.train_steps}",
-        f"--batch_size={args.batch_size}",
-        f"--save_freq={args.train_steps}",
-        f"--log_freq={max(1, min(100, args.train_steps // 10))}",
-        f"--seed={args.seed}",
-        "--num_workers=0",
-        "--wandb.enable=false",
-        f"--output_dir={train_dir}",
-    ]
-    run_logged(command, args.output_dir / "train.log")
+def train_config(cfg: QuickstartConfig, root: Path, repo_id: str, train_dir: Path):
+    """LeRobot's `TrainPipelineConfig` of the quickstart: the dataset and the policy, nothing else changed."""
+    from lerobot.configs.default import DatasetConfig, WandBConfig
+    from lerobot.configs.train import TrainPipelineConfig
 
-
-def evaluate(args: argparse.Namespace, checkpoint: Path, eval_dir: Path) -> None:
-    from lerobot_policy_ebvla.scripts.eval_energy import metaworld_eval_command  # imports LeRobot's eval
-
-    command = metaworld_eval_command(
-        checkpoint,
-        eval_dir,
-        task=args.task,
-        device=args.device,
-        max_episode_steps=args.max_episode_steps,
-        n_episodes=args.eval_episodes,
-        seed=args.seed,
+    policy = cfg.policy
+    policy.scheduler_decay_steps = cfg.steps
+    policy.scheduler_warmup_steps = min(policy.scheduler_warmup_steps, cfg.steps // 10)
+    return TrainPipelineConfig(
+        dataset=DatasetConfig(repo_id=repo_id, root=str(root)),
+        policy=policy,
+        output_dir=train_dir,
+        seed=cfg.seed,
+        steps=cfg.steps,
+        batch_size=cfg.batch_size,
+        save_freq=cfg.steps,
+        log_freq=max(1, min(100, cfg.steps // 10)),
+        # Frames are decoded in the training process: worker processes cost more than they save on 2 cores.
+        num_workers=0,
+        wandb=WandBConfig(enable=False),
     )
-    run_logged(command, args.output_dir / "eval.log")
+
+
+def evaluate(
+    cfg: QuickstartConfig, checkpoint: Path, eval_dir: Path, perturbation: str, severity: int
+) -> None:
+    """`ebvla-eval` in process: LeRobot's rollouts of the checkpoint, energies to `energy_records.jsonl`."""
+    from lerobot.configs.default import EvalConfig
+    from lerobot.configs.policies import PreTrainedConfig
+
+    from lerobot_policy_ebvla.scripts.eval_energy import EnergyEvalPipelineConfig, eval_energy_main
+
+    policy = PreTrainedConfig.from_pretrained(checkpoint)
+    policy.pretrained_path = checkpoint
+    # EvalPipelineConfig looks for `--policy.path` on the command line and warns when it finds none; the
+    # policy is given here instead.
+    eval_logger = logging.getLogger("lerobot.configs.eval")
+    level = eval_logger.level
+    eval_logger.setLevel(logging.ERROR)
+    try:
+        eval_cfg = EnergyEvalPipelineConfig(
+            env=cfg.perturbed_env(perturbation, severity),
+            eval=EvalConfig(n_episodes=cfg.eval_episodes, batch_size=1, use_async_envs=False),
+            policy=policy,
+            output_dir=eval_dir,
+            seed=cfg.seed,
+        )
+    finally:
+        eval_logger.setLevel(level)
+    eval_energy_main(eval_cfg)
+
+
+def camera_check(checkpoint: Path, root: Path, repo_id: str, num_frames: int, seed: int):
+    """`camera_dependence` of the checkpoint on `num_frames` frames spread over the dataset."""
+    import numpy as np
+    from lerobot.datasets import LeRobotDataset
+    from lerobot.policies.factory import make_pre_post_processors
+    from torch.utils.data import default_collate
+
+    from lerobot_policy_ebvla import EBVLAPolicy
+    from lerobot_policy_ebvla.monitoring.vision import camera_dependence
+
+    policy = EBVLAPolicy.from_pretrained(checkpoint)
+    preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=checkpoint)
+    dataset = LeRobotDataset(repo_id, root=root)
+    keys = [*policy.config.input_features, "task"]
+    indices = np.linspace(0, len(dataset) - 1, num=min(num_frames, len(dataset))).round().astype(int)
+    frames = [dataset[int(i)] for i in indices]
+    frames = [{key: frame[key] for key in keys} for frame in frames]
+    return camera_dependence(policy, preprocessor(default_collate(frames)), seed=seed)
 
 
 def summarise(eval_dir: Path) -> dict:
@@ -230,110 +307,151 @@ def summarise(eval_dir: Path) -> dict:
                 "mean_final_energy": sum(finals) / len(finals),
             }
         )
-
-    def mean(values: list[float]) -> float:
-        return sum(values) / len(values) if values else math.nan
-
     succeeded = [e["mean_final_energy"] for e in episodes if e["success"]]
     failed = [e["mean_final_energy"] for e in episodes if not e["success"]]
     return {
         "n_episodes": len(episodes),
         "n_success": len(succeeded),
         "success_rate": len(succeeded) / len(episodes) if episodes else math.nan,
-        "mean_final_energy_success": mean(succeeded),
-        "mean_final_energy_failure": mean(failed),
-        "mean_initial_energy": mean([e["mean_initial_energy"] for e in episodes]),
-        "mean_final_energy": mean([e["mean_final_energy"] for e in episodes]),
+        "mean_final_energy_success": _mean(succeeded),
+        "mean_final_energy_failure": _mean(failed),
+        "mean_initial_energy": _mean([e["mean_initial_energy"] for e in episodes]),
+        "mean_final_energy": _mean([e["mean_final_energy"] for e in episodes]),
         "episodes": episodes,
     }
 
 
+def _mean(values: list[float]) -> float:
+    return sum(values) / len(values) if values else math.nan
+
+
 def print_summary(summary: dict) -> None:
-    say(f"{'task':<16} {'episode':>7} {'seed':>6} {'success':>7} {'chunks':>6} {'E_init':>8} {'E_final':>8}")
-    for e in summary["episodes"]:
+    conditions = summary["conditions"]
+    say(
+        f"{'condition':<14} {'task':<16} {'episode':>7} {'seed':>6} {'success':>7} {'chunks':>6} "
+        f"{'E_init':>8} {'E_final':>8}"
+    )
+    for name, condition in conditions.items():
+        for e in condition["episodes"]:
+            say(
+                f"{name:<14} {e['task']:<16} {e['episode']:>7} {str(e['seed']):>6} {str(e['success']):>7} "
+                f"{e['chunks']:>6} {e['mean_initial_energy']:>8.3f} {e['mean_final_energy']:>8.3f}"
+            )
+    vanilla = conditions[VANILLA]
+    say(f"\n{'condition':<14} {'success':>12} {'E_init':>8} {'E_final':>8} {'E_final - vanilla':>18}")
+    for name, c in conditions.items():
+        rate = f"{c['n_success']}/{c['n_episodes']} ({100 * c['success_rate']:.0f}%)"
+        shift = c["mean_final_energy"] - vanilla["mean_final_energy"]
         say(
-            f"{e['task']:<16} {e['episode']:>7} {str(e['seed']):>6} {str(e['success']):>7} {e['chunks']:>6} "
-            f"{e['mean_initial_energy']:>8.3f} {e['mean_final_energy']:>8.3f}"
+            f"{name:<14} {rate:>12} {c['mean_initial_energy']:>8.3f} {c['mean_final_energy']:>8.3f} "
+            f"{shift:>+18.3f}"
         )
     say(
-        f"\nSuccess rate: {summary['n_success']}/{summary['n_episodes']} "
-        f"({100 * summary['success_rate']:.0f}%)"
+        "(energies: mean per chunk of E(a^(0), C) and E(a^(K), C); MCMC refinement lowers it. A policy that "
+        "reads its camera fails more with the camera blanked; an energy that knows rises there.)"
     )
+    check = summary["camera_check"]
     say(
-        f"Mean energy per chunk: initial E(a^(0), C) = {summary['mean_initial_energy']:.3f}, "
-        f"final E(a^(K), C) = {summary['mean_final_energy']:.3f} (MCMC refinement lowers it)"
+        f"Camera check on {check['num_frames']} dataset frames: the refined chunk changes by "
+        f"{100 * check['chunk_change']:.1f}% with the camera blanked (0% = blind policy); final energy "
+        f"{check['energy_real']:.3f} (real) vs {check['energy_blank']:.3f} (blanked)."
     )
+    episodes = [e for c in conditions.values() for e in c["episodes"]]
     say(
-        f"Mean final energy of successful episodes: {summary['mean_final_energy_success']:.3f}, "
-        f"of failed episodes: {summary['mean_final_energy_failure']:.3f} (nan: no such episode)"
+        "Mean final energy of successful episodes (all conditions): "
+        f"{_mean([e['mean_final_energy'] for e in episodes if e['success']]):.3f}, of failed episodes: "
+        f"{_mean([e['mean_final_energy'] for e in episodes if not e['success']]):.3f} (nan: no such episode)"
     )
 
 
-def main(argv: list[str] | None = None) -> None:
-    args = parse_args(argv)
-    # MuJoCo renders off-screen; EGL needs no display (and is inherited by the subprocesses).
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    from lerobot.utils.utils import init_logging
-
-    init_logging()
-    # Noise of the in-process recording: LeRobot falls back from torchcodec to PyAV (PNG frames need
-    # neither), and MetaWorld warns that its experts' gains exceed the action space (actions are clipped).
+def _quiet_in_process_noise() -> None:
+    # LeRobot falls back from torchcodec to PyAV (PNG frames need neither), and MetaWorld warns that its
+    # experts' gains exceed the action space (actions are clipped).
     logging.getLogger("lerobot.utils.import_utils").setLevel(logging.ERROR)
     warnings.filterwarnings("ignore", message=r"Constant\(s\) may be too high")
-    output_dir = args.output_dir
-    train_dir, eval_dir = output_dir / "train", output_dir / "eval"
-    # lerobot-train creates `train/` only when it first saves, so a run in progress is marked at once.
+
+
+def run(cfg: QuickstartConfig) -> dict:
+    """Runs the four stages; returns the summary (also written to `<output_dir>/summary.json`)."""
+    from lerobot.scripts.lerobot_train import train
+
+    output_dir = cfg.output_dir
+    train_dir, eval_root = output_dir / "train", output_dir / "eval"
+    # LeRobot's training creates `train/` only when it first saves, so a run in progress is marked at once.
     marker = output_dir / RUN_MARKER
-    if marker.exists() or train_dir.exists() or eval_dir.exists():
-        if not args.overwrite:
+    if marker.exists() or train_dir.exists() or eval_root.exists():
+        if not cfg.overwrite:
             sys.exit(
-                f"{output_dir} already holds a quickstart run ({RUN_MARKER}, train/ or eval/): pass --overwrite "
-                "to replace it (the dataset is kept), or choose another --output_dir."
+                f"{output_dir} already holds a quickstart run ({RUN_MARKER}, train/ or eval/): pass "
+                "--overwrite=true to replace it (the dataset is kept), or choose another --output_dir."
             )
         shutil.rmtree(train_dir, ignore_errors=True)
-        shutil.rmtree(eval_dir, ignore_errors=True)
+        shutil.rmtree(eval_root, ignore_errors=True)
     output_dir.mkdir(parents=True, exist_ok=True)
     marker.write_text(
-        json.dumps({"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "args": sys.argv[1:]}) + "\n"
+        json.dumps(
+            {"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "config": draccus.encode(cfg)}, default=str
+        )
+        + "\n"
     )
-    dataset_name = args.task.replace(",", "_")
+    dataset_name = cfg.task.replace(",", "_")
     root, repo_id = output_dir / "data" / dataset_name, f"local/metaworld_{dataset_name}"
     timings = {}
 
     start = time.perf_counter()
-    banner(f"1/4 Recording MetaWorld expert demonstrations ({args.task}, {args.record_episodes} per task)")
-    record_dataset(args, root, repo_id)
+    banner(f"1/4 Recording MetaWorld expert demonstrations ({cfg.task}, {cfg.record_episodes} per task)")
+    record_dataset(cfg, root, repo_id)
     timings["record_s"] = time.perf_counter() - start
 
     start = time.perf_counter()
+    p = cfg.policy
     banner(
-        f"2/4 Training ebvla for {args.train_steps} steps of batch {args.batch_size} (ResNet-18 at {args.resize} px, "
-        f"energy head D={args.dim_model}, {args.n_heads} heads, L={args.n_blocks})"
+        f"2/4 Training ebvla for {cfg.steps} steps of batch {cfg.batch_size} ({p.vision_backbone} at "
+        f"{p.resize_shape} px, energy head D={p.dim_model}, {p.n_heads} heads, L={p.n_blocks})"
     )
-    train(args, root, repo_id, train_dir)
+    train(train_config(cfg, root, repo_id, train_dir))
     timings["train_s"] = time.perf_counter() - start
     checkpoint = train_dir / "checkpoints" / "last" / "pretrained_model"
 
     start = time.perf_counter()
+    conditions = cfg.conditions()
     banner(
-        f"3/4 Evaluating with ebvla-eval: {args.eval_episodes} episodes per task, at most "
-        f"{args.max_episode_steps} steps, seeds from {args.seed}"
+        f"3/4 Evaluating: {cfg.eval_episodes} episodes per task of at most {cfg.max_episode_steps} steps, seeds "
+        f"from {cfg.seed}, in each of {', '.join(conditions)}; then the camera check on {cfg.vision_frames} frames"
     )
-    evaluate(args, checkpoint, eval_dir)
+    for name, (perturbation, severity) in conditions.items():
+        say(f"--- {name} ---")
+        evaluate(cfg, checkpoint, eval_root / name, perturbation, severity)
+    check = camera_check(checkpoint, root, repo_id, cfg.vision_frames, cfg.seed)
     timings["eval_s"] = time.perf_counter() - start
 
     banner("4/4 Summary")
-    summary = summarise(eval_dir)
-    summary["timings_s"] = {name: round(seconds, 1) for name, seconds in timings.items()}
-    summary["checkpoint"] = str(checkpoint)
+    summary = {
+        "conditions": {name: summarise(eval_root / name) for name in conditions},
+        "camera_check": {**asdict(check), "energy_shift": check.energy_shift},
+        "timings_s": {name: round(seconds, 1) for name, seconds in timings.items()},
+        "checkpoint": str(checkpoint),
+    }
     print_summary(summary)
     say("Time: " + ", ".join(f"{name[:-2]} {seconds / 60:.1f} min" for name, seconds in timings.items()))
-    with open(output_dir / "summary.json", "w") as f:
+    with open(output_dir / SUMMARY_FILENAME, "w") as f:
         json.dump(summary, f, indent=2)
     say(f"\nCheckpoint: {checkpoint}")
     say(
-        f"Energy records: {eval_dir / 'energy_records.jsonl'} (see docs/monitoring.md for the OOD and failure reports)"
+        f"Energy records: {eval_root}/<condition>/energy_records.jsonl (docs/monitoring.md: the OOD and "
+        "failure reports read them)"
     )
+    return summary
+
+
+def main(args: list[str] | None = None) -> None:
+    # MuJoCo renders off-screen; EGL needs no display.
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from lerobot.utils.utils import init_logging
+
+    init_logging()
+    _quiet_in_process_noise()
+    run(parse_config(sys.argv[1:] if args is None else args))
 
 
 if __name__ == "__main__":

@@ -1,0 +1,96 @@
+"""Calibrate the OOD threshold of a checkpoint from vanilla rollouts, and save it beside the checkpoint.
+
+The paper's Eq. 5: roll the policy out in the scene it was trained for, score each rollout by the mean final
+energy of its chunks, and set T = mu_v + k * sigma_v over those scores. `OODCalibration.save` writes
+`ood_calibration.json` into the checkpoint folder, where `EnergyOODMonitor.from_pretrained` and the policy's
+own OOD response (`--policy.ood_response=hold|raise`, examples/rollout_with_ood_response.py) find it.
+
+    MUJOCO_GL=egl python examples/calibrate_ood_threshold.py \\
+        --checkpoint=outputs/example_metaworld/train/checkpoints/last/pretrained_model --episodes=20
+
+Calibrate on other seeds than the ones you report on: this script starts at seed 2000, evaluations at 1000.
+"""
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import draccus
+import torch
+from lerobot.envs import close_envs, make_env, make_env_pre_post_processors
+from lerobot.policies import make_pre_post_processors
+from lerobot.scripts.lerobot_eval import eval_policy_all
+
+from lerobot_policy_ebvla import EBVLAPolicy
+from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
+from lerobot_policy_ebvla.monitoring import EnergyOODMonitor, EnergyRecorder, OODCalibration, rollout_scores
+
+
+@dataclass
+class CalibrateConfig:
+    # The `pretrained_model` folder of the checkpoint; the calibration is written into it.
+    checkpoint: Path = Path("outputs/example_metaworld/train/checkpoints/last/pretrained_model")
+    # The MetaWorld task the policy was trained on.
+    task: str = "button-press-v3"
+    # Vanilla rollouts to calibrate on.
+    episodes: int = 10
+    # Rollouts end after this many env steps.
+    max_episode_steps: int = 100
+    # Seed of the first calibration rollout.
+    seed: int = 2000
+    # k of T = mu_v + k * sigma_v (Eq. 5): lower flags more OOD rollouts, and more vanilla ones too.
+    k: float = 1.0
+    # Also store the conformal threshold of this false-alarm rate (`--threshold_rule=conformal` elsewhere).
+    false_alarm_rate: float = 0.1
+    # Replace an existing ood_calibration.json.
+    overwrite: bool = True
+
+
+def main(cfg: CalibrateConfig) -> None:
+    policy = EBVLAPolicy.from_pretrained(cfg.checkpoint)
+    preprocessor, postprocessor = make_pre_post_processors(policy.config, pretrained_path=cfg.checkpoint)
+    env_cfg = MetaworldEBVLAEnv(task=cfg.task, fast_render=True, max_episode_steps=cfg.max_episode_steps)
+    env_preprocessor, env_postprocessor = make_env_pre_post_processors(env_cfg, policy.config)
+
+    # Vanilla rollouts with LeRobot's evaluation loop; the recorder keeps every chunk's final energy.
+    envs = make_env(env_cfg, n_envs=1)
+    with EnergyRecorder(policy) as recorder, torch.no_grad():
+        watched = {g: {i: recorder.watch(env, g, i) for i, env in tasks.items()} for g, tasks in envs.items()}
+        info = eval_policy_all(
+            watched,
+            policy,
+            env_preprocessor,
+            env_postprocessor,
+            preprocessor,
+            postprocessor,
+            n_episodes=cfg.episodes,
+            start_seed=cfg.seed,
+        )
+    close_envs(envs)
+    records = recorder.records(info, cfg.episodes)
+
+    # One score per rollout (the mean final energy of its chunks), then Eq. 5.
+    scores = rollout_scores(records, aggregation="mean")
+    calibration = OODCalibration.fit(
+        list(scores.values()), k=cfg.k, aggregation="mean", false_alarm_rate=cfg.false_alarm_rate
+    )
+    path = calibration.save(cfg.checkpoint, overwrite=cfg.overwrite)
+    print(
+        f"\nmu_v = {calibration.mu_v:.3f}, sigma_v = {calibration.sigma_v:.3f} over {calibration.n_rollouts} "
+        f"vanilla rollouts: T = {calibration.threshold:.3f} (k = {cfg.k}); conformal threshold at "
+        f"{cfg.false_alarm_rate:.0%} false alarms: {calibration.conformal_threshold:.3f}"
+    )
+    print(f"Saved {path}")
+
+    # What a control loop does with it: the monitor reads the file back from the checkpoint folder.
+    monitor = EnergyOODMonitor.from_pretrained(cfg.checkpoint)
+    for key, score in scores.items():
+        decision = monitor.check_rollout([score])
+        print(
+            f"rollout {key.episode_index}: score {score:.3f} -> {'OOD' if decision.is_ood else 'in distribution'}"
+        )
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    main(draccus.parse(CalibrateConfig))

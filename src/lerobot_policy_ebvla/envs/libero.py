@@ -1,0 +1,271 @@
+"""LeRobot's LIBERO gym env with LIBERO-Plus-style perturbations (`--env.type=libero_ebvla`).
+
+`LiberoEBVLAGymEnv` is LeRobot's `LiberoEnv` whose MuJoCo model is edited at every reset, right after LIBERO
+builds the scene and before LeRobot's settling steps (a hard reset rebuilds the model from its XML, so the
+edits are re-applied to each new model):
+
+- camera: the agent-view camera ("agentview", LeRobot's `observation.images.image`) is moved with LIBERO-Plus's
+  own geometry (its `_setup_camera`): a horizontal rotation about the world's vertical axis with a vertical
+  rotation about the y-parallel axis through `LIBERO_PLUS_PIVOT`, or a distance scale from that pivot, or a turn
+  of the camera in place (yaw, then pitch); or its field of view is widened.
+- lighting: the intensity or colour of every light (the headlight included), or the direction the scene's spot
+  lights shine from.
+
+Every perturbation is graded by a severity 1..5 (0: none). The camera magnitudes are LIBERO-Plus's ranges
+(horizontal 0-75 deg, vertical 0-15 deg, distance x1.0-2.0, turn 0-10 deg) scaled by severity / 5; the
+constants below are tabulated in docs/libero.md. Import this module only once LIBERO is set up
+(`ebvla-install-libero-assets`): `lerobot.envs.libero` imports `libero`, which otherwise asks questions on stdin.
+"""
+
+from collections.abc import Callable, Sequence
+from functools import partial
+from typing import Any
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+from lerobot.envs.libero import LiberoEnv, _get_suite, _select_task_ids
+from lerobot.envs.utils import _LazyAsyncVectorEnv, parse_camera_names
+from scipy.spatial.transform import Rotation
+
+from .libero_configs import LIBERO_MAX_SEVERITY, check_libero_perturbation
+
+# The MuJoCo camera behind LeRobot's `agentview_image` (`observation.images.image`).
+AGENTVIEW_CAMERA = "agentview"
+# LIBERO-Plus rotates the camera vertically about the y-parallel axis through this point and scales its distance
+# from it (`rotate_around_y`, `scale_distance_from_pivot` in its problem files); horizontal rotations are about
+# the world's z axis through the origin (`rotate_around_z`).
+LIBERO_PLUS_PIVOT = np.array([0.0, 0.0, 0.8])
+# Camera magnitudes at severity 5, the largest of LIBERO-Plus's camera variants (file names `_view_H_V_S_R_E`;
+# each variant changes H and V, or S, or R and E): horizontal rotation H up to 75 deg, vertical V up to 15 deg,
+# distance S up to 200 %, turns R and E up to 10 deg.
+MAX_HORIZONTAL_DEG = 75.0
+MAX_VERTICAL_DEG = 15.0
+MAX_DISTANCE_SCALE = 2.0
+MAX_TURN_DEG = 10.0
+# "fov": relative widening of the field of view per level (LIBERO's 45 deg becomes 67.5 deg at severity 5).
+FOVY_GROWTH_PER_LEVEL = 0.10
+
+# Lighting, as for MetaWorld (envs/metaworld.py): intensity factor 1 - 0.16 s ("light_dim", 0.2 at severity 5)
+# and 1 + 0.3 s ("light_bright", 2.5 at severity 5); "light_color" moves the lights' colour from white to a warm
+# tint; "light_direction" tilts every spot light about its aim point by 12 deg per level, so at severity 5 the
+# light comes from 60 deg off the vertical (LIBERO's lights shine almost straight down).
+LIGHT_DIM_PER_LEVEL = 0.16
+LIGHT_BRIGHT_PER_LEVEL = 0.30
+LIGHT_TINT_RGB = (1.0, 0.6, 0.25)
+LIGHT_TILT_DEG_PER_LEVEL = 12.0
+
+
+def _quat_wxyz_to_rotation(quat: np.ndarray) -> Rotation:
+    return Rotation.from_quat([quat[1], quat[2], quat[3], quat[0]])
+
+
+def _rotation_to_quat_wxyz(rotation: Rotation) -> np.ndarray:
+    x, y, z, w = rotation.as_quat()
+    return np.array([w, x, y, z])
+
+
+def libero_plus_camera_pose(
+    position: np.ndarray,
+    quat: np.ndarray,
+    horizontal_deg: float = 0.0,
+    vertical_deg: float = 0.0,
+    distance_scale: float = 1.0,
+    turn_yaw_deg: float = 0.0,
+    turn_pitch_deg: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A camera pose moved as LIBERO-Plus's `_setup_camera` moves the agent-view camera.
+
+    Args:
+        position: World position of the camera (3,).
+        quat: World orientation, MuJoCo's (w, x, y, z) order.
+        horizontal_deg: Rotation of position and orientation about the world's z axis (counter-clockwise).
+        vertical_deg: Rotation about the y-parallel axis through `LIBERO_PLUS_PIVOT` (positive raises a camera
+            in front of the robot, as LIBERO-Plus's `rotate_around_y` with its sign convention).
+        distance_scale: Scale of the camera's offset from `LIBERO_PLUS_PIVOT`.
+        turn_yaw_deg, turn_pitch_deg: Rotation of the orientation only, about world z then world y (the
+            camera turns in place: LIBERO-Plus's `end_point_rot` and `end_point_vertical`).
+
+    Returns:
+        (position, quat) of the moved camera.
+    """
+    position = np.asarray(position, dtype=float)
+    rotation = _quat_wxyz_to_rotation(quat)
+    if vertical_deg:
+        tilt = Rotation.from_rotvec(np.radians(-vertical_deg) * np.array([0.0, 1.0, 0.0]))
+        position = tilt.apply(position - LIBERO_PLUS_PIVOT) + LIBERO_PLUS_PIVOT
+        rotation = tilt * rotation
+    if horizontal_deg:
+        spin = Rotation.from_euler("z", horizontal_deg, degrees=True)
+        position = spin.apply(position)
+        rotation = spin * rotation
+    if distance_scale != 1.0:
+        position = LIBERO_PLUS_PIVOT + distance_scale * (position - LIBERO_PLUS_PIVOT)
+    if turn_yaw_deg:
+        rotation = Rotation.from_euler("z", turn_yaw_deg, degrees=True) * rotation
+    if turn_pitch_deg:
+        rotation = Rotation.from_rotvec(np.radians(-turn_pitch_deg) * np.array([0.0, 1.0, 0.0])) * rotation
+    return position, _rotation_to_quat_wxyz(rotation)
+
+
+def perturb_camera(model: mujoco.MjModel, camera_name: str, kind: str, severity: int) -> None:
+    """Applies a LIBERO-Plus camera perturbation of a given severity to a world camera of `model` (in place)."""
+    camera_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera_name)
+    if camera_id < 0:
+        raise ValueError(f"The scene has no camera named {camera_name!r}.")
+    if model.cam_bodyid[camera_id] != 0:
+        raise ValueError(f"Camera {camera_name!r} is not attached to the world body; it cannot be moved.")
+    level = severity / LIBERO_MAX_SEVERITY
+    if kind == "fov":
+        model.cam_fovy[camera_id] *= 1.0 + FOVY_GROWTH_PER_LEVEL * severity
+        return
+    moves = {
+        "pose": {"horizontal_deg": MAX_HORIZONTAL_DEG * level, "vertical_deg": MAX_VERTICAL_DEG * level},
+        "distance": {"distance_scale": 1.0 + (MAX_DISTANCE_SCALE - 1.0) * level},
+        "rotation": {"turn_yaw_deg": MAX_TURN_DEG * level, "turn_pitch_deg": MAX_TURN_DEG * level},
+    }
+    if kind not in moves:
+        raise ValueError(f"Unknown camera perturbation {kind!r}; expected one of {(*moves, 'fov')}.")
+    position, quat = libero_plus_camera_pose(
+        model.cam_pos[camera_id], model.cam_quat[camera_id], **moves[kind]
+    )
+    model.cam_pos[camera_id] = position
+    model.cam_quat[camera_id] = quat
+
+
+def scale_lights(model: mujoco.MjModel, rgb_factor: Sequence[float]) -> None:
+    """Multiplies the ambient, diffuse and specular colour of every light, the headlight included."""
+    factor = np.asarray(rgb_factor, dtype=float)
+    for colour in (model.light_ambient, model.light_diffuse, model.light_specular):
+        colour *= factor
+    headlight = model.vis.headlight
+    headlight.ambient = headlight.ambient * factor
+    headlight.diffuse = headlight.diffuse * factor
+    headlight.specular = headlight.specular * factor
+
+
+def tilt_lights(model: mujoco.MjModel, degrees: float) -> None:
+    """Swings every light about the point it aims at (at the pivot's height), towards +x, by `degrees`.
+
+    The aim point stays lit; the light reaches it from further off the vertical, so shading changes.
+    """
+    tilt = Rotation.from_rotvec(np.radians(degrees) * np.array([0.0, 1.0, 0.0]))
+    for light_id in range(model.nlight):
+        position, direction = model.light_pos[light_id].copy(), model.light_dir[light_id].copy()
+        if direction[2] >= 0:
+            continue  # a light that does not shine downwards has no aim point on the scene
+        aim = position + (LIBERO_PLUS_PIVOT[2] - position[2]) / direction[2] * direction
+        model.light_pos[light_id] = aim + tilt.apply(position - aim)
+        model.light_dir[light_id] = tilt.apply(direction)
+
+
+def perturb_libero_model(
+    model: mujoco.MjModel, perturbation: str, severity: int, camera_name: str = AGENTVIEW_CAMERA
+) -> None:
+    """Applies a camera or lighting perturbation of `severity` (0: none) to a LIBERO scene's model, in place."""
+    check_libero_perturbation(perturbation, severity)
+    if perturbation == "none" or severity == 0:
+        return
+    if perturbation == "light_dim":
+        scale_lights(model, [1.0 - LIGHT_DIM_PER_LEVEL * severity] * 3)
+    elif perturbation == "light_bright":
+        scale_lights(model, [1.0 + LIGHT_BRIGHT_PER_LEVEL * severity] * 3)
+    elif perturbation == "light_color":
+        scale_lights(model, 1.0 + severity / LIBERO_MAX_SEVERITY * (np.asarray(LIGHT_TINT_RGB) - 1.0))
+    elif perturbation == "light_direction":
+        tilt_lights(model, LIGHT_TILT_DEG_PER_LEVEL * severity)
+    else:
+        perturb_camera(model, camera_name, perturbation, severity)
+
+
+class LiberoEBVLAGymEnv(LiberoEnv):
+    """LeRobot's `LiberoEnv` with the scene perturbation of `LiberoEBVLAEnv` (see its docstring).
+
+    Args:
+        perturbation: A name of `libero_configs.LIBERO_PERTURBATIONS`.
+        perturbation_severity: 0 (no change) to 5.
+        *args, **kwargs: LeRobot's `LiberoEnv` arguments.
+    """
+
+    def __init__(self, *args: Any, perturbation: str = "none", perturbation_severity: int = 0, **kwargs: Any):
+        check_libero_perturbation(perturbation, perturbation_severity)
+        super().__init__(*args, **kwargs)
+        self.perturbation = perturbation
+        self.perturbation_severity = perturbation_severity
+        self._perturbed_model: mujoco.MjModel | None = None
+
+    def _perturb_current_model(self) -> None:
+        """Perturbs the simulator's model once; a hard reset builds a new model, which is perturbed again."""
+        model = self._env.sim.model._model
+        if model is not self._perturbed_model:
+            perturb_libero_model(model, self.perturbation, self.perturbation_severity)
+            self._perturbed_model = model
+
+    def _ensure_env(self) -> None:
+        if self._env is not None:
+            return
+        super()._ensure_env()
+        reset_scene = self._env.reset
+
+        def reset_scene_and_perturb() -> dict[str, Any]:
+            # LeRobot's `reset` then sets the initial state and steps the simulator to let objects settle, so
+            # the observation it returns is rendered from the perturbed model by LIBERO's own step.
+            observation = reset_scene()
+            self._perturb_current_model()
+            return observation
+
+        self._env.reset = reset_scene_and_perturb
+
+
+def create_libero_ebvla_envs(
+    task: str,
+    n_envs: int,
+    gym_kwargs: dict[str, Any],
+    camera_name: str | Sequence[str],
+    init_states: bool,
+    env_cls: Callable[[Sequence[Callable[[], Any]]], Any],
+    control_mode: str = "relative",
+    episode_length: int | None = None,
+    camera_name_mapping: dict[str, str] | None = None,
+) -> dict[str, dict[int, Any]]:
+    """`lerobot.envs.libero.create_libero_envs` for `LiberoEBVLAGymEnv`: {suite: {task_id: vec_env}}."""
+    if not isinstance(n_envs, int) or n_envs <= 0:
+        raise ValueError(f"n_envs must be a positive int; got {n_envs}.")
+    gym_kwargs = dict(gym_kwargs)
+    task_ids = gym_kwargs.pop("task_ids", None)
+    suite_names = [name.strip() for name in str(task).split(",") if name.strip()]
+    if not suite_names:
+        raise ValueError("`task` must contain at least one LIBERO suite name.")
+    is_async = env_cls is gym.vector.AsyncVectorEnv
+    envs: dict[str, dict[int, Any]] = {}
+    for suite_name in suite_names:
+        suite = _get_suite(suite_name)
+        envs[suite_name] = {}
+        for task_id in _select_task_ids(len(suite.tasks), task_ids):
+            env_fns = [
+                partial(
+                    LiberoEBVLAGymEnv,
+                    task_suite=suite,
+                    task_id=task_id,
+                    task_suite_name=suite_name,
+                    camera_name=parse_camera_names(camera_name),
+                    init_states=init_states,
+                    episode_length=episode_length,
+                    episode_index=episode_index,
+                    n_envs=n_envs,
+                    control_mode=control_mode,
+                    camera_name_mapping=camera_name_mapping,
+                    **gym_kwargs,
+                )
+                for episode_index in range(n_envs)
+            ]
+            if is_async:
+                envs[suite_name][task_id] = _LazyAsyncVectorEnv(env_fns)
+            elif env_cls is gym.vector.SyncVectorEnv:
+                # As LeRobot's LIBERO envs: the terminal observation is returned, the reset comes next step.
+                envs[suite_name][task_id] = gym.vector.SyncVectorEnv(
+                    env_fns, autoreset_mode=gym.vector.AutoresetMode.NEXT_STEP
+                )
+            else:
+                envs[suite_name][task_id] = env_cls(env_fns)
+    return envs

