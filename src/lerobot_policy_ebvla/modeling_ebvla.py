@@ -145,9 +145,7 @@ class EBVLAPolicy(PreTrainedPolicy):
         `self.last_ood_decision` the OOD response to it.
         """
         if len(self._action_queue) == 0:
-            actions, self.last_energy = self.predict_action_chunk(
-                batch, generator=generator, return_energy=True
-            )
+            actions = self.predict_action_chunk(batch, generator=generator)  # sets last_energy
             self._action_queue.extend(actions[:, : self.config.n_action_steps].transpose(0, 1))
         return self._action_queue.popleft()
 
