@@ -29,6 +29,7 @@ from lerobot.envs.utils import _LazyAsyncVectorEnv, parse_camera_names
 from scipy.spatial.transform import Rotation
 
 from .libero_configs import LIBERO_MAX_SEVERITY, check_libero_perturbation
+from .lighting import LIGHT_INTENSITY_PERTURBATIONS, perturb_light_intensity
 
 # The MuJoCo camera behind LeRobot's `agentview_image` (`observation.images.image`).
 AGENTVIEW_CAMERA = "agentview"
@@ -46,13 +47,9 @@ MAX_TURN_DEG = 10.0
 # "fov": relative widening of the field of view per level (LIBERO's 45 deg becomes 67.5 deg at severity 5).
 FOVY_GROWTH_PER_LEVEL = 0.10
 
-# Lighting, as for MetaWorld (envs/metaworld.py): intensity factor 1 - 0.16 s ("light_dim", 0.2 at severity 5)
-# and 1 + 0.3 s ("light_bright", 2.5 at severity 5); "light_color" moves the lights' colour from white to a warm
-# tint; "light_direction" tilts every spot light about its aim point by 12 deg per level, so at severity 5 the
-# light comes from 60 deg off the vertical (LIBERO's lights shine almost straight down).
-LIGHT_DIM_PER_LEVEL = 0.16
-LIGHT_BRIGHT_PER_LEVEL = 0.30
-LIGHT_TINT_RGB = (1.0, 0.6, 0.25)
+# Lighting: intensity and colour as for MetaWorld (envs/lighting.py); "light_direction" tilts every spot light
+# about its aim point by 12 deg per level, so at severity 5 the light comes from 60 deg off the vertical
+# (LIBERO's lights shine almost straight down).
 LIGHT_TILT_DEG_PER_LEVEL = 12.0
 
 
@@ -133,17 +130,6 @@ def perturb_camera(model: mujoco.MjModel, camera_name: str, kind: str, severity:
     model.cam_quat[camera_id] = quat
 
 
-def scale_lights(model: mujoco.MjModel, rgb_factor: Sequence[float]) -> None:
-    """Multiplies the ambient, diffuse and specular colour of every light, the headlight included."""
-    factor = np.asarray(rgb_factor, dtype=float)
-    for colour in (model.light_ambient, model.light_diffuse, model.light_specular):
-        colour *= factor
-    headlight = model.vis.headlight
-    headlight.ambient = headlight.ambient * factor
-    headlight.diffuse = headlight.diffuse * factor
-    headlight.specular = headlight.specular * factor
-
-
 def tilt_lights(model: mujoco.MjModel, degrees: float) -> None:
     """Swings every light about the point it aims at (at the pivot's height), towards +x, by `degrees`.
 
@@ -166,12 +152,8 @@ def perturb_libero_model(
     check_libero_perturbation(perturbation, severity)
     if perturbation == "none" or severity == 0:
         return
-    if perturbation == "light_dim":
-        scale_lights(model, [1.0 - LIGHT_DIM_PER_LEVEL * severity] * 3)
-    elif perturbation == "light_bright":
-        scale_lights(model, [1.0 + LIGHT_BRIGHT_PER_LEVEL * severity] * 3)
-    elif perturbation == "light_color":
-        scale_lights(model, 1.0 + severity / LIBERO_MAX_SEVERITY * (np.asarray(LIGHT_TINT_RGB) - 1.0))
+    if perturbation in LIGHT_INTENSITY_PERTURBATIONS:
+        perturb_light_intensity(model, perturbation, severity, LIBERO_MAX_SEVERITY)
     elif perturbation == "light_direction":
         tilt_lights(model, LIGHT_TILT_DEG_PER_LEVEL * severity)
     else:

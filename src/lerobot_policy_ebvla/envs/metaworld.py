@@ -27,6 +27,7 @@ from lerobot.envs.metaworld import DIFFICULTY_TO_TASKS, MetaworldEnv
 from lerobot.envs.utils import _LazyAsyncVectorEnv
 
 from .configs import CAMERA_PERTURBATIONS, MAX_SEVERITY, check_perturbation
+from .lighting import LIGHT_INTENSITY_PERTURBATIONS, perturb_light_intensity
 
 # Camera. Per severity level: degrees of azimuth and elevation of the "pose" orbit, relative widening of "fov".
 AZIMUTH_DEG_PER_LEVEL = 5.0
@@ -35,12 +36,7 @@ FOVY_GROWTH_PER_LEVEL = 0.10
 # MetaWorld's table top is the z = 0 plane; the "pose" orbit pivots where the optical axis meets it.
 TABLE_HEIGHT = 0.0
 
-# Lighting: intensity factor of every light (the three scene lights and the headlight) per level,
-# 1 - 0.16 s for "light_dim" (0.2 at severity 5) and 1 + 0.3 s for "light_bright" (2.5 at severity 5).
-LIGHT_DIM_PER_LEVEL = 0.16
-LIGHT_BRIGHT_PER_LEVEL = 0.30
-# "light_color": the lights' colour moves linearly from white to this warm tint (reached at severity 5).
-LIGHT_TINT_RGB = (1.0, 0.6, 0.25)
+# Lighting: intensity and colour of every light (the three scene lights and the headlight) in envs/lighting.py.
 # "light_direction": the direction of every scene light moves linearly (then renormalized) from its own to
 # this low, grazing direction (from the robot's left, 14 degrees above the table), reached at severity 5.
 LIGHT_GRAZING_DIR = (1.0, 0.0, -0.25)
@@ -153,17 +149,6 @@ def perturb_camera(model: mujoco.MjModel, camera_name: str, kind: str, severity:
         model.cam_fovy[camera_id] *= 1.0 + FOVY_GROWTH_PER_LEVEL * severity
 
 
-def scale_lights(model: mujoco.MjModel, rgb_factor: Sequence[float]) -> None:
-    """Multiplies the ambient, diffuse and specular colour of every light, the headlight included."""
-    factor = np.asarray(rgb_factor, dtype=float)
-    for colour in (model.light_ambient, model.light_diffuse, model.light_specular):
-        colour *= factor
-    headlight = model.vis.headlight
-    headlight.ambient = headlight.ambient * factor
-    headlight.diffuse = headlight.diffuse * factor
-    headlight.specular = headlight.specular * factor
-
-
 def turn_lights(model: mujoco.MjModel, fraction: float) -> None:
     """Turns every scene light towards `LIGHT_GRAZING_DIR` by `fraction` (the headlight follows the camera).
 
@@ -233,12 +218,8 @@ def perturb_model(model: mujoco.MjModel, camera_name: str, perturbation: str, se
     level = severity / MAX_SEVERITY
     if perturbation in CAMERA_PERTURBATIONS:
         perturb_camera(model, camera_name, perturbation, severity)
-    elif perturbation == "light_dim":
-        scale_lights(model, [1.0 - LIGHT_DIM_PER_LEVEL * severity] * 3)
-    elif perturbation == "light_bright":
-        scale_lights(model, [1.0 + LIGHT_BRIGHT_PER_LEVEL * severity] * 3)
-    elif perturbation == "light_color":
-        scale_lights(model, 1.0 + level * (np.asarray(LIGHT_TINT_RGB) - 1.0))
+    elif perturbation in LIGHT_INTENSITY_PERTURBATIONS:
+        perturb_light_intensity(model, perturbation, severity, MAX_SEVERITY)
     elif perturbation == "light_direction":
         turn_lights(model, level)
     elif perturbation == "table_color":
