@@ -33,6 +33,7 @@ from lerobot.policies.factory import make_pre_post_processors
 from lerobot.utils.feature_utils import dataset_to_policy_features
 
 from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
+from lerobot_policy_ebvla.backbone_resnet import keep_resnet_stages
 from lerobot_policy_ebvla.monitoring.vision import blank_cameras
 
 VARIANTS = {
@@ -45,6 +46,8 @@ VARIANTS = {
     "state_dropout+straight_through": {"state_dropout": 0.5, "train_straight_through_clip": True},
     # The control: no state input at all, so the camera is the only way to the expert chunk.
     "no_state": {},
+    "no_state+straight_through": {"train_straight_through_clip": True},
+    "no_state+contrastive": {"energy_contrastive_weight": 1.0},
 }
 # The image encoder both methods share (DiffusionConfig and EBVLAConfig name these fields alike).
 ENCODER = {
@@ -52,7 +55,6 @@ ENCODER = {
     "pretrained_backbone_weights": None,
     "use_group_norm": True,
     "spatial_softmax_num_keypoints": 32,
-    "crop_is_random": True,
 }
 
 
@@ -66,7 +68,7 @@ def split_features(meta):
 def make_policy(method: str, variant: str, meta, args):
     overrides = VARIANTS.get(variant, {})
     inputs, outputs = split_features(meta)
-    if variant == "no_state":
+    if variant.startswith("no_state") and method == "ebvla":
         inputs = {k: f for k, f in inputs.items() if f.type is not FeatureType.STATE}
     crop = (int(args.resize * 0.9),) * 2
     common = {
@@ -76,6 +78,7 @@ def make_policy(method: str, variant: str, meta, args):
         "resize_shape": (args.resize, args.resize),
         "crop_shape": crop,
         **ENCODER,
+        "crop_is_random": not args.fixed_crop,
     }
     if method == "diffusion":
         from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
@@ -90,17 +93,30 @@ def make_policy(method: str, variant: str, meta, args):
             noise_scheduler_type="DDIM",
             **common,
         )
-        return DiffusionPolicy(config), config
+        policy = DiffusionPolicy(config)
+        encoders = policy.diffusion.rgb_encoder
+        for encoder in encoders if isinstance(encoders, torch.nn.ModuleList) else [encoders]:
+            keep_resnet_stages(encoder, args.stages, config)
+        return policy, config
     config = EBVLAConfig(
         backbone="resnet",
         dim_model=args.dim_model,
         n_heads=4,
         n_blocks=2,
         train_mcmc_steps_range=tuple(args.train_mcmc_steps),
+        vision_backbone_stages=args.stages,
+        camera_tokens=args.camera_tokens,
         **common,
         **overrides,
     )
     return EBVLAPolicy(config), config
+
+
+def hide_state(batch: dict, method: str, variant: str) -> dict:
+    """The no-state control for diffusion, which needs a state input: the (normalized) state is zeroed."""
+    if method == "diffusion" and variant.startswith("no_state"):
+        return batch | {"observation.state": torch.zeros_like(batch["observation.state"])}
+    return batch
 
 
 def predict(policy, method: str, batch: dict, seed: int) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -132,7 +148,7 @@ def run(method: str, variant: str, args) -> dict:
     policy.train()
     while step < args.steps:
         for raw in loader:
-            loss, _ = policy.forward(pre(raw))
+            loss, _ = policy.forward(hide_state(pre(raw), method, variant))
             optimizer.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(policy.parameters(), 10.0)
@@ -144,7 +160,7 @@ def run(method: str, variant: str, args) -> dict:
 
     policy.eval()
     frames = torch.linspace(0, len(test_set) - 1, args.test_frames).long().tolist()
-    batch = pre(torch.utils.data.default_collate([test_set[i] for i in frames]))
+    batch = hide_state(pre(torch.utils.data.default_collate([test_set[i] for i in frames])), method, variant)
     target = batch["action"][:, :8]
     observation = {k: v for k, v in batch.items() if k.startswith("observation.")}
     camera_keys = [k for k in observation if k.startswith("observation.image")]
@@ -163,6 +179,9 @@ def run(method: str, variant: str, args) -> dict:
     result = {
         "method": method,
         "variant": variant,
+        "stages": args.stages,
+        "fixed_crop": args.fixed_crop,
+        "camera_tokens": args.camera_tokens if method == "ebvla" else "keypoints",
         "steps": args.steps,
         "train_seconds": round(train_seconds, 1),
         "final_train_loss": loss.item(),
@@ -186,18 +205,29 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--batch-size", type=int, default=16)
     parser.add_argument("--lr", type=float, default=5e-4)
     parser.add_argument("--resize", type=int, default=96)
+    parser.add_argument("--stages", type=int, default=4, help="ResNet stages the shared encoder keeps (1-4).")
+    parser.add_argument(
+        "--camera-tokens", default="keypoints", choices=["keypoints", "feature_map"], help="ebvla only."
+    )
+    parser.add_argument(
+        "--fixed-crop", action="store_true", help="Center crop in training too (absolute pixel positions kept)."
+    )
     parser.add_argument("--dim-model", type=int, default=128)
     parser.add_argument("--train-mcmc-steps", type=int, nargs=2, default=(2, 4))
     parser.add_argument("--held-out", type=int, default=4, help="Last episodes kept for testing.")
     parser.add_argument("--test-frames", type=int, default=64)
     parser.add_argument("--variants", nargs="*", default=["paper"], choices=list(VARIANTS))
     parser.add_argument("--diffusion", action="store_true", help="Also train LeRobot's diffusion policy.")
+    parser.add_argument(
+        "--diffusion-no-state", action="store_true", help="Train diffusion without the state (the control)."
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--json", type=Path)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    runs = [("ebvla", v) for v in args.variants] + ([("diffusion", "-")] if args.diffusion else [])
+    diffusion_variant = "no_state" if args.diffusion_no_state else "-"
+    runs = [("ebvla", v) for v in args.variants] + ([("diffusion", diffusion_variant)] if args.diffusion else [])
     results = []
     for method, variant in runs:
         results.append(run(method, variant, args))

@@ -13,6 +13,7 @@ from torch import nn
 
 from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
 from lerobot_policy_ebvla.modeling_ebvla import EnergyReadout
+from lerobot_policy_ebvla.monitoring.baselines import available_scores
 from lerobot_policy_ebvla.monitoring.recorder import EnergyRecorder
 from lerobot_policy_ebvla.monitoring.records import read_energy_records, write_energy_records
 from lerobot_policy_ebvla.scripts.eval_energy import env_perturbation
@@ -135,10 +136,27 @@ def test_recorder_records_restart_spread_and_context_features(tiny_policy, tmp_p
     assert read[2].context_feature.shape == (tiny_policy.config.dim_model,)
 
 
+def test_recorder_records_the_final_energy_relative_to_prior_chunks(tiny_policy, tmp_path):
+    _, recorder, batch = recorded_actions(tiny_policy, normalized_energy_samples=64)
+    records = recorder.records_from_successes({("g", 0): [True, False]}, n_episodes=2)
+    # A fresh estimate of log mean exp(-E) over 4096 prior chunks under the first observation's context.
+    config = tiny_policy.config
+    prior = config.init_action_std * torch.randn(1, 4096, config.chunk_size, config.action_dim)
+    energies = tiny_policy.score_action_chunks({k: v[:1] for k, v in batch.items()}, prior)[0]
+    partition = (torch.logsumexp(-energies, dim=0) - math.log(4096)).item()
+    first = records[0]
+    assert first.normalized_energy - first.final_energy == pytest.approx(partition, abs=0.1 + 0.2 * energies.std().item())
+    read = read_energy_records(write_energy_records(tmp_path / "energy_records.jsonl", records))
+    assert [r.normalized_energy for r in read] == pytest.approx([r.normalized_energy for r in records])
+    assert "normalized_energy" in available_scores([read])
+    with pytest.raises(ValueError, match="normalized_energy_samples"):
+        EnergyRecorder(tiny_policy, normalized_energy_samples=-1)
+
+
 def test_recording_the_baselines_leaves_the_executed_actions_unchanged(tiny_policy):
     plain, _, _ = recorded_actions(tiny_policy)
     with_baselines, _, _ = recorded_actions(
-        tiny_policy, restart_spread_chains=3, record_context_features=True
+        tiny_policy, restart_spread_chains=3, record_context_features=True, normalized_energy_samples=8
     )
     torch.testing.assert_close(plain, with_baselines)
 
@@ -147,6 +165,7 @@ def test_recorder_without_baselines_leaves_them_empty(tiny_policy):
     _, recorder, _ = recorded_actions(tiny_policy)
     records = recorder.records_from_successes({("g", 0): [True, True]}, n_episodes=2)
     assert all(r.restart_spread is None and r.context_feature is None for r in records)
+    assert all(r.normalized_energy is None for r in records)
 
 
 def test_restart_spread_needs_at_least_two_chains(tiny_policy):

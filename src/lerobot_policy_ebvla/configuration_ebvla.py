@@ -13,6 +13,7 @@ from lerobot.optim import AdamWConfig, CosineDecayWithWarmupSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 BACKBONES = ("vlm", "resnet")
+CAMERA_TOKENS = ("keypoints", "feature_map")
 STEP_SIZE_SAMPLINGS = ("per_chain", "per_mcmc_step")
 OOD_RESPONSES = ("continue", "hold", "raise")
 HOLD_ACTIONS = ("zero_delta", "current_state")
@@ -43,10 +44,22 @@ class EBVLAConfig(PreTrainedConfig):
         crop_is_random: Random crop at training time, center crop at inference.
         use_group_norm: Replace the ResNet's BatchNorm by GroupNorm (needs `pretrained_backbone_weights=None`).
         spatial_softmax_num_keypoints: Keypoints of the light backbone's spatial-softmax pooling.
+        vision_backbone_stages: How many of the ResNet's four stages the light backbone keeps. Diffusion
+            Policy keeps all 4 (stride 32: a 3x3 map at 96 px, on which the keypoints barely move); 2 keeps a
+            stride-8 map (12x12 at 96 px) whose keypoints can follow an object from scratch in minutes.
+        camera_tokens: What the light backbone passes on per camera. "keypoints" (Diffusion Policy's encoder):
+            one token from spatial-softmax keypoints. "feature_map": one token per cell of the last kept ResNet
+            feature map (with `vision_backbone_stages=3`, 6x6 at 96 px), which the head's cross-attention reads
+            like the VLM's patch tokens; it learns to see far sooner (docs/energy_study.md).
         use_separate_rgb_encoder_per_camera: One light image encoder per camera instead of a shared one.
         state_dropout: Probability of hiding the state token p from the light backbone's context for a
             training sample. When the state alone predicts the expert well, a policy trained with it never
             learns to read its cameras; hiding it now and then makes the images pay. 0 (the paper) never hides it.
+        task_instructions: Light backbone only: the task instructions it tells apart, one learned context token
+            each, for multi-task data whose tasks differ only by instruction (LIBERO-Object: the same scene,
+            "pick up the X"). `[]` asks for the training dataset's tasks (`lerobot-train` passes its metadata to
+            the policy, which fills the list, so the checkpoint's config keeps it); None (the default) adds no
+            task token. The VLM backbone reads the instruction itself and ignores this field.
         vlm_model_name: Hugging Face id (or local folder) of the language model and its tokenizer
             (Qwen2.5-0.5B). Read only when `vlm_config` is None, when loading pretrained weights, and when
             the pre-processor is first built; checkpoints carry the rest.
@@ -171,8 +184,11 @@ class EBVLAConfig(PreTrainedConfig):
     crop_is_random: bool = True
     use_group_norm: bool = True
     spatial_softmax_num_keypoints: int = 32
+    vision_backbone_stages: int = 4
+    camera_tokens: str = "keypoints"
     use_separate_rgb_encoder_per_camera: bool = False
     state_dropout: float = 0.0
+    task_instructions: list[str] | None = None
 
     # VLM backbone (Sec. II-A).
     vlm_model_name: str = "Qwen/Qwen2.5-0.5B"
@@ -295,6 +311,12 @@ class EBVLAConfig(PreTrainedConfig):
             raise ValueError(f"`langevin_noise_std` must be >= 0. Got {self.langevin_noise_std}.")
         if not 0 <= self.state_dropout < 1:
             raise ValueError(f"`state_dropout` must be in [0, 1). Got {self.state_dropout}.")
+        if self.camera_tokens not in CAMERA_TOKENS:
+            raise ValueError(f"`camera_tokens` must be one of {CAMERA_TOKENS}. Got {self.camera_tokens!r}.")
+        if self.vision_backbone_stages not in (1, 2, 3, 4):
+            raise ValueError(
+                f"`vision_backbone_stages` must be 1, 2, 3 or 4 (ResNet stages kept). Got {self.vision_backbone_stages}."
+            )
         if not 0 <= self.dropout < 1:
             raise ValueError(f"`dropout` must be in [0, 1). Got {self.dropout}.")
         alpha_min, alpha_max = self.train_step_size_range
@@ -411,12 +433,13 @@ class EBVLAConfig(PreTrainedConfig):
             height, width = (
                 self.crop_shape or self.resize_shape or next(iter(self.image_features.values())).shape[1:]
             )
-            # The ResNet downsamples 32x; on a 1x1 feature map spatial-softmax keypoints are constant.
-            if min(height, width) <= 32:
+            # Each kept ResNet stage halves the map after a 4x stem; on a 1x1 map the keypoints are constant.
+            stride = 2 ** (self.vision_backbone_stages + 1)
+            if min(height, width) <= stride:
                 raise ValueError(
-                    f"The light backbone needs images larger than 32 px (got {height}x{width} after "
-                    "`resize_shape`/`crop_shape`): smaller ones give a 1x1 ResNet feature map whose keypoints "
-                    "carry no information."
+                    f"The light backbone with `vision_backbone_stages={self.vision_backbone_stages}` needs "
+                    f"images larger than {stride} px (got {height}x{width} after `resize_shape`/`crop_shape`): "
+                    "smaller ones give a 1x1 ResNet feature map whose keypoints carry no information."
                 )
         if self.ood_response == "hold" and self.hold_action == "current_state":
             self._validate_current_state_hold()

@@ -53,9 +53,16 @@ class EBVLAPolicy(PreTrainedPolicy):
     config_class = EBVLAConfig
     name = "ebvla"
 
-    def __init__(self, config: EBVLAConfig, **kwargs):
+    def __init__(self, config: EBVLAConfig, dataset_meta=None, **kwargs):
         super().__init__(config)
         config.validate_features()
+        if config.backbone == "resnet" and config.task_instructions == []:
+            if dataset_meta is None:
+                raise ValueError(
+                    "`task_instructions=[]` asks for the training dataset's tasks, but no `dataset_meta` was "
+                    "given: pass the dataset's metadata or list the instructions."
+                )
+            config.task_instructions = [str(task) for task in dataset_meta.tasks.index]
         self.config = config
         self.model = EBVLA(config)
         # Set by `from_pretrained` from the checkpoint's ood_calibration.json (see `ood_response.py`).

@@ -5,6 +5,9 @@ final energy's does (`ood.rollout_score`), so all of them go through the same th
 
 - "final_energy": E(a^(K_inf), C), the paper's score.
 - "initial_energy": E(a^(0), C), the energy of the unrefined sample (always recorded).
+- "normalized_energy": the final energy plus the log of the mean Boltzmann weight exp(-E) of N chunks drawn
+  from the MCMC prior under the same context (recorder option `normalized_energy_samples`): the energy is
+  only defined up to a per-context offset, which this Monte-Carlo log-partition removes.
 - "restart_spread": the spread of N chunks refined from independent a^(0) for the same observation
   (recorder option `restart_spread_chains`): an ensemble-disagreement score.
 - "mahalanobis", "knn": how far the observation's pooled backbone context is from the contexts of the
@@ -23,7 +26,7 @@ import numpy as np
 from .ood import rollout_score
 from .records import EnergyRecord
 
-SCORE_NAMES = ("final_energy", "initial_energy", "restart_spread", "mahalanobis", "knn")
+SCORE_NAMES = ("final_energy", "initial_energy", "normalized_energy", "restart_spread", "mahalanobis", "knn")
 FEATURE_SCORES = ("mahalanobis", "knn")
 
 Episode = Sequence[EnergyRecord]
@@ -92,6 +95,8 @@ def available_scores(episodes: Sequence[Episode]) -> list[str]:
     """The scores every chunk of `episodes` has the data for, in `SCORE_NAMES` order."""
     records = [r for episode in episodes for r in episode]
     names = ["final_energy", "initial_energy"]
+    if records and all(r.normalized_energy is not None for r in records):
+        names.append("normalized_energy")
     if records and all(r.restart_spread is not None for r in records):
         names.append("restart_spread")
     if records and all(r.context_feature is not None for r in records):

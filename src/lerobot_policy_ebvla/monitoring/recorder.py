@@ -15,16 +15,20 @@ it refines a chunk, so a refinement is detected by object identity. The watched 
 steps and which sub-envs are done: LeRobot's `rollout` keeps stepping finished sub-envs until the whole
 batch is done, and only chunks of sub-envs still running belong to an episode.
 
-Two opt-in baselines (`baselines.py`) are computed from the same observation right after each refinement,
+Opt-in scores (`baselines.py`) are computed from the same observation right after each refinement,
 without touching the executed chunk or the global random state (they draw from their own generator):
 - `restart_spread_chains=N` (N >= 2): refines N more chunks from independent a^(0) with
   `policy.model.generate_actions` on the observation repeated N times, and records the std over the N
   chains, averaged over the chunk's H x d_a normalized actions. It costs N extra refinements per chunk.
+- `normalized_energy_samples=N` (N >= 1): scores N chunks drawn from the MCMC prior N(0, sigma_init^2 I)
+  under the same context (`policy.score_action_chunks`, one batched energy evaluation) and records
+  E(a^(K_inf), C) + log mean_j exp(-E(a_j, C)).
 - `record_context_features=True`: records the pooled context, the mean over tokens of the last block's
   context of `policy.model.backbone(batch)`, a (D,) vector per chunk.
 """
 
 import logging
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,6 +53,7 @@ class _Chunk:
     final_energy: float
     seed: int | None
     restart_spread: float | None = None
+    normalized_energy: float | None = None
     held: bool | None = None
     context_feature: np.ndarray | None = None
 
@@ -132,6 +137,17 @@ def restart_spread(policy: Any, batch: dict[str, Any], n_chains: int, generator:
     return actions.std(dim=1, unbiased=False).mean(dim=(1, 2))
 
 
+def log_partition(policy: Any, batch: dict[str, Any], n_samples: int, generator: torch.Generator) -> Tensor:
+    """(B,) log mean_j exp(-E(a_j, C)) over `n_samples` chunks a_j ~ N(0, sigma_init^2 I), the MCMC prior."""
+    config = policy.config
+    batch_size = next(v.shape[0] for v in batch.values() if isinstance(v, Tensor) and v.ndim > 0)
+    shape = (batch_size, n_samples, config.chunk_size, config.action_dim)
+    device = next(policy.parameters()).device
+    samples = config.init_action_std * torch.randn(shape, device=device, generator=generator)
+    energies = policy.score_action_chunks(batch, samples).float()  # (B, N)
+    return torch.logsumexp(-energies, dim=1) - math.log(n_samples)
+
+
 def pooled_context(policy: Any, batch: dict[str, Any]) -> Tensor:
     """(B, D) mean over tokens of the last block's backbone context C_L."""
     batch_size = next(v.shape[0] for v in batch.values() if isinstance(v, Tensor) and v.ndim > 0)
@@ -147,8 +163,9 @@ class EnergyRecorder:
         policy: An `EBVLAPolicy` (anything exposing `select_action` and `last_energy`; the baselines also
             need `policy.model.generate_actions` and `policy.model.backbone`).
         restart_spread_chains: N >= 2 records the restart spread over N chains; 0 (default) does not.
+        normalized_energy_samples: N >= 1 records the normalized energy with N prior chunks; 0 (default) does not.
         record_context_features: Record the pooled backbone context of every chunk's observation.
-        seed: Seed of the restart-spread chains' generator.
+        seed: Seed of the generator of the restart-spread chains and the prior chunks.
     """
 
     def __init__(
@@ -157,11 +174,17 @@ class EnergyRecorder:
         restart_spread_chains: int = 0,
         record_context_features: bool = False,
         seed: int = 0,
+        normalized_energy_samples: int = 0,
     ):
         if restart_spread_chains == 1 or restart_spread_chains < 0:
             raise ValueError(
                 f"`restart_spread_chains` must be 0 (off) or >= 2 chains, got {restart_spread_chains}."
             )
+        if normalized_energy_samples < 0:
+            raise ValueError(
+                f"`normalized_energy_samples` must be 0 (off) or >= 1, got {normalized_energy_samples}."
+            )
+        self.normalized_energy_samples = normalized_energy_samples
         self.policy = policy
         self.restart_spread_chains = restart_spread_chains
         self.record_context_features = record_context_features
@@ -197,17 +220,23 @@ class EnergyRecorder:
         """Wraps a vector env so the recorder knows each chunk's episode, step and seed."""
         return WatchedVecEnv(env, self, task_group, task_id)
 
-    def _baselines(self, batch: dict[str, Any]) -> tuple[list | None, list | None]:
-        spread = features = None
+    def _generator_for_baselines(self) -> torch.Generator:
+        if self._generator is None:
+            device = next(self.policy.parameters()).device
+            self._generator = torch.Generator(device).manual_seed(self.seed)
+        return self._generator
+
+    def _baselines(self, batch: dict[str, Any]) -> tuple[list | None, list | None, list | None]:
+        spread = features = partition = None
         if self.restart_spread_chains:
-            if self._generator is None:
-                device = next(self.policy.parameters()).device
-                self._generator = torch.Generator(device).manual_seed(self.seed)
             n = self.restart_spread_chains
-            spread = restart_spread(self.policy, batch, n, self._generator).cpu().tolist()
+            spread = restart_spread(self.policy, batch, n, self._generator_for_baselines()).cpu().tolist()
+        if self.normalized_energy_samples:
+            n = self.normalized_energy_samples
+            partition = log_partition(self.policy, batch, n, self._generator_for_baselines()).cpu().tolist()
         if self.record_context_features:
             features = list(pooled_context(self.policy, batch).cpu().numpy())
-        return spread, features
+        return spread, features, partition
 
     def _record(self, readout: Any, batch: dict[str, Any]) -> None:
         env = self.watching
@@ -219,7 +248,7 @@ class EnergyRecorder:
             raise ValueError(
                 f"Expected energies of shape ({env.num_envs},), got {len(initial)} and {len(final)}."
             )
-        spread, features = self._baselines(batch)
+        spread, features, partition = self._baselines(batch)
         # Set with `last_energy` by an EB-VLA policy that has an OOD response (`ood_response.py`).
         decision = getattr(self.policy, "last_ood_decision", None)
         held = None if decision is None else decision.held.reshape(-1).tolist()
@@ -236,6 +265,7 @@ class EnergyRecorder:
                     final_energy=final[i],
                     seed=None if env.seeds[i] is None else int(env.seeds[i]),
                     restart_spread=None if spread is None else spread[i],
+                    normalized_energy=None if partition is None else final[i] + partition[i],
                     held=None if held is None else bool(held[i]),
                     context_feature=None if features is None else features[i],
                 )
@@ -287,6 +317,7 @@ class EnergyRecorder:
                 perturbation=perturbation,
                 severity=float(severity),
                 restart_spread=chunk.restart_spread,
+                normalized_energy=chunk.normalized_energy,
                 held=chunk.held,
                 context_feature=chunk.context_feature,
             )

@@ -9,8 +9,9 @@ JSON has no infinity, and the policy reports `+inf` when refinement went non-fin
 are written as the strings "inf", "-inf" and "nan". Reading accepts those strings, plain numbers and the
 `Infinity`/`NaN` tokens Python's `json` module emits, so a file round-trips exactly.
 
-Two opt-in baselines of the recorder (`monitoring/recorder.py`) add to a row:
-- `restart_spread`: written in the row when recorded (older files and rows without it read as None);
+Opt-in fields of the recorder (`monitoring/recorder.py`) add to a row (older files and rows without them
+read as None):
+- `restart_spread` and `normalized_energy`: written in the row when recorded;
 - `held`: written when the policy has an OOD response: whether it replaced the chunk by its hold action;
 - `context_feature`: a (D,) vector per row, stored compactly beside the records as float32 rows of
   `energy_records.features.npy` (row i belongs to line i of the records), attached to the records on read.
@@ -67,6 +68,9 @@ class EnergyRecord:
         severity: Perturbation severity, 0 for vanilla rollouts.
         restart_spread: Baseline: the spread (std over chains, mean over the chunk) of N refined chunks for
             the same observation; None when not recorded.
+        normalized_energy: Score: the final energy relative to the context's own energy scale,
+            E(a^(K_inf), C) + log mean_j exp(-E(a_j, C)) over N chunks a_j drawn from the MCMC prior; None
+            when not recorded.
         held: Whether the policy's OOD response (`EBVLAConfig.ood_response="hold"`) replaced this chunk by
             the hold action; None when the policy has no OOD response.
         context_feature: Baseline: the (D,) pooled backbone context of the observation; None when not
@@ -84,6 +88,7 @@ class EnergyRecord:
     perturbation: str = VANILLA_PERTURBATION
     severity: float = 0.0
     restart_spread: float | None = None
+    normalized_energy: float | None = None
     held: bool | None = None
     context_feature: np.ndarray | None = field(default=None, compare=False, repr=False)
 
@@ -118,6 +123,8 @@ def record_to_json(record: EnergyRecord) -> str:
     row["final_energy"] = _energy_to_json(record.final_energy)
     if record.restart_spread is not None:
         row["restart_spread"] = _energy_to_json(record.restart_spread)
+    if record.normalized_energy is not None:
+        row["normalized_energy"] = _energy_to_json(record.normalized_energy)
     if record.held is not None:
         row["held"] = record.held
     return json.dumps(row, allow_nan=False)
@@ -236,6 +243,9 @@ def record_from_json(row: dict[str, Any], where: str = "record") -> EnergyRecord
         restart_spread=None
         if row.get("restart_spread") is None
         else _parse_float(row["restart_spread"], "restart_spread", where),
+        normalized_energy=None
+        if row.get("normalized_energy") is None
+        else _parse_float(row["normalized_energy"], "normalized_energy", where),
         held=_parse_optional_bool(row.get("held"), "held", where),
     )
 

@@ -56,6 +56,9 @@ class EnergyEvalPipelineConfig(EvalPipelineConfig):
     # Baseline for the OOD report: also refine N independent chunks per observation and record their
     # spread (`restart_spread`). 0 = off; N >= 2 costs N extra refinements per chunk.
     restart_spread_chains: int = 0
+    # Score for the OOD report: the final energy relative to the energies of N chunks drawn from the MCMC
+    # prior under the same context (`normalized_energy`). 0 = off; N >= 1 costs one batched energy per chunk.
+    normalized_energy_samples: int = 0
     # Baseline for the OOD report: record each chunk's pooled backbone context (energy_records.features.npy).
     record_context_features: bool = False
 
@@ -106,6 +109,7 @@ def eval_energy_main(cfg: EnergyEvalPipelineConfig) -> None:
         restart_spread_chains=cfg.restart_spread_chains,
         record_context_features=cfg.record_context_features,
         seed=cfg.seed or 0,
+        normalized_energy_samples=cfg.normalized_energy_samples,
     )
     with recorder, torch.no_grad(), amp:
         watched = {
