@@ -67,3 +67,9 @@ done
 "$BIN/ebvla-ood-report" --calibration="[$OUT/eval/vanilla_calib]" --vanilla="[$OUT/eval/vanilla_heldout]" \
     --ood="[$(for c in $PERTURBATIONS; do printf '%s,' "$OUT/eval/${c%%:*}${c##*:}"; done | sed 's/,$//')]" \
     --output_dir="$OUT/ood_report"
+
+# Does the policy read its cameras at all? (docs/energy_study.md: check this before reading Table III.)
+"$BIN/python" -c "
+from lerobot_policy_ebvla.monitoring.vision import checkpoint_camera_dependence
+print('Camera check on 16 dataset frames:', checkpoint_camera_dependence('$CKPT', '$DATA', '$REPO_ID', 16, 1000).summary())
+" | tee "$OUT/camera_check.txt"

@@ -48,6 +48,8 @@ VARIANTS = {
     "no_state": {},
     "no_state+straight_through": {"train_straight_through_clip": True},
     "no_state+contrastive": {"energy_contrastive_weight": 1.0},
+    "no_state+contrastive_0.1": {"energy_contrastive_weight": 0.1},
+    "contrastive_0.1": {"energy_contrastive_weight": 0.1},
 }
 # The image encoder both methods share (DiffusionConfig and EBVLAConfig name these fields alike).
 ENCODER = {
@@ -210,7 +212,9 @@ def main(argv: list[str] | None = None) -> None:
         "--camera-tokens", default="keypoints", choices=["keypoints", "feature_map"], help="ebvla only."
     )
     parser.add_argument(
-        "--fixed-crop", action="store_true", help="Center crop in training too (absolute pixel positions kept)."
+        "--fixed-crop",
+        action="store_true",
+        help="Center crop in training too (absolute pixel positions kept).",
     )
     parser.add_argument("--dim-model", type=int, default=128)
     parser.add_argument("--train-mcmc-steps", type=int, nargs=2, default=(2, 4))
@@ -227,7 +231,9 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     diffusion_variant = "no_state" if args.diffusion_no_state else "-"
-    runs = [("ebvla", v) for v in args.variants] + ([("diffusion", diffusion_variant)] if args.diffusion else [])
+    runs = [("ebvla", v) for v in args.variants] + (
+        [("diffusion", diffusion_variant)] if args.diffusion else []
+    )
     results = []
     for method, variant in runs:
         results.append(run(method, variant, args))

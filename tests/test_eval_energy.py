@@ -145,7 +145,9 @@ def test_recorder_records_the_final_energy_relative_to_prior_chunks(tiny_policy,
     energies = tiny_policy.score_action_chunks({k: v[:1] for k, v in batch.items()}, prior)[0]
     partition = (torch.logsumexp(-energies, dim=0) - math.log(4096)).item()
     first = records[0]
-    assert first.normalized_energy - first.final_energy == pytest.approx(partition, abs=0.1 + 0.2 * energies.std().item())
+    assert first.normalized_energy - first.final_energy == pytest.approx(
+        partition, abs=0.1 + 0.2 * energies.std().item()
+    )
     read = read_energy_records(write_energy_records(tmp_path / "energy_records.jsonl", records))
     assert [r.normalized_energy for r in read] == pytest.approx([r.normalized_energy for r in records])
     assert "normalized_energy" in available_scores([read])

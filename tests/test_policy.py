@@ -226,13 +226,17 @@ def test_fewer_resnet_stages_keep_a_finer_keypoint_map(stages, map_side):
 def test_feature_map_tokens_give_one_context_token_per_cell_and_camera():
     cameras = {f"observation.images.{name}": PolicyFeature(FeatureType.VISUAL, IMAGE_SHAPE) for name in "ab"}
     state = {"observation.state": PolicyFeature(FeatureType.STATE, (4,))}
-    config = tiny_config(camera_tokens="feature_map", vision_backbone_stages=3, input_features=cameras | state)
+    config = tiny_config(
+        camera_tokens="feature_map", vision_backbone_stages=3, input_features=cameras | state
+    )
     policy = EBVLAPolicy(config)
     batch = tiny_batch(config)
     context = policy.model.backbone(batch)[0]
     assert context.shape == (2, 2 * 4 * 4 + 1, config.dim_model)  # 4x4 cells per 64 px camera, then p
     # Each camera's tokens come from its own image: changing camera b leaves camera a's 16 tokens alone.
-    changed = policy.model.backbone(batch | {"observation.images.b": torch.zeros_like(batch["observation.images.b"])})
+    changed = policy.model.backbone(
+        batch | {"observation.images.b": torch.zeros_like(batch["observation.images.b"])}
+    )
     torch.testing.assert_close(changed[0][:, :16], context[:, :16])
     assert not torch.allclose(changed[0][:, 16:32], context[:, 16:32])
     loss, _ = policy.forward(batch)

@@ -134,7 +134,9 @@ class EBVLAResNetBackbone(nn.Module):
             raise ValueError(
                 f"Unknown task instruction(s) {unknown}: the policy was trained on {list(self.task_index)}."
             )
-        indices = torch.tensor([self.task_index[task] for task in tasks], device=self.task_embed.weight.device)
+        indices = torch.tensor(
+            [self.task_index[task] for task in tasks], device=self.task_embed.weight.device
+        )
         return self.task_embed(indices).unsqueeze(1)
 
     def forward(self, batch: dict[str, Tensor]) -> list[Tensor]:

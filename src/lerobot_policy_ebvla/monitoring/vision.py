@@ -7,6 +7,7 @@ Langevin noise (same generator seed), so that only the cameras differ.
 """
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 from torch import Tensor
@@ -81,3 +82,30 @@ def camera_dependence(policy, batch: dict[str, Tensor], *, seed: int = 0) -> Cam
         energy_blank=blank_energy.mean().item(),
         num_frames=real_chunk.shape[0],
     )
+
+
+def checkpoint_camera_dependence(
+    checkpoint: str | Path, dataset_root: str | Path, repo_id: str, num_frames: int = 16, seed: int = 0
+) -> CameraDependence:
+    """`camera_dependence` of a saved policy on `num_frames` frames spread over a LeRobotDataset.
+
+    Args:
+        checkpoint: A `pretrained_model` folder (weights, config and processors).
+        dataset_root: Folder of the dataset; `repo_id` its id.
+        num_frames: Frames compared, evenly spaced over the dataset.
+        seed: Seeds a^(0) and the Langevin noise of both passes.
+    """
+    import numpy as np
+    from lerobot.datasets import LeRobotDataset
+    from lerobot.policies.factory import make_pre_post_processors
+    from torch.utils.data import default_collate
+
+    from ..modeling_ebvla import EBVLAPolicy
+
+    policy = EBVLAPolicy.from_pretrained(checkpoint)
+    preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=str(checkpoint))
+    dataset = LeRobotDataset(repo_id, root=dataset_root)
+    keys = [*policy.config.input_features, "task"]
+    indices = np.linspace(0, len(dataset) - 1, num=min(num_frames, len(dataset))).round().astype(int)
+    frames = [{key: dataset[int(i)][key] for key in keys} for i in indices]
+    return camera_dependence(policy, preprocessor(default_collate(frames)), seed=seed)

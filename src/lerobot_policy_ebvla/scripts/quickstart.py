@@ -124,9 +124,11 @@ class QuickstartConfig:
             if getattr(self, name) < 1:
                 raise ValueError(f"`{name}` must be >= 1, got {getattr(self, name)}.")
         resize = self.policy.resize_shape or (self.image_size, self.image_size)
-        if min(resize) <= 32:
+        stride = 2 ** (self.policy.vision_backbone_stages + 1)
+        if min(resize) <= stride:
             raise ValueError(
-                f"The images the ResNet sees must be larger than 32 px (it downsamples 32x): got "
+                f"The images the ResNet sees must be larger than {stride} px (it downsamples {stride}x with "
+                f"`policy.vision_backbone_stages={self.policy.vision_backbone_stages}`): got "
                 f"`policy.resize_shape`={self.policy.resize_shape}, `image_size`={self.image_size}."
             )
         if self.policy.backbone != "resnet":
@@ -268,26 +270,6 @@ def evaluate(
     eval_energy_main(eval_cfg)
 
 
-def camera_check(checkpoint: Path, root: Path, repo_id: str, num_frames: int, seed: int):
-    """`camera_dependence` of the checkpoint on `num_frames` frames spread over the dataset."""
-    import numpy as np
-    from lerobot.datasets import LeRobotDataset
-    from lerobot.policies.factory import make_pre_post_processors
-    from torch.utils.data import default_collate
-
-    from lerobot_policy_ebvla import EBVLAPolicy
-    from lerobot_policy_ebvla.monitoring.vision import camera_dependence
-
-    policy = EBVLAPolicy.from_pretrained(checkpoint)
-    preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=checkpoint)
-    dataset = LeRobotDataset(repo_id, root=root)
-    keys = [*policy.config.input_features, "task"]
-    indices = np.linspace(0, len(dataset) - 1, num=min(num_frames, len(dataset))).round().astype(int)
-    frames = [dataset[int(i)] for i in indices]
-    frames = [{key: frame[key] for key in keys} for frame in frames]
-    return camera_dependence(policy, preprocessor(default_collate(frames)), seed=seed)
-
-
 def summarise(eval_dir: Path) -> dict:
     """Success rate and per-episode energies from `energy_records.jsonl` (one row per refined chunk)."""
     from lerobot_policy_ebvla.monitoring import group_by_episode, read_energy_records
@@ -422,7 +404,9 @@ def run(cfg: QuickstartConfig) -> dict:
     for name, (perturbation, severity) in conditions.items():
         say(f"--- {name} ---")
         evaluate(cfg, checkpoint, eval_root / name, perturbation, severity)
-    check = camera_check(checkpoint, root, repo_id, cfg.vision_frames, cfg.seed)
+    from lerobot_policy_ebvla.monitoring.vision import checkpoint_camera_dependence
+
+    check = checkpoint_camera_dependence(checkpoint, root, repo_id, cfg.vision_frames, cfg.seed)
     timings["eval_s"] = time.perf_counter() - start
 
     banner("4/4 Summary")
