@@ -50,6 +50,7 @@ VARIANTS = {
     "no_state+contrastive": {"energy_contrastive_weight": 1.0},
     "no_state+contrastive_0.1": {"energy_contrastive_weight": 0.1},
     "contrastive_0.1": {"energy_contrastive_weight": 0.1},
+    "state_dropout+contrastive_0.1": {"state_dropout": 0.5, "energy_contrastive_weight": 0.1},
 }
 # The image encoder both methods share (DiffusionConfig and EBVLAConfig name these fields alike).
 ENCODER = {
