@@ -14,7 +14,10 @@ images tell the tasks apart). Steps:
 2. `lerobot-train` each method (concurrently with `--jobs >= 2`);
 3. `ebvla-eval` each method on each task (`--eval_episodes` episodes from seed `--seed`), and EB-VLA under
    the camera perturbations of `--perturbations` (for the OOD and failure reports);
-4. write `results.json` and `results.md` (success rate per task and method, with episode counts and seeds).
+4. write `results.json` and `results.md` (success rate per task and method, with episode counts and seeds);
+5. with `--calibration_seed`, evaluate EB-VLA's vanilla rollouts a second time on other seeds and write the
+   held-out `ebvla-ood-report` (calibrated on those, reported on the `--seed` rollouts and the perturbations)
+   and `ebvla-failure-report` into `ood_report/` and `failure_report/`.
 
 Example (the run reported in docs/benchmarks_metaworld.md):
 
@@ -22,13 +25,26 @@ Example (the run reported in docs/benchmarks_metaworld.md):
         --steps=800 --batch_size=32 --num_workers=7 --eval_episodes=10 --max_episode_steps=120 \\
         --perturbations pose:2 pose:4 fov:2 fov:4
 
-On a 2-core CPU (`--device=cpu --jobs=2`) the same run takes hours: an EB-VLA training step there takes
+The energy study's five-task run (docs/energy_study.md, section 6) on the 2-core CPU:
+
+    MUJOCO_GL=egl OMP_NUM_THREADS=1 python benchmarks/compare_diffusion_metaworld.py --output_dir=/tmp/mt/run \
+        --tasks=button-press-v3,drawer-open-v3,drawer-close-v3,window-open-v3,door-open-v3 --record_episodes=30 \
+        --image_size=64 --steps=4000 --batch_size=16 --num_workers=1 --ebvla_dim=128 \
+        --ebvla_args="--policy.n_heads=4 --policy.n_blocks=2 --policy.train_mcmc_steps_range=[2,4] \
+            --policy.optimizer_lr=5e-4 --policy.vision_backbone_stages=2 --policy.state_dropout=0.5 \
+            --policy.energy_contrastive_weight=0.1" \
+        --ebvla_eval_args="--normalized_energy_samples=16 --restart_spread_chains=4 --record_context_features=true" \
+        --diffusion_down_dims 128 256 512 --eval_episodes=10 --max_episode_steps=150 --seed=1000 \
+        --calibration_seed=2000 --perturbations blank:1 pose:5 noise:5 --jobs=2
+
+On a 2-core CPU (`--device=cpu --jobs=2`) the 800-step, 128 px run takes hours: an EB-VLA training step there takes
 seconds, and each of the 18 evaluations several minutes.
 """
 
 import argparse
 import json
 import os
+import shlex
 import shutil
 import subprocess
 import sys
@@ -45,21 +61,20 @@ ENCODER = {
     "crop_is_random": "true",
     "use_separate_rgb_encoder_per_camera": "false",
 }
-RESIZE = 128
 # Diffusion derives its crop from resize_shape * crop_ratio; EB-VLA takes the crop shape itself.
 CROP_RATIO = 0.9
-CROP = int(RESIZE * CROP_RATIO)
 
 
 def method_args(method: str, args: argparse.Namespace) -> list[str]:
     encoder = [f"--policy.{name}={value}" for name, value in ENCODER.items()]
-    encoder.append(f"--policy.resize_shape=[{RESIZE},{RESIZE}]")
+    encoder.append(f"--policy.resize_shape=[{args.image_size},{args.image_size}]")
     if method == "ebvla":
+        crop = int(args.image_size * CROP_RATIO)
         return [
             "--policy.type=ebvla",
             "--policy.backbone=resnet",
             *encoder,
-            f"--policy.crop_shape=[{CROP},{CROP}]",
+            f"--policy.crop_shape=[{crop},{crop}]",
             f"--policy.dim_model={args.ebvla_dim}",
             "--policy.n_heads=8",
             "--policy.n_blocks=4",
@@ -67,6 +82,7 @@ def method_args(method: str, args: argparse.Namespace) -> list[str]:
             "--policy.n_action_steps=8",
             f"--policy.scheduler_warmup_steps={min(500, args.steps // 10)}",
             f"--policy.scheduler_decay_steps={args.steps}",
+            *args.ebvla_args,
         ]
     if method == "diffusion":
         return [
@@ -111,7 +127,7 @@ def record(args: argparse.Namespace, root: Path) -> None:
         "--env.fast_render=true",
         f"--episodes_per_task={args.record_episodes}",
         "--seed=0",
-        "--image_size=128",
+        f"--image_size={args.image_size}",
         "--repo_id=local/metaworld_bench",
         f"--root={root}",
         f"--overwrite={str(root.exists()).lower()}",
@@ -141,10 +157,20 @@ def train(method: str, args: argparse.Namespace, root: Path) -> float:
     return run(command, args.output_dir / f"train_{method}.log")
 
 
-def evaluate(method: str, task: str, perturbation: str, severity: int, args: argparse.Namespace) -> float:
+def evaluate(
+    method: str,
+    task: str,
+    perturbation: str,
+    severity: int,
+    args: argparse.Namespace,
+    calibration: bool = False,
+) -> float:
+    """One `ebvla-eval` run; `calibration` runs vanilla from `--calibration_seed` (the OOD reports' mu_v, sigma_v)."""
     from lerobot_policy_ebvla.scripts.eval_energy import metaworld_eval_command  # imports LeRobot's eval
 
     name = "vanilla" if perturbation == "none" else f"{perturbation}{severity}"
+    if calibration:
+        name = "calibration"
     out = args.output_dir / "eval" / method / name / task
     checkpoint = args.output_dir / "train" / method / "checkpoints" / "last" / "pretrained_model"
     command = metaworld_eval_command(
@@ -154,9 +180,10 @@ def evaluate(method: str, task: str, perturbation: str, severity: int, args: arg
         device=args.device,
         max_episode_steps=args.max_episode_steps,
         n_episodes=args.eval_episodes,
-        seed=args.seed,
+        seed=args.calibration_seed if calibration else args.seed,
         perturbation=perturbation,
         severity=severity,
+        extra_args=tuple(args.ebvla_eval_args) if method == "ebvla" else (),
     )
     log = args.output_dir / "logs" / f"eval_{method}_{name}_{task}.log"
     return run(command, log)
@@ -236,6 +263,26 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         metavar="NAME:SEVERITY",
         help="Extra ebvla evaluations under camera perturbations, e.g. pose:2 fov:4.",
     )
+    parser.add_argument("--image_size", type=int, default=128, help="Recorded and resized image side (px).")
+    parser.add_argument(
+        "--ebvla_args",
+        type=shlex.split,
+        default=[],
+        help="Extra ebvla training options, one string: '--policy.vision_backbone_stages=2 --policy.state_dropout=0.5'.",
+    )
+    parser.add_argument(
+        "--ebvla_eval_args",
+        type=shlex.split,
+        default=[],
+        help="Extra ebvla-eval options for every ebvla evaluation, e.g. '--normalized_energy_samples=16'.",
+    )
+    parser.add_argument(
+        "--calibration_seed",
+        type=int,
+        default=None,
+        help="Also evaluate ebvla vanilla from this seed (other episodes than --seed's) and write the held-out "
+        "ebvla-ood-report (with --perturbations) and ebvla-failure-report.",
+    )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--jobs", type=int, default=1, help="Processes run at once (trainings, then evals).")
     parser.add_argument("--skip_train", action="store_true", help="Evaluate the existing checkpoints.")
@@ -268,15 +315,51 @@ def main(argv: list[str] | None = None) -> None:
             walls = list(pool.map(lambda m: train(m, args, root), methods))
         timings.update({f"train_{m}": w for m, w in zip(methods, walls, strict=True)})
 
-    jobs = [(m, t, "none", 0) for m in methods for t in tasks]
+    jobs = [(m, t, "none", 0, False) for m in methods for t in tasks]
     if "ebvla" in methods:
-        jobs += [("ebvla", t, p, s) for p, s in perturbations for t in tasks]
+        if args.calibration_seed is not None:
+            jobs += [("ebvla", t, "none", 0, True) for t in tasks]
+        jobs += [("ebvla", t, p, s, False) for p, s in perturbations for t in tasks]
     start = time.perf_counter()
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        walls = list(pool.map(lambda job: evaluate(*job, args), jobs))
+        walls = list(pool.map(lambda job: evaluate(*job[:4], args, calibration=job[4]), jobs))
     timings["eval_all"] = time.perf_counter() - start
     timings["eval_process_sum"] = sum(walls)
     write_results(args, tasks, methods, {k: round(v, 1) for k, v in timings.items()})
+    if "ebvla" in methods and args.calibration_seed is not None:
+        held_out_reports(args, perturbations)
+
+
+def held_out_reports(args: argparse.Namespace, perturbations: list[tuple[str, int]]) -> None:
+    """Table III (with --perturbations) and Table IV of ebvla, calibrated on other episodes than reported."""
+    evals = args.output_dir / "eval" / "ebvla"
+    calibration, vanilla = f"{evals}/calibration/*", f"{evals}/vanilla/*"
+    scripts = "lerobot_policy_ebvla.scripts"
+    if perturbations:
+        ood = ",".join(f"{evals}/{p}{s}/*" for p, s in perturbations)
+        run(
+            [
+                sys.executable,
+                "-m",
+                f"{scripts}.ood_report",
+                f"--calibration=[{calibration}]",
+                f"--vanilla=[{vanilla}]",
+                f"--ood=[{ood}]",
+                f"--output_dir={args.output_dir / 'ood_report'}",
+            ],
+            args.output_dir / "logs" / "ood_report.log",
+        )
+    run(
+        [
+            sys.executable,
+            "-m",
+            f"{scripts}.failure_report",
+            f"--calibration=[{calibration}]",
+            f"--records=[{vanilla}]",
+            f"--output_dir={args.output_dir / 'failure_report'}",
+        ],
+        args.output_dir / "logs" / "failure_report.log",
+    )
 
 
 if __name__ == "__main__":

@@ -43,7 +43,7 @@ class ExampleConfig:
     # Expert episodes to record.
     episodes: int = 10
     # Training steps.
-    steps: int = 300
+    steps: int = 1500
     # Training batch size.
     batch_size: int = 16
     # Evaluation episodes.
@@ -70,7 +70,8 @@ def main(cfg: ExampleConfig) -> None:
 
     # 2. Training. The quickstart's light policy, only where it differs from EBVLAConfig's defaults (the
     # paper's full VLA): backbone="resnet" (LeRobot's Diffusion Policy encoder, from scratch), 64 px images,
-    # an energy head of D=128, 4 heads, L=2 blocks, 2-4 MCMC steps per training step. Print it to see it all.
+    # a 2-stage ResNet, an energy head of D=128, 4 heads, L=2 blocks, 2-4 MCMC steps per training step, and the
+    # contrastive term with state dropout that make it read its camera. Print it to see it all.
     policy_cfg = EBVLAConfig(
         **LIGHT_POLICY,
         scheduler_warmup_steps=cfg.steps // 10,

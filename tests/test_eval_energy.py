@@ -185,3 +185,24 @@ def test_perturbation_of_an_env_config():
         0.0,
     )
     assert env_perturbation(SimpleNamespace(task="an env without perturbations")) == ("none", 0.0)
+
+
+def test_metaworld_eval_command_names_the_perturbation_and_appends_the_extra_options(tmp_path):
+    from lerobot_policy_ebvla.scripts.eval_energy import metaworld_eval_command
+
+    command = metaworld_eval_command(
+        tmp_path / "pretrained_model",
+        tmp_path / "eval",
+        task="push-v3",
+        device="cpu",
+        max_episode_steps=40,
+        n_episodes=3,
+        seed=2000,
+        perturbation="light_dim",
+        severity=4,
+        extra_args=("--normalized_energy_samples=8",),
+    )
+
+    assert command[1:3] == ["-m", "lerobot_policy_ebvla.scripts.eval_energy"]
+    assert command[-1] == "--normalized_energy_samples=8"
+    assert "--env.perturbation=light_dim" in command and "--env.perturbation_severity=4" in command

@@ -60,7 +60,7 @@ def test_help_lists_the_quickstart_options(capsys):
     [
         ("--steps=0", "steps"),
         ("--eval_episodes=0", "eval_episodes"),
-        ("--policy.resize_shape=[32,32]", "resize_shape"),
+        ("--policy.resize_shape=[8,8]", "resize_shape"),
         ("--perturbation=rain", "perturbation"),
         ("--policy.backbone=vlm", "backbone"),
     ],
@@ -106,6 +106,24 @@ def test_summary_splits_final_energy_by_episode_outcome(tmp_path):
     assert [e["chunks"] for e in summary["episodes"]] == [2, 1]
 
 
+def test_energy_aurocs_rank_each_condition_against_vanilla_and_failures_against_successes():
+    def episode(final, success):
+        return {"mean_final_energy": final, "success": success}
+
+    conditions = {
+        "vanilla": {"episodes": [episode(-5.0, True), episode(-4.0, True), episode(-3.0, False)]},
+        "blank": {"episodes": [episode(-2.0, False), episode(-4.5, True)]},
+    }
+
+    aurocs = quickstart.energy_aurocs(conditions)
+
+    # Pairs where blank is higher: -4.5 beats -5.0 only (1 of 3), -2.0 beats all three (3 of 3): 4 / 6.
+    assert math.isclose(aurocs["blank"], 4 / 6)
+    # failed (-3.0, -2.0) against successful (-5.0, -4.0, -4.5): always higher.
+    assert aurocs["failed_vs_successful"] == 1.0
+    assert "vanilla" not in aurocs
+
+
 @pytest.mark.slow
 def test_records_trains_evaluates_three_conditions_and_checks_the_camera(tmp_path, capsys):
     quickstart.main([f"--output_dir={tmp_path}", *TINY])
@@ -116,8 +134,10 @@ def test_records_trains_evaluates_three_conditions_and_checks_the_camera(tmp_pat
         assert condition["n_episodes"] == 1, name
         assert math.isfinite(condition["mean_final_energy"]), name
         assert (tmp_path / "eval" / name / "energy_records.jsonl").is_file()
+    assert set(summary["energy_auroc"]) == {"blank", "light_dim_s5", "failed_vs_successful"}
     assert summary["camera_check"]["num_frames"] == 2
     assert math.isfinite(summary["camera_check"]["energy_blank"])
     assert (tmp_path / "train" / "checkpoints" / "last" / "pretrained_model" / "model.safetensors").is_file()
     printed = capsys.readouterr().out
     assert "Camera check on 2 dataset frames" in printed and "light_dim_s5" in printed
+    assert "AUROC of the episodes' final energy" in printed

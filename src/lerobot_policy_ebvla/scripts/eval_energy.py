@@ -164,10 +164,12 @@ def metaworld_eval_command(
     seed: int,
     perturbation: str = "none",
     severity: int = 0,
+    extra_args: tuple[str, ...] = (),
 ) -> list[str]:
     """The `ebvla-eval` command line of a fast-render MetaWorld evaluation, one env at a time.
 
-    The quickstart and the MetaWorld benchmark both evaluate this way, so they build the command here.
+    `benchmarks/compare_diffusion_metaworld.py` evaluates every method this way. `extra_args` are appended as
+    given (for example `--normalized_energy_samples=16`).
     """
     command = [
         sys.executable,
@@ -185,8 +187,8 @@ def metaworld_eval_command(
         f"--output_dir={output_dir}",
     ]
     if perturbation != "none":
-        command += [f"--env.camera_perturbation={perturbation}", f"--env.perturbation_severity={severity}"]
-    return command
+        command += [f"--env.perturbation={perturbation}", f"--env.perturbation_severity={severity}"]
+    return command + list(extra_args)
 
 
 if __name__ == "__main__":
