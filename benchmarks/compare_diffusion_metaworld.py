@@ -160,17 +160,18 @@ def train(method: str, args: argparse.Namespace, root: Path) -> float:
 def evaluate(
     method: str,
     task: str,
-    perturbation: str,
-    severity: int,
     args: argparse.Namespace,
+    perturbation: str = "none",
+    severity: int = 0,
     calibration: bool = False,
 ) -> float:
     """One `ebvla-eval` run; `calibration` runs vanilla from `--calibration_seed` (the OOD reports' mu_v, sigma_v)."""
     from lerobot_policy_ebvla.scripts.eval_energy import metaworld_eval_command  # imports LeRobot's eval
 
-    name = "vanilla" if perturbation == "none" else f"{perturbation}{severity}"
     if calibration:
         name = "calibration"
+    else:
+        name = "vanilla" if perturbation == "none" else f"{perturbation}{severity}"
     out = args.output_dir / "eval" / method / name / task
     checkpoint = args.output_dir / "train" / method / "checkpoints" / "last" / "pretrained_model"
     command = metaworld_eval_command(
@@ -315,14 +316,18 @@ def main(argv: list[str] | None = None) -> None:
             walls = list(pool.map(lambda m: train(m, args, root), methods))
         timings.update({f"train_{m}": w for m, w in zip(methods, walls, strict=True)})
 
-    jobs = [(m, t, "none", 0, False) for m in methods for t in tasks]
+    jobs = [{"method": m, "task": t} for m in methods for t in tasks]
     if "ebvla" in methods:
         if args.calibration_seed is not None:
-            jobs += [("ebvla", t, "none", 0, True) for t in tasks]
-        jobs += [("ebvla", t, p, s, False) for p, s in perturbations for t in tasks]
+            jobs += [{"method": "ebvla", "task": t, "calibration": True} for t in tasks]
+        jobs += [
+            {"method": "ebvla", "task": t, "perturbation": p, "severity": s}
+            for p, s in perturbations
+            for t in tasks
+        ]
     start = time.perf_counter()
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        walls = list(pool.map(lambda job: evaluate(*job[:4], args, calibration=job[4]), jobs))
+        walls = list(pool.map(lambda job: evaluate(args=args, **job), jobs))
     timings["eval_all"] = time.perf_counter() - start
     timings["eval_process_sum"] = sum(walls)
     write_results(args, tasks, methods, {k: round(v, 1) for k, v in timings.items()})

@@ -1,9 +1,9 @@
 """Does the energy tell failed from successful episodes? AUROC of episode scores, failed = positive.
 
-Reads `ebvla-eval` folders (one per task) and scores each episode three ways: its mean final energy over all
-chunks, over its first `--first_chunks` chunks (a failed episode runs longer, so its whole-episode mean also
-sees more of the late, stalled motion), and its mean initial energy. Prints pooled and per-task AUROCs with
-bootstrap 95% intervals.
+Reads `ebvla-eval` folders (records files or glob patterns work too) and scores each episode three ways: its
+mean final energy over all chunks, over its first `--first_chunks` chunks (a failed episode runs longer, so its
+whole-episode mean also sees more of the late, stalled motion), and its mean initial energy. Prints pooled and
+per-task AUROCs with bootstrap 95% intervals.
 
     python benchmarks/episode_outcome_auroc.py /tmp/mt/run/eval/ebvla/vanilla/* --first_chunks 5
 """
@@ -12,26 +12,13 @@ import argparse
 
 import numpy as np
 
-from lerobot_policy_ebvla.monitoring import group_by_episode, read_energy_records
-from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_interval
+from lerobot_policy_ebvla.monitoring import auroc, bootstrap_auroc_interval, episode_scores, load_episodes
 
 
-def episode_scores(eval_dirs: list[str], first_chunks: int) -> list[dict]:
-    episodes = []
-    for eval_dir in eval_dirs:
-        for key, records in group_by_episode(read_energy_records(eval_dir)).items():
-            finals = [r.final_energy for r in records]
-            episodes.append(
-                {
-                    "task": key.task,
-                    "success": records[0].success,
-                    "chunks": len(records),
-                    "final_all": float(np.mean(finals)),
-                    "final_first": float(np.mean(finals[:first_chunks])),
-                    "initial": float(np.mean([r.initial_energy for r in records])),
-                }
-            )
-    return episodes
+def print_auroc(name: str, scores: np.ndarray, failed: np.ndarray) -> None:
+    negatives, positives = scores[~failed], scores[failed]
+    low, high = bootstrap_auroc_interval(negatives, positives)
+    print(f"  {name}: AUROC {auroc(negatives, positives):.3f} [{low:.3f}, {high:.3f}]")
 
 
 def main() -> None:
@@ -43,25 +30,23 @@ def main() -> None:
     )
     parser.add_argument("--first_chunks", type=int, default=5)
     args = parser.parse_args()
-    episodes = episode_scores(args.eval_dirs, args.first_chunks)
-    succeeded = [e for e in episodes if e["success"]]
-    failed = [e for e in episodes if not e["success"]]
+
+    episodes = load_episodes(args.eval_dirs)
+    first_chunks = {key: chunks[: args.first_chunks] for key, chunks in episodes.items()}
+    failed = np.array([not chunks[0].success for chunks in episodes.values()])
+    tasks = np.array([key.task for _, key in episodes])
+    lengths = np.array([len(chunks) for chunks in episodes.values()])
     print(
-        f"{len(episodes)} episodes, {len(failed)} failed; mean chunks: successful "
-        f"{np.mean([e['chunks'] for e in succeeded]):.1f}, failed {np.mean([e['chunks'] for e in failed]):.1f}"
+        f"{len(episodes)} episodes, {failed.sum()} failed; mean chunks: successful {lengths[~failed].mean():.1f}, "
+        f"failed {lengths[failed].mean():.1f}"
     )
-    names = {
-        "final_all": "mean final energy, all chunks",
-        "final_first": f"mean final energy, first {args.first_chunks} chunks",
-        "initial": "mean initial energy",
-    }
-    for score, name in names.items():
-        negatives, positives = [e[score] for e in succeeded], [e[score] for e in failed]
-        low, high = bootstrap_auroc_interval(negatives, positives)
-        print(f"  {name}: AUROC {auroc(negatives, positives):.3f} [{low:.3f}, {high:.3f}]")
-    for task in sorted({e["task"] for e in episodes}):
-        negatives = [e["final_first"] for e in succeeded if e["task"] == task]
-        positives = [e["final_first"] for e in failed if e["task"] == task]
+    first = episode_scores(first_chunks, "final_energy")
+    print_auroc("mean final energy, all chunks", episode_scores(episodes, "final_energy"), failed)
+    print_auroc(f"mean final energy, first {args.first_chunks} chunks", first, failed)
+    print_auroc("mean initial energy", episode_scores(episodes, "initial_energy"), failed)
+    for task in sorted(set(tasks)):
+        in_task = tasks == task
+        negatives, positives = first[in_task & ~failed], first[in_task & failed]
         print(
             f"    {task}: {len(negatives)} successful, {len(positives)} failed, AUROC (first chunks) "
             f"{auroc(negatives, positives):.3f}"
