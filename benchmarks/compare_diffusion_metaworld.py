@@ -147,7 +147,7 @@ def train(method: str, args: argparse.Namespace, root: Path) -> float:
         "--policy.push_to_hub=false",
         f"--steps={args.steps}",
         f"--batch_size={args.batch_size}",
-        f"--save_freq={args.steps}",
+        f"--save_freq={args.save_freq or args.steps}",
         f"--log_freq={max(1, args.steps // 20)}",
         f"--num_workers={args.num_workers}",
         "--seed=0",
@@ -286,6 +286,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--jobs", type=int, default=1, help="Processes run at once (trainings, then evals).")
+    parser.add_argument(
+        "--save_freq",
+        type=int,
+        default=None,
+        help="Checkpoint every this many steps (default: only at the end); `--skip_train` evaluates the last one.",
+    )
     parser.add_argument("--skip_train", action="store_true", help="Evaluate the existing checkpoints.")
     parser.add_argument("--overwrite", action="store_true", help="Replace previous training runs.")
     return parser.parse_args(argv)

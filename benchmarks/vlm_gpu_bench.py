@@ -10,7 +10,8 @@ Inputs are random, already pre-processed batches (random instruction token ids, 
 `torch.compile(mode="reduce-overhead")`, which captures the energy's forward and grad_a backward in CUDA
 graphs; it also times the eager refinement in the same run and reports the largest difference between the
 two paths' actions for the same generator. `--tiny` swaps in a tiny model for a CPU smoke test of the script
-itself (with `--compile-backend aot_eager`, which skips code generation).
+itself (with `--compile-backend aot_eager`, which skips code generation). `--profile` profiles one training step
+and one chunk at the first batch size: the costliest ops, the number of GPU kernels and the GPU busy fraction.
 """
 
 import argparse
@@ -89,6 +90,29 @@ def install_compiled_energy(mode: str, backend: str) -> None:
     modeling_ebvla.compiled_head_energy = lambda: energy
 
 
+def profile_summary(fn, device: torch.device, rows: int = 12) -> dict:
+    """One call of `fn` under torch.profiler: wall time, GPU kernel time and count, and the costliest ops.
+
+    A GPU busy fraction far under 1 means the step is bound by kernel launches and Python, not arithmetic.
+    """
+    from torch.profiler import ProfilerActivity, profile
+
+    cuda = device.type == "cuda"
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    with profile(activities=activities) as prof:
+        wall = timed(fn, device)
+    kernels = [e for e in prof.events() if cuda and e.device_type == torch.autograd.DeviceType.CUDA]
+    kernel_ms = sum(e.device_time_total for e in kernels) / 1e3
+    sort_by = "self_device_time_total" if cuda else "self_cpu_time_total"
+    print(prof.key_averages().table(sort_by=sort_by, row_limit=rows), flush=True)
+    return {
+        "wall_ms": round(1e3 * wall, 1),
+        "gpu_kernel_ms": round(kernel_ms, 1),
+        "gpu_kernels": len(kernels),
+        "gpu_busy_fraction": round(kernel_ms / (1e3 * wall), 3) if cuda else None,
+    }
+
+
 def peak_gib(device: torch.device) -> float:
     return torch.cuda.max_memory_allocated() / 1024**3 if device.type == "cuda" else float("nan")
 
@@ -128,6 +152,11 @@ def main() -> None:
         "--gradient-checkpointing",
         action="store_true",
         help="Recompute the language model's layer activations in the backward pass (less memory, more time).",
+    )
+    parser.add_argument(
+        "--profile",
+        action="store_true",
+        help="Profile one training step and one chunk at the first batch size (top ops, GPU busy fraction).",
     )
     args = parser.parse_args()
 
@@ -209,6 +238,12 @@ def main() -> None:
             extra["eager_select_action_chunk_ms_median"] = round(1e3 * statistics.median(eager_times), 1)
             extra["compiled_vs_eager_max_abs_action_diff"] = compiled_vs_eager(policy, observation, device)
             policy.config.compile_refinement = True
+        if args.profile and batch_size == args.batch_sizes[0]:
+            policy.train()
+            extra["profile_train_step"] = profile_summary(train_step, device)
+            optimizer.zero_grad(set_to_none=True)
+            policy.eval()
+            extra["profile_select_action_chunk"] = profile_summary(refine_chunk, device)
         row = {
             "batch_size": batch_size,
             "train_step_ms_mean": round(1e3 * statistics.mean(step_times), 1),
