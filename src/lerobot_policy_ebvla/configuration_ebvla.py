@@ -135,7 +135,9 @@ class EBVLAConfig(PreTrainedConfig):
             runs all K_inf steps.
         compile_refinement: torch.compile the energy evaluated at every inference MCMC step (same actions
             and energies up to float rounding). Each new batch size compiles again, 15-60 s per shape on a
-            CPU, so it pays off over long rollouts only.
+            CPU, so it pays off over long rollouts only. On an H100 in bf16 this plain-inductor compile gave
+            no gain (docs/vlm_backbone.md); the measured gain there came from CUDA graphs
+            (`benchmarks/vlm_gpu_bench.py --compile-refinement reduce-overhead`), not yet a config option.
         ood_response: What the policy does with a refined chunk whose final energy exceeds the OOD
             threshold T of the checkpoint's `ood_calibration.json` (see `ood_response.py`): "continue"
             executes it and logs a warning (the default; without a calibration nothing is checked), "hold"
