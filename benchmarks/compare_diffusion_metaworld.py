@@ -170,8 +170,10 @@ def evaluate(
 
     if calibration:
         name = "calibration"
+    elif perturbation == "none":
+        name = "vanilla"
     else:
-        name = "vanilla" if perturbation == "none" else f"{perturbation}{severity}"
+        name = f"{perturbation}{severity}"
     out = args.output_dir / "eval" / method / name / task
     checkpoint = args.output_dir / "train" / method / "checkpoints" / "last" / "pretrained_model"
     command = metaworld_eval_command(

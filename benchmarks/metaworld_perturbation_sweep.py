@@ -1,0 +1,82 @@
+"""Success rate and energy of one checkpoint under every MetaWorld perturbation at graded severities.
+
+One `ebvla-eval` folder per condition (`--env.type=metaworld_ebvla`, docs/metaworld.md), then one held-out
+`ebvla-ood-report` over all of them. The vanilla rollouts of two seed ranges are evaluated too: the first
+(`--calibration_seed`) calibrates, the second (`--seed`) is the report's negatives. A condition whose folder
+already holds its records is not evaluated again, so an interrupted sweep resumes.
+
+    MUJOCO_GL=egl python benchmarks/metaworld_perturbation_sweep.py --checkpoint=<pretrained_model folder> \\
+        --output_dir=outputs/metaworld_sweep --tasks=button-press-v3 --episodes=5
+"""
+
+import argparse
+import sys
+from pathlib import Path
+
+from compare_diffusion_metaworld import run
+
+from lerobot_policy_ebvla.envs.configs import PERTURBATIONS
+
+# pose_fov is pose and fov at once: each of the two is swept on its own.
+SWEPT = [p for p in PERTURBATIONS if p not in ("none", "pose_fov")]
+
+
+def evaluate(args: argparse.Namespace, folder: str, seed: int, perturbation: str = "none", severity: int = 0):
+    from lerobot_policy_ebvla.scripts.eval_energy import metaworld_eval_command  # imports LeRobot's eval
+
+    out = args.output_dir / folder
+    if (out / "energy_records.jsonl").is_file():
+        return
+    command = metaworld_eval_command(
+        args.checkpoint,
+        out,
+        task=args.tasks,
+        device=args.device,
+        max_episode_steps=args.max_episode_steps,
+        n_episodes=args.episodes,
+        seed=seed,
+        perturbation=perturbation,
+        severity=severity,
+    )
+    run(command, args.output_dir / f"{folder}.log")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--checkpoint", type=Path, required=True, help="A pretrained_model folder.")
+    parser.add_argument("--output_dir", type=Path, default=Path("outputs/metaworld_sweep"))
+    parser.add_argument("--tasks", default="button-press-v3", help="One task or a comma-separated list.")
+    parser.add_argument("--episodes", type=int, default=5, help="Episodes per condition.")
+    parser.add_argument("--max_episode_steps", type=int, default=150)
+    parser.add_argument("--severities", type=int, nargs="+", default=[3, 5])
+    parser.add_argument("--perturbations", nargs="+", default=SWEPT, choices=SWEPT)
+    parser.add_argument("--seed", type=int, default=1000, help="First seed of the reported episodes.")
+    parser.add_argument("--calibration_seed", type=int, default=2000, help="First seed of the calibration.")
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args()
+
+    args.output_dir.mkdir(parents=True, exist_ok=True)
+    evaluate(args, "calibration", args.calibration_seed)
+    evaluate(args, "vanilla", args.seed)
+    conditions = {f"{p}_s{s}": (p, s) for p in args.perturbations for s in args.severities}
+    for folder, (perturbation, severity) in conditions.items():
+        evaluate(args, folder, args.seed, perturbation, severity)
+    ood = ",".join(str(args.output_dir / folder) for folder in sorted(conditions))
+    run(
+        [
+            sys.executable,
+            "-m",
+            "lerobot_policy_ebvla.scripts.ood_report",
+            f"--calibration=[{args.output_dir / 'calibration'}]",
+            f"--vanilla=[{args.output_dir / 'vanilla'}]",
+            f"--ood=[{ood}]",
+            f"--output_dir={args.output_dir / 'ood_report'}",
+        ],
+        args.output_dir / "ood_report.log",
+    )
+
+
+if __name__ == "__main__":
+    main()
