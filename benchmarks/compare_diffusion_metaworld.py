@@ -3,17 +3,18 @@
 Both policies get the SAME image encoder (LeRobot's Diffusion Policy ResNet-18 encoder: group norm, no
 pretrained weights, the same resize, random crop and spatial-softmax keypoints), the same recorded expert
 data, the same number of training steps and batch size, and are evaluated on the same seeded episodes with
-LeRobot's rollout (`eval_policy_all`, through `ebvla-eval` for both: it records EB-VLA's energies and renders
-no videos). Only the action head differs: EB-VLA's energy transformer refined by MCMC, or Diffusion Policy's
-1-D conditional U-Net denoised by DDPM.
+LeRobot's rollout (`eval_policy_all`, through `pipelines.eval_energy`, what `ebvla-eval` runs, for both: it
+records EB-VLA's energies and renders no videos). Only the action head differs: EB-VLA's energy transformer
+refined by MCMC, or Diffusion Policy's 1-D conditional U-Net denoised by DDPM.
 
 One multi-task policy per method is trained on all tasks (the light backbone has no language input; the
 images tell the tasks apart). Steps:
 
 1. record MetaWorld's scripted experts (`ebvla-record-metaworld`'s code) unless `<output_dir>/data` exists;
 2. `lerobot-train` each method (concurrently with `--jobs >= 2`);
-3. `ebvla-eval` each method on each task (`--eval_episodes` episodes from seed `--seed`), and EB-VLA under
-   the camera perturbations of `--perturbations` (for the OOD and failure reports);
+3. evaluate each method on each task (`eval_metaworld_checkpoint`, each evaluation in a process of its own;
+   `--eval_episodes` episodes from seed `--seed`), and EB-VLA under the camera perturbations of
+   `--perturbations` (for the OOD and failure reports);
 4. write `results.json` and `results.md` (success rate per task and method, with episode counts and seeds);
 5. with `--calibration_seed`, evaluate EB-VLA's vanilla rollouts a second time on other seeds and write the
    held-out `ebvla-ood-report` (calibrated on those, reported on the `--seed` rollouts and the perturbations)
@@ -43,14 +44,20 @@ seconds, and each of the 18 evaluations several minutes.
 
 import argparse
 import json
+import multiprocessing
 import os
 import shlex
 import shutil
 import subprocess
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
+import traceback
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
+
+from lerobot_policy_ebvla.pipelines.eval_energy import eval_metaworld_checkpoint
 
 # The image encoder both methods share (field names are the same in DiffusionConfig and EBVLAConfig).
 ENCODER = {
@@ -157,6 +164,52 @@ def train(method: str, args: argparse.Namespace, root: Path) -> float:
     return run(command, args.output_dir / f"train_{method}.log")
 
 
+def run_in_process(function: Callable[..., Any], log: Path, *args: Any, **kwargs: Any) -> float:
+    """Runs `function(*args, **kwargs)` in a fresh process, as a command would run, with its output in `log`.
+
+    Returns its wall time; raises on failure. A process of its own keeps each evaluation's global state
+    (seeds, torch threads, MuJoCo) apart from the others that `--jobs` runs at the same time.
+    """
+    start = time.perf_counter()
+    with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as process:
+        try:
+            process.submit(_logged, function, log, *args, **kwargs).result()
+        except Exception as error:
+            seconds = time.perf_counter() - start
+            raise RuntimeError(f"{function.__name__} failed after {seconds:.0f} s; see {log}.") from error
+    seconds = time.perf_counter() - start
+    print(f"[{seconds:6.0f} s] done: {log}", flush=True)
+    return seconds
+
+
+def _logged(function: Callable[..., Any], log: Path, *args: Any, **kwargs: Any) -> None:
+    """In the child process: stdout and stderr (LeRobot's logging included) go to `log`."""
+    with open(log, "w") as f:
+        os.dup2(f.fileno(), sys.stdout.fileno())
+        os.dup2(f.fileno(), sys.stderr.fileno())
+    from lerobot.utils.utils import init_logging
+
+    init_logging()
+    try:
+        function(*args, **kwargs)
+    except Exception:
+        traceback.print_exc()
+        raise
+
+
+def eval_options(flags: list[str]) -> dict[str, Any]:
+    """`--ebvla_eval_args` (`--name=value` flags) as `EnergyEvalPipelineConfig` fields; values are read as
+    JSON where they are (`16`, `true`), as strings otherwise."""
+    options = {}
+    for flag in flags:
+        name, _, value = flag.removeprefix("--").partition("=")
+        try:
+            options[name] = json.loads(value)
+        except json.JSONDecodeError:
+            options[name] = value
+    return options
+
+
 def evaluate(
     method: str,
     task: str,
@@ -165,20 +218,22 @@ def evaluate(
     severity: int = 0,
     calibration: bool = False,
 ) -> float:
-    """One `ebvla-eval` run; `calibration` runs vanilla from `--calibration_seed` (the OOD reports' mu_v, sigma_v)."""
-    from lerobot_policy_ebvla.scripts.eval_energy import metaworld_eval_command  # imports LeRobot's eval
+    """One evaluation, in a process of its own.
 
+    `calibration` runs vanilla from `--calibration_seed` (the OOD reports' mu_v, sigma_v).
+    """
     if calibration:
         name = "calibration"
     elif perturbation == "none":
         name = "vanilla"
     else:
         name = f"{perturbation}{severity}"
-    out = args.output_dir / "eval" / method / name / task
     checkpoint = args.output_dir / "train" / method / "checkpoints" / "last" / "pretrained_model"
-    command = metaworld_eval_command(
+    return run_in_process(
+        eval_metaworld_checkpoint,
+        args.output_dir / "logs" / f"eval_{method}_{name}_{task}.log",
         checkpoint,
-        out,
+        args.output_dir / "eval" / method / name / task,
         task=task,
         device=args.device,
         max_episode_steps=args.max_episode_steps,
@@ -186,10 +241,8 @@ def evaluate(
         seed=args.calibration_seed if calibration else args.seed,
         perturbation=perturbation,
         severity=severity,
-        extra_args=tuple(args.ebvla_eval_args) if method == "ebvla" else (),
+        **(eval_options(args.ebvla_eval_args) if method == "ebvla" else {}),
     )
-    log = args.output_dir / "logs" / f"eval_{method}_{name}_{task}.log"
-    return run(command, log)
 
 
 def successes(eval_dir: Path) -> list[bool]:
@@ -277,7 +330,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--ebvla_eval_args",
         type=shlex.split,
         default=[],
-        help="Extra ebvla-eval options for every ebvla evaluation, e.g. '--normalized_energy_samples=16'.",
+        help="Extra evaluation options for every ebvla evaluation (`EnergyEvalPipelineConfig` fields, as "
+        "ebvla-eval takes them), e.g. '--normalized_energy_samples=16'.",
     )
     parser.add_argument(
         "--calibration_seed",

@@ -115,15 +115,10 @@ def final_energy(policy: EBVLAPolicy, observation: dict) -> torch.Tensor:
 
 
 def normalized_energy(policy: EBVLAPolicy, observation: dict, num_samples: int = 32) -> torch.Tensor:
-    """E(a^(K), C) + log mean_j exp(-E(a_j, C)), a_j ~ N(0, sigma_init^2): the refined chunk's energy relative
-    to the context's own energy scale (a Monte-Carlo log-partition over the prior)."""
-    g = torch.Generator().manual_seed(1)
-    cfg = policy.config
-    batch_size = len(observation["observation.state"])
-    samples = cfg.init_action_std * torch.randn(batch_size, num_samples, CHUNK, ACTION_DIM, generator=g)
-    prior_energy = policy.score_action_chunks(observation, samples)
-    log_partition = torch.logsumexp(-prior_energy, dim=1) - torch.log(torch.tensor(float(num_samples)))
-    return final_energy(policy, observation) + log_partition
+    """The refined chunk's energy relative to the context's own energy scale (`policy.normalized_energy`, a
+    Monte-Carlo log-partition over `num_samples` prior samples, the same draws for every call)."""
+    generator = torch.Generator().manual_seed(1)
+    return policy.normalized_energy(observation, final_energy(policy, observation), num_samples, generator)
 
 
 def evaluate(policy: EBVLAPolicy, test: dict, seed: int) -> dict[str, float]:

@@ -33,7 +33,7 @@ def first_frame(task: str, perturbation: str, severity: int, seed: int) -> tuple
 
 
 def main() -> None:
-    from lerobot_policy_ebvla.envs.configs import PERTURBATIONS
+    from lerobot_policy_ebvla.envs.perturbations import PERTURBATIONS
 
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter

@@ -1,9 +1,10 @@
 """Success rate and energy of one checkpoint under every MetaWorld perturbation at graded severities.
 
-One `ebvla-eval` folder per condition (`--env.type=metaworld_ebvla`, docs/metaworld.md), then one held-out
-`ebvla-ood-report` over all of them. The vanilla rollouts of two seed ranges are evaluated too: the first
-(`--calibration_seed`) calibrates, the second (`--seed`) is the report's negatives. A condition whose folder
-already holds its records is not evaluated again, so an interrupted sweep resumes.
+One evaluation folder per condition (`pipelines.eval_energy`, what `ebvla-eval` runs; MetaWorld's
+perturbations: docs/metaworld.md), then one held-out `ebvla-ood-report` over all of them. The vanilla
+rollouts of two seed ranges are evaluated too: the first (`--calibration_seed`) calibrates, the second
+(`--seed`) is the report's negatives. A condition whose folder already holds its records is not evaluated
+again, so an interrupted sweep resumes.
 
     MUJOCO_GL=egl python benchmarks/metaworld_perturbation_sweep.py --checkpoint=<pretrained_model folder> \\
         --output_dir=outputs/metaworld_sweep --tasks=button-press-v3 --episodes=5
@@ -13,21 +14,22 @@ import argparse
 import sys
 from pathlib import Path
 
-from compare_diffusion_metaworld import run
+from compare_diffusion_metaworld import run, run_in_process
 
-from lerobot_policy_ebvla.envs.configs import PERTURBATIONS
+from lerobot_policy_ebvla.envs.perturbations import PERTURBATIONS
+from lerobot_policy_ebvla.pipelines.eval_energy import eval_metaworld_checkpoint
 
 # pose_fov is pose and fov at once: each of the two is swept on its own.
 SWEPT = [p for p in PERTURBATIONS if p not in ("none", "pose_fov")]
 
 
 def evaluate(args: argparse.Namespace, folder: str, seed: int, perturbation: str = "none", severity: int = 0):
-    from lerobot_policy_ebvla.scripts.eval_energy import metaworld_eval_command  # imports LeRobot's eval
-
     out = args.output_dir / folder
     if (out / "energy_records.jsonl").is_file():
         return
-    command = metaworld_eval_command(
+    run_in_process(
+        eval_metaworld_checkpoint,
+        args.output_dir / f"{folder}.log",
         args.checkpoint,
         out,
         task=args.tasks,
@@ -38,7 +40,6 @@ def evaluate(args: argparse.Namespace, folder: str, seed: int, perturbation: str
         perturbation=perturbation,
         severity=severity,
     )
-    run(command, args.output_dir / f"{folder}.log")
 
 
 def main() -> None:

@@ -6,12 +6,13 @@ Inputs are random, already pre-processed batches (random instruction token ids, 
 
     python benchmarks/vlm_gpu_bench.py --batch-sizes 1 8
 
-`--compile-refinement reduce-overhead` runs the inference MCMC steps through `compile_refinement` with
-`torch.compile(mode="reduce-overhead")`, which captures the energy's forward and grad_a backward in CUDA
-graphs; it also times the eager refinement in the same run and reports the largest difference between the
-two paths' actions for the same generator. `--tiny` swaps in a tiny model for a CPU smoke test of the script
-itself (with `--compile-backend aot_eager`, which skips code generation). `--profile` profiles one training step
-and one chunk at the first batch size: the costliest ops, the number of GPU kernels and the GPU busy fraction.
+`--compile-refinement reduce-overhead` sets the policy's `compile_refinement=True` and
+`compile_refinement_mode="reduce-overhead"`: the inference MCMC steps run the energy's forward and grad_a
+backward in CUDA graphs. It also times the eager refinement in the same run and reports the largest difference
+between the two paths' actions for the same generator. `--tiny` swaps in a tiny model for a CPU smoke test of
+the script itself (a compiled refinement then compiles C++ through inductor, minutes on a CPU). `--profile`
+profiles one training step and one chunk at the first batch size: the costliest ops, the number of GPU kernels
+and the GPU busy fraction.
 """
 
 import argparse
@@ -23,7 +24,8 @@ import torch
 from lerobot.utils.constants import ACTION, OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS, OBS_STATE
 from vlm_size_table import full_size_config
 
-from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy, modeling_ebvla
+from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
+from lerobot_policy_ebvla.configuration_ebvla import COMPILE_MODES
 
 TINY = {
     "vlm_config": {
@@ -71,23 +73,6 @@ def timed(fn, device: torch.device) -> float:
     if device.type == "cuda":
         torch.cuda.synchronize()
     return time.perf_counter() - start
-
-
-def install_compiled_energy(mode: str, backend: str) -> None:
-    """Makes `compile_refinement` use torch.compile in `mode` ("default", "reduce-overhead", "max-autotune")."""
-    kwargs = {"backend": backend, "dynamic": False}
-    if mode != "default":
-        kwargs["mode"] = mode
-    compiled = torch.compile(modeling_ebvla.head_energy, **kwargs)
-
-    def energy(head, params, actions, kv):
-        # The detached parameters share the head's storage, so their addresses never change: CUDA graphs then
-        # read them in place instead of copying 64 M parameters into the graph's buffers at every replay.
-        for tensor in params.values():
-            torch._dynamo.mark_static_address(tensor)
-        return compiled(head, params, actions, kv)
-
-    modeling_ebvla.compiled_head_energy = lambda: energy
 
 
 def profile_summary(fn, device: torch.device, rows: int = 12) -> dict:
@@ -140,13 +125,11 @@ def main() -> None:
     parser.add_argument("--json", default=None, help="Also write the results to this file.")
     parser.add_argument(
         "--compile-refinement",
-        choices=["off", "default", "reduce-overhead", "max-autotune"],
+        choices=["off", *COMPILE_MODES],
         default="off",
-        help="torch.compile mode of the inference MCMC energy (`compile_refinement`); reduce-overhead and "
-        "max-autotune capture CUDA graphs. The eager path is timed and compared in the same run.",
-    )
-    parser.add_argument(
-        "--compile-backend", default="inductor", help="torch.compile backend (aot_eager on CPU)."
+        help="`compile_refinement_mode` of a compiled inference MCMC energy (`compile_refinement`); "
+        "reduce-overhead and max-autotune capture CUDA graphs. The eager path is timed and compared in the "
+        "same run.",
     )
     parser.add_argument(
         "--gradient-checkpointing",
@@ -169,7 +152,8 @@ def main() -> None:
             setattr(config, name, value)
     compiled = args.compile_refinement != "off"
     if compiled:
-        install_compiled_energy(args.compile_refinement, args.compile_backend)
+        config.compile_refinement = True
+        config.compile_refinement_mode = args.compile_refinement
     torch.manual_seed(0)
     start = time.perf_counter()
     with torch.device(device):

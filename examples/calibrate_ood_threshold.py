@@ -21,9 +21,9 @@ from lerobot.envs import close_envs, make_env, make_env_pre_post_processors
 from lerobot.policies import make_pre_post_processors
 from lerobot.scripts.lerobot_eval import eval_policy_all
 
-from lerobot_policy_ebvla import EBVLAPolicy
+from lerobot_policy_ebvla import EBVLAPolicy, EnergyOODMonitor, OODCalibration
 from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
-from lerobot_policy_ebvla.monitoring import EnergyOODMonitor, EnergyRecorder, OODCalibration, rollout_scores
+from lerobot_policy_ebvla.monitoring import EnergyRecorder, episode_scores, group_by_episode
 
 
 @dataclass
@@ -70,9 +70,10 @@ def main(cfg: CalibrateConfig) -> None:
     records = recorder.records(info, cfg.episodes)
 
     # One score per rollout (the mean final energy of its chunks), then Eq. 5.
-    scores = rollout_scores(records, aggregation="mean")
+    episodes = group_by_episode(records)
+    scores = episode_scores(episodes, "final_energy", aggregation="mean")
     calibration = OODCalibration.fit(
-        list(scores.values()), k=cfg.k, aggregation="mean", false_alarm_rate=cfg.false_alarm_rate
+        scores, k=cfg.k, aggregation="mean", false_alarm_rate=cfg.false_alarm_rate
     )
     path = calibration.save(cfg.checkpoint, overwrite=cfg.overwrite)
     print(
@@ -84,7 +85,7 @@ def main(cfg: CalibrateConfig) -> None:
 
     # What a control loop does with it: the monitor reads the file back from the checkpoint folder.
     monitor = EnergyOODMonitor.from_pretrained(cfg.checkpoint)
-    for key, score in scores.items():
+    for key, score in zip(episodes, scores, strict=True):
         decision = monitor.check_rollout([score])
         print(
             f"rollout {key.episode_index}: score {score:.3f} -> {'OOD' if decision.is_ood else 'in distribution'}"

@@ -24,9 +24,8 @@ from lerobot.envs import close_envs, make_env, make_env_pre_post_processors
 from lerobot.policies import make_pre_post_processors
 from lerobot.scripts.lerobot_eval import rollout
 
-from lerobot_policy_ebvla import EBVLAPolicy
+from lerobot_policy_ebvla import EBVLAPolicy, EnergyOODError
 from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
-from lerobot_policy_ebvla.ood_response import EnergyOODError
 
 
 @dataclass

@@ -27,11 +27,16 @@ from lerobot.policies import make_pre_post_processors
 from lerobot.scripts.lerobot_eval import eval_policy_all
 from lerobot.scripts.lerobot_train import train
 
-from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
+from lerobot_policy_ebvla import EBVLAPolicy
 from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
-from lerobot_policy_ebvla.monitoring import EnergyRecorder, group_by_episode, write_energy_records
-from lerobot_policy_ebvla.scripts.quickstart import LIGHT_POLICY
-from lerobot_policy_ebvla.scripts.record_metaworld import RecordMetaworldConfig, record_metaworld
+from lerobot_policy_ebvla.monitoring import (
+    EnergyRecorder,
+    episode_scores,
+    group_by_episode,
+    write_energy_records,
+)
+from lerobot_policy_ebvla.presets import light_policy_config
+from lerobot_policy_ebvla.recording.metaworld import RecordMetaworldConfig, record_metaworld
 
 
 @dataclass
@@ -68,12 +73,10 @@ def main(cfg: ExampleConfig) -> None:
             )
         )
 
-    # 2. Training. The quickstart's light policy, only where it differs from EBVLAConfig's defaults (the
-    # paper's full VLA): backbone="resnet" (LeRobot's Diffusion Policy encoder, from scratch), 64 px images,
-    # a 2-stage ResNet, an energy head of D=128, 4 heads, L=2 blocks, 2-4 MCMC steps per training step, and the
-    # contrastive term with state dropout that make it read its camera. Print it to see it all.
-    policy_cfg = EBVLAConfig(
-        **LIGHT_POLICY,
+    # 2. Training. The quickstart's light policy (`presets.LIGHT_POLICY`: LeRobot's Diffusion Policy encoder
+    # from scratch and a CPU-sized energy head; its docstring gives its sizes and how its training recipe
+    # differs from the paper's). Print it to see it all.
+    policy_cfg = light_policy_config(
         scheduler_warmup_steps=cfg.steps // 10,
         scheduler_decay_steps=cfg.steps,
         device=cfg.device,
@@ -121,11 +124,11 @@ def main(cfg: ExampleConfig) -> None:
     path = write_energy_records(cfg.output_dir / "eval" / "energy_records.jsonl", records, overwrite=True)
 
     print(f"\nSuccess rate: {info['overall']['pc_success']:.0f}% over {cfg.eval_episodes} episodes")
-    for key, chunks in sorted(group_by_episode(records).items()):
-        finals = [chunk.final_energy for chunk in chunks]
+    episodes = dict(sorted(group_by_episode(records).items()))
+    for (key, chunks), energy in zip(episodes.items(), episode_scores(episodes, "final_energy"), strict=True):
         print(
             f"episode {key.episode_index}: success={chunks[0].success}, {len(chunks)} chunks, "
-            f"mean final energy {sum(finals) / len(finals):.3f}"
+            f"mean final energy {energy:.3f}"
         )
     print(f"Checkpoint: {checkpoint}\nEnergy records: {path}")
 

@@ -70,3 +70,39 @@ def test_resuming_a_lerobot_checkpoint_continues_the_steps_with_the_same_losses(
     assert (
         tmp_path / "resumed" / "checkpoints" / "000004" / "pretrained_model" / "model.safetensors"
     ).is_file()
+
+
+def _saved(policy, path: Path) -> Path:
+    policy.save_pretrained(path)
+    return path
+
+
+def test_a_damaged_calibration_names_the_file_and_the_fields(tiny_policy, tmp_path):
+    from lerobot_policy_ebvla import OOD_CALIBRATION_FILENAME
+
+    path = _saved(tiny_policy, tmp_path)
+    (path / OOD_CALIBRATION_FILENAME).write_text('{"mu_v": 1.0, "sig', encoding="utf-8")
+    with pytest.raises(ValueError, match=rf"{OOD_CALIBRATION_FILENAME} is not a valid OOD calibration.*mu_v"):
+        EBVLAPolicy.from_pretrained(path)
+    (path / OOD_CALIBRATION_FILENAME).write_text('{"mu_v": 1.0}', encoding="utf-8")
+    with pytest.raises(ValueError, match="sigma_v"):
+        EBVLAPolicy.from_pretrained(path)
+
+
+def test_truncated_weights_name_the_file(tiny_policy, tmp_path):
+    path = _saved(tiny_policy, tmp_path)
+    weights = path / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[: weights.stat().st_size // 2])
+    with pytest.raises(ValueError, match=r"model\.safetensors .*damaged"):
+        EBVLAPolicy.from_pretrained(path)
+
+
+def test_an_out_of_range_saved_config_value_names_the_file_and_the_field(tiny_policy, tmp_path):
+    import json
+
+    path = _saved(tiny_policy, tmp_path)
+    config = json.loads((path / "config.json").read_text(encoding="utf-8"))
+    config["energy_temperature"] = -1.0
+    (path / "config.json").write_text(json.dumps(config), encoding="utf-8")
+    with pytest.raises(ValueError, match=r"config\.json .*`energy_temperature` must be > 0"):
+        EBVLAPolicy.from_pretrained(path)

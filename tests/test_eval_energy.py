@@ -1,7 +1,9 @@
 """The energy recorder (`monitoring/recorder.py`) around LeRobot's rollout, with a scripted env and policy (no
-simulator), its opt-in baselines on a tiny EB-VLA, and `ebvla-eval`'s env perturbation."""
+simulator), its opt-in baselines on a tiny EB-VLA, and `pipelines.eval_energy`'s env perturbation and
+MetaWorld config."""
 
 import math
+from collections import OrderedDict
 from types import SimpleNamespace
 
 import gymnasium as gym
@@ -10,15 +12,16 @@ import pytest
 import torch
 from lerobot.scripts.lerobot_eval import rollout
 from torch import nn
+from torch.utils.hooks import RemovableHandle
 
 from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
 from lerobot_policy_ebvla.modeling_ebvla import EnergyReadout
 from lerobot_policy_ebvla.monitoring.baselines import available_scores
 from lerobot_policy_ebvla.monitoring.recorder import EnergyRecorder
 from lerobot_policy_ebvla.monitoring.records import read_energy_records, write_energy_records
-from lerobot_policy_ebvla.scripts.eval_energy import env_perturbation
+from lerobot_policy_ebvla.pipelines.eval_energy import env_perturbation, metaworld_eval_config
 
-from .conftest import tiny_batch
+from .conftest import tiny_batch, tiny_config
 
 N_ACTION_STEPS = 3
 
@@ -46,22 +49,29 @@ class CountdownEnv(gym.Env):
 
 
 class ChunkingPolicy(nn.Module):
-    """Refines a chunk every `N_ACTION_STEPS` calls, exposing a new `EnergyReadout` each time (as EB-VLA)."""
+    """Refines a chunk every `N_ACTION_STEPS` calls and hands its `EnergyReadout` to its chunk hooks."""
 
     def __init__(self):
         super().__init__()
         self.n_refinements = 0
+        self.chunk_hooks = OrderedDict()
+
+    def register_chunk_hook(self, hook):
+        handle = RemovableHandle(self.chunk_hooks)
+        self.chunk_hooks[handle.id] = hook
+        return handle
 
     def reset(self):
         self.queue = 0
-        self.last_energy = None
 
     def select_action(self, batch):
         batch_size = batch["observation.state"].shape[0]
         if self.queue == 0:
             self.n_refinements += 1
             energy = torch.full((batch_size,), float(self.n_refinements))
-            self.last_energy = EnergyReadout(initial_energy=energy + 0.5, final_energy=energy)
+            readout = EnergyReadout(initial_energy=energy + 0.5, final_energy=energy)
+            for hook in list(self.chunk_hooks.values()):
+                hook(self, batch, readout, None)
             self.queue = N_ACTION_STEPS
         self.queue -= 1
         return torch.zeros(batch_size, 2)
@@ -104,9 +114,24 @@ def test_records_take_success_from_eval_info_and_drop_episodes_past_n_episodes()
     )
 
 
-def test_recorder_restores_the_policy_select_action():
+def test_recorder_removes_its_chunk_hook_on_exit():
     policy, _ = run_recorded_rollout([2], seeds=None)
-    assert "select_action" not in vars(policy)
+    assert not policy.chunk_hooks and "select_action" not in vars(policy)
+
+
+def test_a_policy_without_energies_is_evaluated_with_no_records(caplog):
+    class PlainPolicy(nn.Module):  # like LeRobot's diffusion policy: actions, no energies, no chunk hook
+        def reset(self):
+            pass
+
+        def select_action(self, batch):
+            return torch.zeros(batch["observation.state"].shape[0], 2)
+
+    policy = PlainPolicy()
+    env = gym.vector.SyncVectorEnv([lambda: CountdownEnv(3)])
+    with EnergyRecorder(policy) as recorder:
+        rollout(recorder.watch(env, "countdown", 0), policy, identity, identity, identity, identity, seeds=[0])
+    assert recorder.chunks == [] and "no energy to record" in caplog.text
 
 
 def recorded_actions(policy, **recorder_options):
@@ -187,10 +212,10 @@ def test_perturbation_of_an_env_config():
     assert env_perturbation(SimpleNamespace(task="an env without perturbations")) == ("none", 0.0)
 
 
-def test_metaworld_eval_command_names_the_perturbation_and_appends_the_extra_options(tmp_path):
-    from lerobot_policy_ebvla.scripts.eval_energy import metaworld_eval_command
+def test_metaworld_eval_config_applies_the_perturbation_and_the_extra_options(tmp_path):
+    tiny_config().save_pretrained(tmp_path / "pretrained_model")
 
-    command = metaworld_eval_command(
+    cfg = metaworld_eval_config(
         tmp_path / "pretrained_model",
         tmp_path / "eval",
         task="push-v3",
@@ -200,9 +225,11 @@ def test_metaworld_eval_command_names_the_perturbation_and_appends_the_extra_opt
         seed=2000,
         perturbation="light_dim",
         severity=4,
-        extra_args=("--normalized_energy_samples=8",),
+        normalized_energy_samples=8,
     )
 
-    assert command[1:3] == ["-m", "lerobot_policy_ebvla.scripts.eval_energy"]
-    assert command[-1] == "--normalized_energy_samples=8"
-    assert "--env.perturbation=light_dim" in command and "--env.perturbation_severity=4" in command
+    assert cfg.policy.pretrained_path == tmp_path / "pretrained_model" and cfg.policy.device == "cpu"
+    assert cfg.normalized_energy_samples == 8
+    assert (cfg.env.perturbation, cfg.env.perturbation_severity) == ("light_dim", 4)
+    assert cfg.env.task == "push-v3" and cfg.env.fast_render and cfg.env.max_episode_steps == 40
+    assert (cfg.eval.n_episodes, cfg.eval.batch_size, cfg.seed) == (3, 1, 2000)

@@ -12,7 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from lerobot_policy_ebvla.monitoring import OOD_CALIBRATION_FILENAME, OODCalibration, read_energy_records
+from lerobot_policy_ebvla import OOD_CALIBRATION_FILENAME, OODCalibration
+from lerobot_policy_ebvla.monitoring import read_energy_records
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 # Shorter than any evaluation budget of the examples: 16 env steps, two chunks of 8.

@@ -12,14 +12,21 @@ import numpy as np
 import pytest
 
 from lerobot_policy_ebvla.monitoring.failure import (
+    Alarm,
+    FailurePredictionResult,
+    LeadTimeSummary,
     energy_matrix,
     episode_slopes,
     evaluate_configurations,
     evaluate_failure_predictor,
     failure_prediction_sweep,
+    first_alarms,
+    format_alarms,
     format_failure_table,
+    format_lead_time_table,
     linear_slope,
     select_configurations,
+    slope_scores,
 )
 from lerobot_policy_ebvla.monitoring.records import EnergyRecord
 
@@ -179,3 +186,81 @@ def test_format_failure_table_prints_percentages():
     result = evaluate_failure_predictor(EPISODES, step=3, window=3, multiplier=1.0)
     table = format_failure_table([result])
     assert "| 3 | 3 | 1.00 | 75.00% | 75.00% | 50.00% | 100.00% | 4 | 2 | 50.0% |" in table
+
+
+def test_format_failure_table_adds_the_slope_auroc_of_each_step():
+    result = evaluate_failure_predictor(EPISODES, step=3, window=3, multiplier=1.0)
+    table = format_failure_table([result], aurocs=["0.750 [0.250, 1.000]"])
+    assert "| Episodes judged | Failed | Failure rate | AUROC [95% CI] |" in table
+    assert table.splitlines()[2].endswith("| 4 | 2 | 50.0% | 0.750 [0.250, 1.000] |")
+
+
+# Equal elapsed time (the default) and lead time.
+
+
+def test_by_default_only_episodes_still_running_at_the_step_are_judged():
+    # A failed episode that ended at step 2 is not judged at step 3, and its flat carried energy cannot count.
+    episodes = [*EPISODES, episode([0.0, 9.0], False, index=4)]
+    result = evaluate_failure_predictor(episodes, step=3, window=3, multiplier=1.0)
+    assert (result.n_episodes, result.n_failed) == (4, 2)
+
+
+def test_slope_scores_split_the_judged_episodes_into_successful_and_failed():
+    successful, failed = slope_scores([*EPISODES, episode([0.0, 9.0], False, index=4)], step=3, window=3)
+    np.testing.assert_allclose(successful, [0.0, 1.0])
+    np.testing.assert_allclose(failed, [2.0, 0.5])
+
+
+def config(step, window=2, multiplier=1.0):
+    return FailurePredictionResult(0, 0, 0, 0, step=step, window=window, multiplier=multiplier)
+
+
+def test_first_alarm_is_the_first_step_its_chosen_configuration_flags():
+    # Steps 2 and 3, window 2: slopes A 0, B 1, C 2, D 0.5; T = 0.5 + 0.5 = 1 flags C from step 2 on.
+    alarms = first_alarms(EPISODES, [config(3), config(2)], reference_episodes=EPISODES)
+    assert [a.step for a in alarms] == [None, None, 2, None]
+    assert (alarms[2].lead_chunks, alarms[2].lead_env_steps, alarms[2].failed) == (1, 8, True)
+
+
+def test_an_episode_is_never_alarmed_after_its_last_chunk():
+    # Carried forward, the ended episode's slope over [0, 5, 5] is 2.5 at step 3: above T, but it has ended.
+    ended = episode([0.0, 5.0], False, index=4)
+    (alarm,) = first_alarms([ended], [config(3, window=3)], reference_episodes=EPISODES, carry_forward=True)
+    assert alarm.step is None
+
+
+def test_no_reference_at_a_step_raises_no_alarm():
+    (alarm,) = first_alarms([episode([0.0, 5.0, 10.0], False)], [config(3)], reference_episodes=[])
+    assert alarm.step is None
+
+
+def alarm(failed, step=None, n_chunks=5):
+    lead = None if step is None else n_chunks - step
+    return Alarm("t", 0, None, failed, n_chunks, step, lead, None if step is None else 8 * lead)
+
+
+def test_lead_time_summary_counts_failures_alarmed_before_their_last_chunk_and_false_alarms():
+    alarms = [alarm(True, 2), alarm(True, 5), alarm(True, 4), alarm(True), alarm(False, 3), alarm(False)]
+    summary = LeadTimeSummary.of(alarms)
+    assert (summary.n_failed, summary.failed_alarmed, summary.failed_alarmed_before_last_chunk) == (4, 3, 2)
+    assert (summary.median_lead_chunks, summary.median_lead_env_steps) == (1.0, 8.0)
+    assert (summary.n_successful, summary.successful_alarmed) == (2, 1)
+
+
+def test_lead_time_without_an_alarmed_failure_has_no_median():
+    assert math.isnan(LeadTimeSummary.of([alarm(True), alarm(False)]).median_lead_chunks)
+
+
+def test_format_lead_time_table_prints_fractions_with_their_counts():
+    table = format_lead_time_table(
+        {"all tasks": LeadTimeSummary.of([alarm(True, 2), alarm(True), alarm(False)])}
+    )
+    assert table.splitlines()[2] == "| all tasks | 2 | 1 | 1/2 (50.0%) | 1/2 (50.0%) | 3 | 24 | 0/1 (0.0%) |"
+
+
+def test_format_alarms_lists_each_failed_episode():
+    table = format_alarms([alarm(True, 2), alarm(True), alarm(False, 1)])
+    assert table.splitlines()[2:] == [
+        "| t | 0 | None | 5 | 2 | 3 | 24 |",
+        "| t | 0 | None | 5 | never |  |  |",
+    ]

@@ -16,7 +16,7 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 from lerobot_policy_ebvla import EBVLAPolicy, make_ebvla_pre_post_processors
-from lerobot_policy_ebvla.scripts import install_libero_assets as installer
+from lerobot_policy_ebvla.envs import libero_assets as installer
 from tests.conftest import tiny_config
 
 EPISODE_STEPS = 8
@@ -294,7 +294,7 @@ HF_LIBERO_FEATURES = {
 def test_expert_recording_of_one_task_keeps_its_successful_episode_with_hf_libero_features(tmp_path):
     from lerobot.datasets import LeRobotDataset
 
-    from lerobot_policy_ebvla.scripts.record_libero import RecordLiberoConfig, record_libero
+    from lerobot_policy_ebvla.recording.libero import RecordLiberoConfig, record_libero
 
     root = tmp_path / "libero_expert"
     args = {"repo_id": "local/libero_expert_test", "root": root, "episodes_per_task": 1, "max_steps": 220}

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
-from lerobot_policy_ebvla.envs.configs import PERTURBATIONS
+from lerobot_policy_ebvla.envs.perturbations import PERTURBATIONS
 
 CAMERA_XML = """
 <mujoco>

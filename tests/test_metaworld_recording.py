@@ -18,11 +18,8 @@ from lerobot.envs.utils import env_to_policy_features  # noqa: E402
 
 from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv  # noqa: E402
 from lerobot_policy_ebvla.monitoring.records import read_energy_records  # noqa: E402
-from lerobot_policy_ebvla.scripts.record_metaworld import (  # noqa: E402
-    REPORT_FILENAME,
-    RecordMetaworldConfig,
-    record_metaworld,
-)
+from lerobot_policy_ebvla.recording.loop import REPORT_FILENAME  # noqa: E402
+from lerobot_policy_ebvla.recording.metaworld import RecordMetaworldConfig, record_metaworld  # noqa: E402
 
 TASK = "reach-v3"  # the expert finishes in about 50 steps
 IMAGE_SIZE = 64  # the light backbone needs more than 32 px

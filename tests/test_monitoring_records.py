@@ -1,6 +1,7 @@
 """Energy records: the JSON-lines contract between `ebvla-eval` and the monitoring tools."""
 
 import dataclasses
+import gzip
 import json
 import math
 from dataclasses import asdict
@@ -8,9 +9,12 @@ from dataclasses import asdict
 import numpy as np
 import pytest
 
+from lerobot_policy_ebvla.monitoring import records as records_module
 from lerobot_policy_ebvla.monitoring.records import (
+    COMPRESSED_RECORDS_FILENAME,
     ENERGY_RECORDS_FILENAME,
     EnergyRecord,
+    compress_records,
     features_path,
     group_by_episode,
     load_episodes,
@@ -214,3 +218,96 @@ def test_held_flag_round_trips_and_a_non_boolean_is_rejected(tmp_path):
     assert [r.held for r in read_energy_records(path)] == [True, False, None]
     with pytest.raises(ValueError, match="`held`"):
         record_from_json({**json.loads(record_to_json(record())), "held": "yes"})
+
+
+# Compressed records, to commit.
+
+
+def with_features(records):
+    return [dataclasses.replace(r, context_feature=np.full(3, i, np.float32)) for i, r in enumerate(records)]
+
+
+def test_compressed_records_round_trip(tmp_path):
+    records = [record(chunk=0), record(chunk=1, final=math.inf), record(episode=1, success=False)]
+    path = write_energy_records(tmp_path / COMPRESSED_RECORDS_FILENAME, records)
+    assert json.loads(gzip.decompress(path.read_bytes()).splitlines()[1])["final_energy"] == "inf"
+    assert read_energy_records(path) == records
+
+
+def test_compressed_records_keep_their_features_compressed_beside_them(tmp_path):
+    path = write_energy_records(
+        tmp_path / COMPRESSED_RECORDS_FILENAME, with_features([record(), record(chunk=1)])
+    )
+    assert features_path(path).name == "energy_records.features.npy.gz"
+    read = read_energy_records(path)
+    np.testing.assert_array_equal(np.stack([r.context_feature for r in read]), [[0, 0, 0], [1, 1, 1]])
+
+
+def test_compressed_records_with_uncompressed_features_beside_them_still_read(tmp_path):
+    path = write_energy_records(
+        tmp_path / ENERGY_RECORDS_FILENAME, with_features([record(), record(chunk=1)])
+    )
+    (tmp_path / COMPRESSED_RECORDS_FILENAME).write_bytes(gzip.compress(path.read_bytes()))
+    path.unlink()
+    read = read_energy_records(tmp_path)
+    assert read[1].context_feature.tolist() == [1, 1, 1]
+
+
+def test_a_folder_of_compressed_records_is_found_by_every_reader(tmp_path):
+    write_energy_records(tmp_path / "run" / COMPRESSED_RECORDS_FILENAME, [record(), record(chunk=1)])
+    assert [f.name for f in resolve_record_files([tmp_path / "ru*"])] == [COMPRESSED_RECORDS_FILENAME]
+    assert len(read_energy_records(tmp_path / "run")) == 2
+    assert len(load_episodes([tmp_path / "run"])) == 1
+
+
+def test_a_folder_holding_both_forms_is_refused(tmp_path):
+    write_energy_records(tmp_path / ENERGY_RECORDS_FILENAME, [record()])
+    write_energy_records(tmp_path / COMPRESSED_RECORDS_FILENAME, [record()])
+    with pytest.raises(ValueError, match="holds both"):
+        resolve_record_files([tmp_path])
+
+
+def test_compress_records_replaces_every_records_file_below_a_folder(tmp_path):
+    runs = {name: with_features([record(chunk=0), record(chunk=1, final=math.nan)]) for name in ("a", "b/c")}
+    for name, records in runs.items():
+        write_energy_records(tmp_path / name / ENERGY_RECORDS_FILENAME, records)
+    written = compress_records([tmp_path])
+    assert sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*.*")) == [
+        "a/energy_records.features.npy.gz",
+        "a/energy_records.jsonl.gz",
+        "b/c/energy_records.features.npy.gz",
+        "b/c/energy_records.jsonl.gz",
+    ]
+    assert len(written) == 2
+    read = read_energy_records(tmp_path / "b" / "c")
+    assert read[0] == runs["b/c"][0] and math.isnan(read[1].final_energy)
+    assert read[1].context_feature.tolist() == [1, 1, 1]
+
+
+def test_compressing_the_same_records_twice_gives_the_same_bytes(tmp_path):
+    for name in ("a", "b"):
+        write_energy_records(
+            tmp_path / name / ENERGY_RECORDS_FILENAME, with_features([record(), record(chunk=1)])
+        )
+    compress_records([tmp_path / "a", tmp_path / "b"])
+    for suffix in ("jsonl.gz", "features.npy.gz"):
+        assert (tmp_path / "a" / f"energy_records.{suffix}").read_bytes() == (
+            tmp_path / "b" / f"energy_records.{suffix}"
+        ).read_bytes()
+
+
+def test_compress_records_can_keep_the_originals(tmp_path):
+    path = write_energy_records(tmp_path / ENERGY_RECORDS_FILENAME, [record()])
+    compress_records([path], keep_original=True)
+    assert path.exists() and (tmp_path / COMPRESSED_RECORDS_FILENAME).exists()
+
+
+def test_compress_records_of_a_folder_without_records_is_an_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match=ENERGY_RECORDS_FILENAME):
+        compress_records([tmp_path])
+
+
+def test_compress_records_runs_as_a_module_command(tmp_path, capsys):
+    write_energy_records(tmp_path / ENERGY_RECORDS_FILENAME, [record()])
+    records_module.main([f"--paths=[{tmp_path}]"])
+    assert capsys.readouterr().out.strip() == str(tmp_path / COMPRESSED_RECORDS_FILENAME)

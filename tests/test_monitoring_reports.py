@@ -7,12 +7,16 @@ import math
 import numpy as np
 import pytest
 
-from lerobot_policy_ebvla.monitoring.ood import OOD_CALIBRATION_FILENAME, OODCalibration
+from lerobot_policy_ebvla.monitoring.baselines import fit_score_reference
+from lerobot_policy_ebvla.monitoring.protocol import check_held_out
 from lerobot_policy_ebvla.monitoring.records import (
     ENERGY_RECORDS_FILENAME,
     EnergyRecord,
+    load_episodes,
     write_energy_records,
 )
+from lerobot_policy_ebvla.monitoring.scores import episode_scores
+from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
 from lerobot_policy_ebvla.scripts import failure_report, landscape, ood_report
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -23,7 +27,9 @@ def rollouts(
 ):
     """n episodes whose final energies hover around `level`; every `fail_every`-th one fails with rising energy.
 
-    With `features`, each chunk also carries a restart spread and a 4-d context feature centred on `level`.
+    Episode i is seeded 1000 * seed + i, as a run started at that seed would be: runs of other `seed`s are
+    held out of each other. With `features`, each chunk also carries a restart spread and a 4-d context feature
+    centred on `level`.
     """
     rng = np.random.default_rng(seed)
     records = []
@@ -39,7 +45,7 @@ def rollouts(
                 final_energy=float(level + trend + rng.normal(0, 0.2)),
                 success=not failed,
                 task="reach",
-                seed=episode,
+                seed=1000 * seed + episode,
                 perturbation=perturbation,
                 severity=severity,
             )
@@ -88,13 +94,15 @@ def test_ood_report_prints_the_held_out_tables_with_intervals_and_baselines(reco
     for section in ("## Calibration", "## Energy vs success drop", "## AUROC [bootstrap 95% interval]"):
         assert section in out
     assert "## Table III: camera 1" in out and "## Table III: camera 2" in out
-    assert out.count("| Multiplier |") == 3  # all perturbations, and each severity
+    whole_episode = out.split("## Table III on the first")[0]  # the first-3-chunk tables follow
+    assert whole_episode.count("| Multiplier |") == 3  # all perturbations, and each severity
     # Every baseline sits beside the final energy in the AUROC table and in every Table III.
     assert (
-        "| Condition | Episodes | final_energy | initial_energy | restart_spread | mahalanobis | knn |" in out
+        "| Condition | Episodes | final_energy | phase_energy | initial_energy | restart_spread "
+        "| mahalanobis | knn |" in out
     )
-    assert out.count("Bal. Acc. knn") == 3
-    assert out.count("conf. α=5.0%") == 3
+    assert whole_episode.count("Bal. Acc. knn") == 3
+    assert whole_episode.count("conf. α=5.0%") == 3
 
 
 def test_ood_report_puts_the_success_drop_beside_the_energy_shift(record_dirs, tmp_path, capsys):
@@ -121,6 +129,14 @@ def test_ood_report_refusal_sees_through_other_spellings_of_a_path(record_dirs, 
     monkeypatch.chdir(tmp_path)
     with pytest.raises(ValueError, match="in_sample"):
         ood_report.main(ood_args(calibration, f"./{calibration.name}/{ENERGY_RECORDS_FILENAME}", ood, "out"))
+
+
+def test_ood_report_refuses_calibration_rollouts_that_replay_the_reported_seeds(record_dirs, tmp_path):
+    calibration, _, ood = record_dirs
+    # The same seeds run again into another folder: the files differ, the episodes do not.
+    rerun = write(tmp_path, "vanilla_rerun", rollouts(12, 5.0, seed=10, features=True))
+    with pytest.raises(ValueError, match=r"share 12 episode seed.*seeds 10000, 10001.*--in_sample=true"):
+        ood_report.main(ood_args(calibration, rerun, ood, tmp_path / "out"))
 
 
 def test_ood_report_without_calibration_rollouts_is_in_sample(record_dirs, tmp_path):
@@ -155,7 +171,10 @@ def test_ood_report_without_baseline_data_reports_the_energies_only(tmp_path, ca
     ood = write(tmp_path, "c", rollouts(6, 6.0, "camera", 1.0))
     ood_report.main(ood_args(calibration, vanilla, ood, tmp_path / "out"))
     out = capsys.readouterr().out
-    assert "| Condition | Episodes | final_energy | initial_energy |\n" in out and "knn" not in out
+    assert (
+        "| Condition | Episodes | final_energy | phase_energy | initial_energy |\n" in out
+        and "knn" not in out
+    )
 
 
 def test_ood_report_calibrates_a_checkpoint_on_the_calibration_rollouts(record_dirs, tmp_path):
@@ -203,6 +222,79 @@ def test_ood_report_handles_a_diverged_rollout(tmp_path):
     assert (tmp_path / "out" / "energy_histogram.png").exists()
 
 
+def section(out, title):
+    return out.split(f"## {title}")[1].split("\n## ")[0]
+
+
+def test_ood_report_prints_each_scores_first_chunk_auroc_beside_the_whole_episodes(
+    record_dirs, tmp_path, capsys
+):
+    ood_report.main([*ood_args(*record_dirs, tmp_path / "out"), "--first_chunks=[1,2]", "--n_bootstrap=50"])
+    first = section(capsys.readouterr().out, "Detection on the first chunks")
+    assert "Held-out vanilla rollouts (the negatives): 12, success 8/12 (66.7%)." in first
+    assert "### camera 2: 10 perturbed rollouts, success 5/10 (50.0%)" in first
+    assert first.count("| Score | first 1 chunk | first 2 chunks | whole episode |") == 3
+    assert first.count("| knn | ") == 3
+
+
+def test_ood_report_first_chunk_auroc_sees_only_the_first_chunks(tmp_path, capsys):
+    # Perturbed rollouts look vanilla for 3 chunks, then their energy jumps: only later chunks separate them.
+    late = [
+        dataclasses.replace(r, final_energy=r.final_energy + 10 * (r.chunk_index >= 3))
+        for r in rollouts(8, 5.0, "camera", 1.0, seed=6)
+    ]
+    dirs = [write(tmp_path, "a", rollouts(8, 5.0, seed=3)), write(tmp_path, "b", rollouts(8, 5.0, seed=4))]
+    ood_report.main([*ood_args(*dirs, write(tmp_path, "c", late), tmp_path / "out"), "--first_chunks=[3,4]"])
+    first = section(capsys.readouterr().out, "Detection on the first chunks")
+    (row,) = [
+        line for line in first.split("### camera 1")[1].splitlines() if line.startswith("| final_energy |")
+    ]
+    first_3, first_4, whole = (float(cell.split()[0]) for cell in row.split("|")[2:5])
+    assert first_3 < 0.9 and first_4 == whole == 1.0
+
+
+def test_ood_report_states_mu_sigma_auroc_and_counts_beside_each_table_iii(record_dirs, tmp_path, capsys):
+    ood_report.main(ood_args(*record_dirs, tmp_path / "out"))
+    table = section(capsys.readouterr().out, "Table III: camera 2")
+    fit = OODCalibration.fit(episode_scores(load_episodes([record_dirs[0]]), "final_energy"))
+    assert f"(mu_v = {fit.mu_v:.3f}, sigma_v = {fit.sigma_v:.3f}, from 12 calibration rollouts only)" in table
+    assert "(bootstrap 95% interval); n vanilla = 12, n OOD = 10." in table
+
+
+def test_ood_report_prints_table_iii_on_the_first_chunks_calibrated_on_their_first_chunks(
+    record_dirs, tmp_path, capsys
+):
+    ood_report.main([*ood_args(*record_dirs, tmp_path / "out"), "--table_iii_first_chunks=2"])
+    out = capsys.readouterr().out
+    first_2 = load_episodes([record_dirs[0]])
+    fit = OODCalibration.fit(episode_scores(first_2, "final_energy", first_chunks=2))
+    table = section(out, "Table III, first 2 chunks: camera 1")
+    assert f"(mu_v = {fit.mu_v:.3f}, sigma_v = {fit.sigma_v:.3f}," in table
+    assert out.count("## Table III, first 2 chunks: ") == 3  # all perturbations, and each severity
+
+
+def test_ood_report_leaves_the_first_chunk_table_iii_out_when_asked(record_dirs, tmp_path, capsys):
+    ood_report.main([*ood_args(*record_dirs, tmp_path / "out"), "--table_iii_first_chunks=0"])
+    assert "first 3 chunks:" not in capsys.readouterr().out
+
+
+def test_ood_report_saves_a_phase_energy_calibration_when_asked(record_dirs, tmp_path):
+    checkpoint = tmp_path / "pretrained_model"
+    checkpoint.mkdir()
+    ood_report.main(
+        [*ood_args(*record_dirs, tmp_path / "out"), f"--calibrate_to={checkpoint}", "--score=phase_energy"]
+    )
+    calibration = OODCalibration.load(checkpoint)
+    expected = fit_score_reference(load_episodes([record_dirs[0]]), features=False).phase.statistics
+    assert calibration.score == "phase_energy" and calibration.phase == expected
+    assert calibration.n_rollouts == 12 and abs(calibration.mu_v) < 1.0  # z-scores of vanilla rollouts
+
+
+def test_ood_report_refuses_to_calibrate_a_score_the_policy_cannot_compute(record_dirs, tmp_path):
+    with pytest.raises(ValueError, match="`score`"):
+        ood_report.main([*ood_args(*record_dirs, tmp_path / "out"), "--score=knn"])
+
+
 # ebvla-failure-report
 
 
@@ -225,22 +317,41 @@ def test_failure_report_chooses_on_calibration_and_reports_held_out(tmp_path, ca
     assert (tmp_path / "out" / "energy_over_time.png").read_bytes()[:8] == PNG_MAGIC
 
 
-def test_failure_report_carries_ended_episodes_forward_by_default(tmp_path, capsys):
+def test_failure_report_judges_episodes_at_equal_elapsed_time_unless_carried_forward(tmp_path, capsys):
     calibration, _ = failure_dirs(tmp_path)
-    # Calibration mixes 6- and 4-chunk episodes: with carry-forward every step counts all 21 episodes.
+    # Calibration mixes 6- and 4-chunk episodes: at step 5 only the 12 six-chunk ones are still running.
     args = [f"--records=[{calibration}]", "--in_sample=true", "--max_step=6", "--max_window=3"]
     failure_report.main([*args, f"--output_dir={tmp_path / 'out'}"])
-    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| 5 |")]
-    assert rows and all("| 21 | 7 | 33.3% |" in row for row in rows)
-    failure_report.main([*args, "--carry_forward=false", f"--output_dir={tmp_path / 'out'}"])
-    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| 5 |")]
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if line.startswith("| 5 |")]
     assert rows and all("| 12 | 4 | 33.3% |" in row for row in rows)
+    assert "Equal elapsed time: at step s only the episodes still running" in out
+    # With carry-forward every step counts all 21 episodes.
+    failure_report.main([*args, "--carry_forward=true", f"--output_dir={tmp_path / 'out'}"])
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if line.startswith("| 5 |")]
+    assert rows and all("| 21 | 7 | 33.3% |" in row for row in rows)
+    assert "Carry forward: episodes that ended before a step carry their last energy forward" in out
 
 
 def test_failure_report_refuses_an_in_sample_report(tmp_path):
     calibration, _ = failure_dirs(tmp_path)
     with pytest.raises(ValueError, match="in_sample"):
         failure_report.main([f"--calibration=[{calibration}]", f"--records=[{calibration}]"])
+
+
+def test_failure_report_refuses_calibration_episodes_that_replay_the_reported_seeds(tmp_path):
+    _, held_out = failure_dirs(tmp_path)
+    rerun = write(tmp_path, "held_rerun", rollouts(12, 5.0, seed=7))
+    with pytest.raises(ValueError, match=r"seeds 7000, 7001.*--in_sample=true"):
+        failure_report.main([f"--calibration=[{rerun}]", f"--records=[{held_out}]"])
+
+
+def test_failure_report_refuses_reference_episodes_that_replay_the_reported_seeds(tmp_path):
+    calibration, held_out = failure_dirs(tmp_path)
+    args = [f"--calibration=[{calibration}]", f"--records=[{held_out}]", f"--reference=[{held_out}]"]
+    with pytest.raises(ValueError, match="in_sample"):
+        failure_report.main(args)
 
 
 def test_failure_report_keeps_only_successful_reference_episodes_and_says_so(tmp_path, capsys):
@@ -277,6 +388,35 @@ def test_failure_report_filters_by_perturbation(record_dirs, tmp_path, capsys):
     assert "20 held-out episodes" in capsys.readouterr().out
 
 
+def test_failure_report_prints_the_slope_auroc_and_the_lead_time(tmp_path, capsys):
+    calibration, held_out = failure_dirs(tmp_path)
+    args = [f"--calibration=[{calibration}]", f"--records=[{held_out}]", "--max_step=6", "--max_window=4"]
+    failure_report.main([*args, "--n_bootstrap=50", f"--output_dir={tmp_path / 'out'}"])
+    out = capsys.readouterr().out
+    assert out.count("| AUROC [95% CI] |") == 2
+    assert "First alarm of each failed held-out episode (Slope Final" in out
+    lead = section(out, "Lead time, Slope Final: pooled and per task")
+    (row,) = [line for line in lead.splitlines() if line.startswith("| all tasks |")]
+    assert row.startswith("| all tasks | 4 | 8 | ")
+
+
+def test_failure_report_leaves_out_tasks_with_too_few_failures_or_successes(tmp_path, capsys):
+    def task(records, name):
+        return [dataclasses.replace(r, task=name) for r in records]
+
+    calibration = write(
+        tmp_path, "cal", task(rollouts(9, 5.0, seed=1), "a") + task(rollouts(9, 5.0, seed=2), "b")
+    )
+    # Task b's held-out episodes: one failure (episode 0) in two.
+    held = task(rollouts(6, 5.0, seed=3), "a") + task(rollouts(2, 5.0, seed=4), "b")
+    args = [f"--calibration=[{calibration}]", f"--records=[{write(tmp_path, 'held', held)}]", "--max_step=3"]
+    failure_report.main([*args, "--max_window=3", f"--output_dir={tmp_path / 'out'}"])
+    out = capsys.readouterr().out
+    assert "Left out: 1 failed and 1 successful held-out episodes (a task needs at least 2 of each)." in out
+    lead = section(out, "Lead time, Slope Final: pooled and per task")
+    assert "| a | 2 | 4 |" in lead and "| b |" not in lead
+
+
 @pytest.mark.parametrize("script", [ood_report, failure_report, landscape])
 def test_scripts_have_help_from_their_config(script, capsys):
     with pytest.raises(SystemExit) as exit_info:
@@ -284,3 +424,39 @@ def test_scripts_have_help_from_their_config(script, capsys):
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
     assert "usage:" in out and "--output" in out
+
+
+# The held-out protocol shared by both reports.
+
+
+def test_held_out_check_passes_disjoint_seeds(tmp_path):
+    calibration = load_episodes([write(tmp_path, "a", rollouts(4, 5.0, seed=1))])
+    report = load_episodes([write(tmp_path, "b", rollouts(4, 5.0, seed=2))])
+    assert check_held_out(calibration, report) is False
+
+
+def test_held_out_check_names_the_seeds_both_sets_share(tmp_path):
+    calibration = load_episodes([write(tmp_path, "a", rollouts(4, 5.0, seed=1))])
+    report = load_episodes([write(tmp_path, "b", rollouts(3, 5.0, seed=1, first=2))])
+    with pytest.raises(ValueError, match=r"task 'reach' \(vanilla\): seeds 1002, 1003\..*--in_sample=true"):
+        check_held_out(calibration, report)
+
+
+def test_held_out_check_matches_seeds_within_one_task_and_condition_only(tmp_path):
+    calibration = load_episodes([write(tmp_path, "a", rollouts(4, 5.0, seed=1))])
+    other_task = [dataclasses.replace(r, task="push") for r in rollouts(4, 5.0, seed=1)]
+    perturbed = rollouts(4, 6.0, "camera", 1.0, seed=1)
+    report = load_episodes([write(tmp_path, "b", other_task), write(tmp_path, "c", perturbed)])
+    assert check_held_out(calibration, report) is False
+
+
+def test_held_out_check_allows_an_in_sample_report_when_asked(tmp_path):
+    episodes = load_episodes([write(tmp_path, "a", rollouts(4, 5.0, seed=1))])
+    assert check_held_out(episodes, episodes, in_sample=True) is True
+    assert check_held_out(None, episodes, in_sample=True) is True
+
+
+def test_held_out_check_refuses_a_report_without_calibration(tmp_path):
+    episodes = load_episodes([write(tmp_path, "a", rollouts(4, 5.0, seed=1))])
+    with pytest.raises(ValueError, match="no `--calibration`"):
+        check_held_out(None, episodes)

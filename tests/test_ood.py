@@ -12,19 +12,24 @@ import numpy as np
 import pytest
 import torch
 
-from lerobot_policy_ebvla.monitoring.baselines import ContextFeatureModel, available_scores, episode_scores
+from lerobot_policy_ebvla.monitoring.baselines import ContextFeatureModel, available_scores
 from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_interval, roc_curve
 from lerobot_policy_ebvla.monitoring.ood import (
+    TABLE_III_MULTIPLIERS,
+    format_balanced_accuracy_table,
+    format_detection_table,
+    format_table_iii,
+    ood_detection_table,
+)
+from lerobot_policy_ebvla.monitoring.records import EnergyRecord, group_by_episode
+from lerobot_policy_ebvla.monitoring.scores import episode_scores
+from lerobot_policy_ebvla.runtime.calibration import (
     OOD_CALIBRATION_FILENAME,
     EnergyOODMonitor,
     OODCalibration,
-    format_detection_table,
-    ood_detection_table,
     rollout_score,
-    rollout_scores,
 )
-from lerobot_policy_ebvla.monitoring.records import EnergyRecord
-from lerobot_policy_ebvla.monitoring.threshold import conformal_threshold, exceeds
+from lerobot_policy_ebvla.runtime.threshold import conformal_threshold, exceeds
 
 VANILLA = [1.0, 2.0, 3.0, 4.0]
 OOD = [3.0, 5.0, 6.0]
@@ -123,13 +128,28 @@ def test_rollout_score_of_a_diverged_chunk_is_infinite():
     assert rollout_score([1.0, math.inf]) == math.inf
 
 
-def test_rollout_scores_groups_records_by_episode():
+def test_episode_scores_of_grouped_records_score_each_episode():
     records = [
         EnergyRecord(0, 0, 0, 9.0, 1.0, True, "t", None),
         EnergyRecord(0, 1, 8, 9.0, 3.0, True, "t", None),
         EnergyRecord(1, 0, 0, 9.0, 5.0, False, "t", None),
     ]
-    assert list(rollout_scores(records).values()) == [2.0, 5.0]
+    assert episode_scores(group_by_episode(records), "final_energy").tolist() == [2.0, 5.0]
+
+
+def test_episode_scores_over_the_first_chunks_use_those_chunks_only():
+    records = [EnergyRecord(0, i, 8 * i, 9.0, e, True, "t", None) for i, e in enumerate([1.0, 3.0, 5.0, 7.0])]
+    assert episode_scores(group_by_episode(records), "final_energy", first_chunks=2).tolist() == [2.0]
+
+
+def test_episode_scores_of_an_episode_shorter_than_the_first_chunks_use_all_its_chunks():
+    records = [EnergyRecord(0, i, 8 * i, 9.0, e, True, "t", None) for i, e in enumerate([1.0, 3.0])]
+    assert episode_scores(group_by_episode(records), "final_energy", first_chunks=5).tolist() == [2.0]
+
+
+def test_episode_scores_reject_fewer_than_one_first_chunk():
+    with pytest.raises(ValueError, match="first_chunks"):
+        episode_scores({}, "final_energy", first_chunks=0)
 
 
 def test_fit_computes_mu_v_and_population_sigma_v():
@@ -333,6 +353,32 @@ def test_format_detection_table_puts_baselines_beside_the_final_energy():
     assert table.splitlines()[2].endswith("| 1 | 1 | 50.0% |")
 
 
+def test_table_iii_is_printed_as_the_paper_prints_it_with_mu_sigma_auroc_and_counts_beside():
+    calibration = OODCalibration.fit(VANILLA, false_alarm_rate=0.2)
+    rows = ood_detection_table(VANILLA, OOD, calibration=calibration)
+    text = format_table_iii(rows, calibration, "0.875 [0.5, 1.0]", n_vanilla=4, n_ood=3)
+    lines = text.splitlines()
+    assert "(mu_v = 2.500, sigma_v = 1.118, from 4 calibration rollouts only)" in lines[0]
+    assert lines[2] == (
+        "| Multiplier | Threshold | Accuracy | Bal. Acc. | TPR (Catch) | FPR (False Alarm) | F1-Score | FP | FN |"
+    )
+    # The paper's nine rows, without the conformal one.
+    assert [line.split(" | ")[0] for line in lines[4:13]] == [f"| {k}σ" for k in TABLE_III_MULTIPLIERS]
+    assert lines[13] == ""
+    assert lines[14] == "AUROC 0.875 [0.5, 1.0] (bootstrap 95% interval); n vanilla = 4, n OOD = 3."
+
+
+def test_balanced_accuracy_table_sets_every_score_side_by_side_at_each_rule():
+    calibration = OODCalibration.fit(VANILLA, false_alarm_rate=0.2)
+    rows = {
+        "final_energy": ood_detection_table(VANILLA, OOD, [1.0], calibration),
+        "initial_energy": ood_detection_table([1.0] * 4, [1.0] * 3, [1.0], calibration),
+    }
+    lines = format_balanced_accuracy_table(rows).splitlines()
+    assert lines[0] == "| Rule | Bal. Acc. final_energy | Bal. Acc. initial_energy |"
+    assert lines[2:] == ["| 1.0σ | 70.8% | 50.0% |", "| conf. α=20.0% | 83.3% | 50.0% |"]
+
+
 def test_auroc_counts_ties_as_one_half():
     # OOD 3 beats vanilla 1 and 2, ties 3, loses to 4; OOD 5 and 6 beat all four: (2.5 + 4 + 4) / 12.
     assert auroc(VANILLA, OOD) == pytest.approx(10.5 / 12)
@@ -402,7 +448,12 @@ def test_baselines_are_scored_per_rollout_like_the_final_energy():
 
 def test_available_scores_need_every_chunk_to_carry_the_baseline():
     with_spread = [[chunk(0, 0, spread=0.1)], [chunk(1, 0, spread=0.2)]]
-    assert available_scores(with_spread) == ["final_energy", "initial_energy", "restart_spread"]
+    assert available_scores(with_spread) == [
+        "final_energy",
+        "phase_energy",
+        "initial_energy",
+        "restart_spread",
+    ]
     assert "restart_spread" not in available_scores([*with_spread, [chunk(2, 0)]])
 
 
@@ -420,3 +471,39 @@ def test_knn_skips_the_neighbours_of_the_same_episode():
     assert model.knn(np.array([[1.0, 0.0]]))[0] == pytest.approx(0.0)
     # Standardized by the calibration std (sqrt(2) / 3 in each dimension): (1, 0) and (0, 1) are 3 apart.
     assert model.knn(np.array([[1.0, 0.0]]), episode_id="a")[0] == pytest.approx(3.0)
+
+
+def test_mahalanobis_of_a_calibration_episode_leaves_its_features_out():
+    rng = np.random.default_rng(3)
+    features, ids = rng.normal(size=(30, 4)), [i // 5 for i in range(30)]
+    model = ContextFeatureModel.fit(features, ids)
+    without_episode_0 = ContextFeatureModel.fit(features[5:], ids[5:])
+    np.testing.assert_allclose(
+        model.mahalanobis(features[:5], episode_id=0), without_episode_0.mahalanobis(features[:5])
+    )
+
+
+def test_mahalanobis_of_a_held_out_episode_uses_every_calibration_feature():
+    rng = np.random.default_rng(4)
+    features = rng.normal(size=(20, 3))
+    model = ContextFeatureModel.fit(features, [i // 4 for i in range(20)])
+    queries = rng.normal(size=(3, 3))
+    np.testing.assert_array_equal(
+        model.mahalanobis(queries, episode_id="held out"), model.mahalanobis(queries)
+    )
+
+
+def test_mahalanobis_scores_calibration_episodes_leave_one_out_as_held_out_ones_are_scored():
+    # In-sample, an episode's own chunks pull its distance down: the threshold fitted on these would be low.
+    rng = np.random.default_rng(5)
+    features, ids = rng.normal(size=(60, 8)), [i // 6 for i in range(60)]
+    model = ContextFeatureModel.fit(features, ids)
+    in_sample = np.mean(
+        [model.mahalanobis(features[ids.index(e) : ids.index(e) + 6]).mean() for e in range(10)]
+    )
+    left_out = np.mean(
+        [model.mahalanobis(features[ids.index(e) : ids.index(e) + 6], episode_id=e).mean() for e in range(10)]
+    )
+    held_out = model.mahalanobis(rng.normal(size=(600, 8))).mean()
+    assert in_sample < left_out
+    assert abs(left_out - held_out) < abs(in_sample - held_out)

@@ -14,8 +14,7 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 from lerobot_policy_ebvla import EBVLAPolicy, make_ebvla_pre_post_processors
-from lerobot_policy_ebvla.monitoring import EnergyOODMonitor, OODCalibration
-from lerobot_policy_ebvla.ood_response import EnergyOODError, EnergyOODResponse
+from lerobot_policy_ebvla.runtime import EnergyOODError, EnergyOODResponse, OODCalibration
 from tests.conftest import tiny_batch, tiny_config
 
 BELOW_ALL_ENERGIES = OODCalibration(mu_v=-1e6, sigma_v=0.0)
@@ -233,7 +232,8 @@ def test_raise_and_hold_need_a_calibration(tmp_path):
 
 
 def test_non_finite_energy_is_held_whatever_the_threshold():
-    response = EnergyOODResponse("hold", EnergyOODMonitor(ABOVE_ALL_ENERGIES), hold_action=_zeros())
+    config = tiny_config(ood_response="hold", hold_action="zero_delta")
+    response = EnergyOODResponse(config, ABOVE_ALL_ENERGIES, hold_action=_zeros())
     actions = torch.ones(2, 3, 2)
     held, decision = response(actions, torch.tensor([1.0, math.inf]), {})
     assert decision.held.tolist() == [False, True]
@@ -245,7 +245,7 @@ def _zeros():
     from lerobot.configs import NormalizationMode
     from lerobot.processor import NormalizerProcessorStep
 
-    from lerobot_policy_ebvla.ood_response import HoldAction
+    from lerobot_policy_ebvla.runtime import HoldAction
 
     features = {ACTION: PolicyFeature(FeatureType.ACTION, (2,))}
     normalizer = NormalizerProcessorStep(features, {FeatureType.ACTION: NormalizationMode.IDENTITY}, stats={})
@@ -269,3 +269,27 @@ def test_energy_records_count_the_held_chunks(metaworld_env, checkpoints, checkp
     records = recorder.records_from_successes({("reach-v3", 0): [False]}, n_episodes=1)
     assert len(records) == math.ceil(EPISODE_STEPS / CHUNK)
     assert all(record.held is held for record in records)
+
+
+def test_a_phase_calibration_compares_each_chunk_with_the_vanilla_energy_at_its_index():
+    # Vanilla energies fall from 0 at the first chunk to -10 at the second: -5 is normal early, not late.
+    calibration = OODCalibration(
+        mu_v=0.0, sigma_v=1.0, k=1.0, score="phase_energy", phase_mean=(0.0, -10.0), phase_std=(1.0, 1.0)
+    )
+    response = EnergyOODResponse(tiny_config(ood_response="raise"), calibration)
+    actions, energy = torch.zeros(1, 3, 2), torch.tensor([-5.0])
+    _, decision = response(actions, energy, {}, chunk_index=0)
+    assert not decision.flagged.any()
+    with pytest.raises(EnergyOODError, match="phase_energy 5"):
+        response(actions, energy, {}, chunk_index=1)
+
+
+def test_the_policy_counts_its_chunks_per_episode():
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(tiny_config())
+    batch = tiny_batch(policy.config, with_action=False)
+    policy.predict_action_chunk(batch)
+    policy.predict_action_chunk(batch)
+    assert policy.chunk_index == 2
+    policy.reset()
+    assert policy.chunk_index == 0

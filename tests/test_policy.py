@@ -252,3 +252,50 @@ def test_too_small_images_for_the_kept_stages_are_refused():
         EBVLAPolicy(tiny_config(vision_backbone_stages=2, resize_shape=(8, 8), input_features=small))
     with pytest.raises(ValueError, match="`vision_backbone_stages` must be 1, 2, 3 or 4"):
         tiny_config(vision_backbone_stages=5)
+
+
+def test_chunk_hooks_see_every_refined_chunk_until_removed(tiny_policy):
+    seen = []
+    handle = tiny_policy.register_chunk_hook(
+        lambda policy, batch, readout, decision: seen.append((policy, readout, decision))
+    )
+    batch = tiny_batch(tiny_policy.config, with_action=False)
+    tiny_policy.reset()
+    for _ in range(tiny_policy.config.n_action_steps + 1):
+        tiny_policy.select_action(batch)
+    assert len(seen) == 2
+    assert all(p is tiny_policy and d is None for p, _, d in seen)
+    assert seen[-1][1] is tiny_policy.last_energy
+    handle.remove()
+    tiny_policy.predict_action_chunk(batch)
+    assert len(seen) == 2
+
+
+def test_restart_spread_is_zero_only_without_noise(tiny_policy):
+    batch = tiny_batch(tiny_policy.config, with_action=False)
+    spread = tiny_policy.restart_spread(batch, 4, torch.Generator().manual_seed(0))
+    assert spread.shape == (batch["observation.state"].shape[0],)
+    assert (spread > 0).all()
+    with pytest.raises(ValueError, match="n_chains"):
+        tiny_policy.restart_spread(batch, 1, torch.Generator())
+
+
+def test_normalized_energy_is_the_final_energy_plus_the_log_partition_of_prior_chunks(tiny_policy):
+    batch = tiny_batch(tiny_policy.config, with_action=False)
+    cfg = tiny_policy.config
+    final = torch.tensor([1.0, -2.0])[: batch["observation.state"].shape[0]]
+    normalized = tiny_policy.normalized_energy(batch, final, 8, torch.Generator().manual_seed(3))
+    samples = cfg.init_action_std * torch.randn(
+        (final.shape[0], 8, cfg.chunk_size, cfg.action_dim), generator=torch.Generator().manual_seed(3)
+    )
+    energies = tiny_policy.score_action_chunks(batch, samples)
+    expected = final + torch.logsumexp(-energies, dim=1) - math.log(8)
+    torch.testing.assert_close(normalized, expected)
+
+
+def test_context_features_are_the_pooled_last_block_context(tiny_policy):
+    batch = tiny_batch(tiny_policy.config, with_action=False)
+    features = tiny_policy.context_features(batch)
+    with torch.no_grad():
+        expected = tiny_policy.model.backbone(batch)[-1].mean(dim=1)
+    torch.testing.assert_close(features, expected)

@@ -37,7 +37,7 @@ def round_trip(tmp_path, monkeypatch, **server_flags):
     from lerobot.async_inference import robot_client
     from lerobot.async_inference.configs import RobotClientConfig
 
-    from lerobot_policy_ebvla.scripts.policy_server import EBVLAPolicyServerConfig, start_server
+    from lerobot_policy_ebvla.serving import EBVLAPolicyServerConfig, start_server
 
     robots = []
     monkeypatch.setattr(
@@ -105,10 +105,10 @@ def test_server_holds_the_robots_joint_positions_when_told_to(in_tmp_path, monke
         np.testing.assert_allclose([action[j] for j in robot.joints], JOINT_POSITIONS, atol=1e-3)
 
 
-def test_ebvla_is_added_once_to_the_list_lerobots_server_checks():
+def test_ebvla_is_added_once_to_the_list_lerobots_server_checks(in_tmp_path):
     from lerobot.async_inference import policy_server
 
-    from lerobot_policy_ebvla.scripts.policy_server import allow_ebvla_in_policy_server
+    from lerobot_policy_ebvla.serving import allow_ebvla_in_policy_server
 
     allow_ebvla_in_policy_server()
     allow_ebvla_in_policy_server()

@@ -1,11 +1,20 @@
-"""`ebvla-quickstart`: its command line, its guards, its summary, and the whole pipeline at a tiny size."""
+"""`ebvla-quickstart`: its command line, its guards, its summary (`monitoring.summary`), and the whole
+pipeline at a tiny size."""
 
 import json
 import math
 
 import pytest
 
-from lerobot_policy_ebvla.monitoring import EnergyRecord, write_energy_records
+from lerobot_policy_ebvla.monitoring import (
+    EnergyRecord,
+    group_by_episode,
+    read_energy_records,
+    write_energy_records,
+)
+from lerobot_policy_ebvla.monitoring.summary import condition_summary, energy_aurocs
+from lerobot_policy_ebvla.pipelines.quickstart import RUN_MARKER, SUMMARY_FILENAME, QuickstartConfig
+from lerobot_policy_ebvla.presets import LIGHT_POLICY
 from lerobot_policy_ebvla.scripts import quickstart
 
 # The whole pipeline in about 30 s on a 2-core CPU: one expert episode, two training steps of a tiny head,
@@ -35,13 +44,13 @@ def test_policy_flags_override_the_light_policy_and_keep_its_other_values():
 
     assert cfg.task == "push-v3" and cfg.policy.dim_model == 64
     for name in ("backbone", "n_heads", "n_blocks", "resize_shape", "train_mcmc_steps_range"):
-        assert getattr(cfg.policy, name) == quickstart.LIGHT_POLICY[name], name
+        assert getattr(cfg.policy, name) == LIGHT_POLICY[name], name
 
 
 def test_defaults_are_the_light_policy_from_the_command_line_and_from_python():
-    from_cli, from_python = quickstart.parse_config([]), quickstart.QuickstartConfig()
+    from_cli, from_python = quickstart.parse_config([]), QuickstartConfig()
 
-    for name, value in quickstart.LIGHT_POLICY.items():
+    for name, value in LIGHT_POLICY.items():
         assert getattr(from_cli.policy, name) == getattr(from_python.policy, name) == value, name
 
 
@@ -85,7 +94,7 @@ def test_refuses_to_replace_a_previous_run_without_overwrite(tmp_path):
 
 
 def test_refuses_a_run_in_progress_before_train_dir_exists(tmp_path):
-    (tmp_path / quickstart.RUN_MARKER).write_text("{}\n")
+    (tmp_path / RUN_MARKER).write_text("{}\n")
     with pytest.raises(SystemExit, match="--overwrite"):
         quickstart.main([f"--output_dir={tmp_path}"])
 
@@ -97,7 +106,7 @@ def test_summary_splits_final_energy_by_episode_outcome(tmp_path):
     records = [chunk(0, 0, 0.5, True), chunk(0, 1, 1.5, True), chunk(1, 0, 3.0, False)]
     write_energy_records(tmp_path / "energy_records.jsonl", records)
 
-    summary = quickstart.summarise(tmp_path)
+    summary = condition_summary(group_by_episode(read_energy_records(tmp_path)))
 
     assert summary["n_episodes"] == 2 and summary["n_success"] == 1
     assert summary["success_rate"] == 0.5
@@ -115,7 +124,7 @@ def test_energy_aurocs_rank_each_condition_against_vanilla_and_failures_against_
         "blank": {"episodes": [episode(-2.0, False), episode(-4.5, True)]},
     }
 
-    aurocs = quickstart.energy_aurocs(conditions)
+    aurocs = energy_aurocs(conditions, reference="vanilla")
 
     # Pairs where blank is higher: -4.5 beats -5.0 only (1 of 3), -2.0 beats all three (3 of 3): 4 / 6.
     assert math.isclose(aurocs["blank"], 4 / 6)
@@ -128,7 +137,7 @@ def test_energy_aurocs_rank_each_condition_against_vanilla_and_failures_against_
 def test_records_trains_evaluates_three_conditions_and_checks_the_camera(tmp_path, capsys):
     quickstart.main([f"--output_dir={tmp_path}", *TINY])
 
-    summary = json.loads((tmp_path / quickstart.SUMMARY_FILENAME).read_text())
+    summary = json.loads((tmp_path / SUMMARY_FILENAME).read_text())
     assert list(summary["conditions"]) == ["vanilla", "blank", "light_dim_s5"]
     for name, condition in summary["conditions"].items():
         assert condition["n_episodes"] == 1, name

@@ -15,7 +15,7 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.robots import Robot, RobotConfig
 
 from lerobot_policy_ebvla import EBVLAPolicy
-from lerobot_policy_ebvla.monitoring import OODCalibration
+from lerobot_policy_ebvla.runtime import OODCalibration
 from tests.conftest import tiny_config
 from tests.test_ood_response import BELOW_ALL_ENERGIES, save_checkpoint
 

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 from lerobot.configs import NormalizationMode, PreTrainedConfig
 from lerobot.optim import AdamWConfig, CosineDecayWithWarmupSchedulerConfig
+from lerobot.policies.rtc.configuration_rtc import RTCConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 BACKBONES = ("vlm", "resnet")
@@ -17,6 +18,7 @@ CAMERA_TOKENS = ("keypoints", "feature_map")
 STEP_SIZE_SAMPLINGS = ("per_chain", "per_mcmc_step")
 OOD_RESPONSES = ("continue", "hold", "raise")
 HOLD_ACTIONS = ("zero_delta", "current_state")
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 FROZEN_WEIGHTS_DTYPES = ("bfloat16", "float32")
 
 
@@ -135,11 +137,22 @@ class EBVLAConfig(PreTrainedConfig):
             runs all K_inf steps.
         compile_refinement: torch.compile the energy evaluated at every inference MCMC step (same actions
             and energies up to float rounding). Each new batch size compiles again, 15-60 s per shape on a
-            CPU, so it pays off over long rollouts only. On an H100 in bf16 this plain-inductor compile gave
-            no gain (docs/vlm_backbone.md); the measured gain there came from CUDA graphs
-            (`benchmarks/vlm_gpu_bench.py --compile-refinement reduce-overhead`), not yet a config option.
+            CPU, so it pays off over long rollouts only. On an H100 in bf16 the plain-inductor compile
+            ("default" mode) gave no gain; "reduce-overhead" (CUDA graphs) gave 106 vs 205 ms per chunk at
+            B=8 and nothing at B=1 (docs/vlm_backbone.md).
+        compile_refinement_mode: torch.compile's `mode` for `compile_refinement`: "default" (inductor),
+            "reduce-overhead" (inductor in CUDA graphs: every batch size is captured once, and each step's
+            energies are copied out of the graph's buffers so no replay overwrites what was returned),
+            "max-autotune" or "max-autotune-no-cudagraphs". The CUDA-graph modes need a GPU to pay off.
+        rtc_config: LeRobot's real-time chunking (`RTCConfig`), which `lerobot-rollout --inference.type=rtc`
+            sets from `--inference.rtc.*`. When set and enabled, `predict_action_chunk(batch, inference_delay=d,
+            prev_chunk_left_over=abar)` refines the chunk as inpainting (`mcmc.py`): the first d actions are
+            held at the previous chunk's leftover abar, and the next ones up to `execution_horizon` are pulled
+            towards it with LeRobot's `prefix_attention_schedule` weights w_t and guidance weight
+            lambda = `max_guidance_weight` (each MCMC step closes a fraction min(1, alpha lambda w_t) of the
+            gap). None (the default) or `enabled=False` refines every chunk from scratch.
         ood_response: What the policy does with a refined chunk whose final energy exceeds the OOD
-            threshold T of the checkpoint's `ood_calibration.json` (see `ood_response.py`): "continue"
+            threshold T of the checkpoint's `ood_calibration.json` (see `runtime/response.py`): "continue"
             executes it and logs a warning (the default; without a calibration nothing is checked), "hold"
             executes `hold_action` instead, "raise" raises `EnergyOODError`.
         hold_action: The action a held chunk repeats, required with `ood_response="hold"` because it depends
@@ -251,6 +264,8 @@ class EBVLAConfig(PreTrainedConfig):
     num_restarts: int = 1
     early_stop_tol: float | None = None
     compile_refinement: bool = False
+    compile_refinement_mode: str = "default"
+    rtc_config: RTCConfig | None = None
 
     # Deployment.
     ood_response: str = "continue"
@@ -377,6 +392,14 @@ class EBVLAConfig(PreTrainedConfig):
             raise ValueError(f"`lora_dropout` must be in [0, 1). Got {self.lora_dropout}.")
         if not self.lora_target_modules:
             raise ValueError("`lora_target_modules` must name at least one language-model module.")
+        if self.compile_refinement_mode not in COMPILE_MODES:
+            raise ValueError(
+                f"`compile_refinement_mode` must be one of {COMPILE_MODES}. Got {self.compile_refinement_mode!r}."
+            )
+        if self.rtc_config is not None and self.rtc_config.execution_horizon < 1:
+            raise ValueError(
+                f"`rtc_config.execution_horizon` must be >= 1. Got {self.rtc_config.execution_horizon}."
+            )
         if self.ood_response not in OOD_RESPONSES:
             raise ValueError(f"`ood_response` must be one of {OOD_RESPONSES}. Got {self.ood_response!r}.")
         if self.hold_action is not None and self.hold_action not in HOLD_ACTIONS:

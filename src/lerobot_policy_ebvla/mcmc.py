@@ -15,6 +15,21 @@ In training the loss reaches the energy's parameters (and through them the backb
 step's update alpha exp(e_t / tau) clip(g, -c, c). Where the clip is active its derivative is zero, so the
 direction g carries no learning signal there and only the step length exp(e_t / tau) does. `straight_through_clip`
 keeps the clipped value in the forward pass and lets the backward pass treat the clip as the identity.
+
+Real-time chunking (RTC) refines the next chunk as inpainting on the same landscape. The robot keeps executing
+the previous chunk while this one is refined; its unexecuted actions are the prefix abar, (B, H, d_a). The
+first d of them run before this chunk can arrive, so they are held; the rest of the overlap is pulled towards
+abar with weights w_t in [0, 1] (LeRobot's prefix-attention schedule: 1 before d, decaying to 0 at the
+execution horizon) and a guidance weight lambda. After every update of Eq. 3:
+
+    a_t^(k+1) <- a_t^(k+1) - min(1, alpha^(k) lambda w_t) (a_t^(k+1) - abar_t)     guidance
+    a_t^(k+1) <- abar_t  for t < d, and likewise in a^(0)                          hold
+
+The guidance is a gradient step of size alpha^(k) on (lambda / 2) w_t ||a_t - abar_t||^2, taken apart from
+the energy's step so that neither the clip c nor the scale exp(e_t / tau) bends it, and capped so that it never
+overshoots abar. The held actions take part in every energy evaluation (the head attends over the whole chunk,
+so the continuation is refined in their context) but no update moves them. The energies are those of
+E_theta, never of the guidance term.
 """
 
 from collections.abc import Callable, Sequence
@@ -72,6 +87,10 @@ def refine_actions(
     create_graph: bool = False,
     early_stop_tol: float | None = None,
     straight_through_clip: bool = False,
+    prefix: Tensor | None = None,
+    held_steps: int = 0,
+    prefix_weights: Tensor | None = None,
+    guidance_weight: float = 0.0,
 ) -> RefinementResult:
     """Runs len(step_sizes) energy-scaled gradient steps (Eq. 2-3) from `initial_actions`.
 
@@ -89,11 +108,27 @@ def refine_actions(
         early_stop_tol: Stop once no action entry moved more than this in a step. None runs every step.
         straight_through_clip: With `create_graph`, differentiate the clip as the identity (same forward
             values); without it the clip passes no gradient wherever |g| > c.
+        prefix: RTC's abar, (B, H, d_a): the previous chunk's unexecuted actions, aligned with this chunk's
+            timesteps (entries where the weights are 0 and t >= d are not read). None refines from scratch.
+        held_steps: RTC's d: the first d actions are abar's in a^(0) and after every step.
+        prefix_weights: RTC's w_t, (H,) or (B, H), in [0, 1]; None with a prefix holds only.
+        guidance_weight: RTC's lambda of the pull towards abar.
 
     Returns:
         The refined chunk, the energy seen at every step and which chunks diverged.
     """
     a = initial_actions.detach()
+    if prefix is not None:
+        if prefix.shape != a.shape or not 0 <= held_steps <= a.shape[1]:
+            raise ValueError(
+                f"`prefix` must have the chunk's shape {tuple(a.shape)} and `held_steps` be in [0, {a.shape[1]}]. "
+                f"Got {tuple(prefix.shape)} and {held_steps}."
+            )
+        prefix = prefix.detach().to(a.dtype)
+        held = (torch.arange(a.shape[1], device=a.device) < held_steps).unsqueeze(-1)  # (H, 1)
+        weights = torch.zeros(a.shape[1], device=a.device) if prefix_weights is None else prefix_weights
+        weights = weights.to(a.device, a.dtype).unsqueeze(-1)  # w_t, (H, 1) or (B, H, 1)
+        a = torch.where(held, prefix, a)
     diverged = torch.zeros(a.shape[0], dtype=torch.bool, device=a.device)
     step_energies = []
     for alpha in step_sizes:
@@ -112,6 +147,9 @@ def refine_actions(
                 clipped = grad + (clipped - grad).detach()
             step = alpha * torch.exp(e / temperature).unsqueeze(-1) * clipped
             updated = (a - step).clamp(-action_clamp, action_clamp)
+            if prefix is not None:
+                pull = (alpha * guidance_weight * weights).clamp(max=1.0)
+                updated = torch.where(held, prefix, updated - pull * (updated - prefix))
             finite = torch.isfinite(energy) & torch.isfinite(grad).flatten(1).all(dim=1)
             finite &= torch.isfinite(updated).flatten(1).all(dim=1)
             # A chunk whose energy or gradient went non-finite keeps its last finite iterate.

@@ -2,31 +2,39 @@
 
 EB-VLA learns a scalar energy E_theta(a, C) over action chunks conditioned on the observation's context and
 produces actions by gradient descent on it. The energy of the refined chunk is returned with it as a
-confidence score: `EnergyReadout.final_energy` (higher means less expert-like, see `monitoring/`).
+confidence score: `EnergyReadout.final_energy` (higher means less expert-like). `runtime/` turns it into a
+decision at run time; `monitoring/` studies it offline.
 """
 
+import dataclasses
 import functools
 import logging
 import math
 import os
 import tempfile
-from collections import deque
+from collections import OrderedDict, deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import draccus
 import torch
+from huggingface_hub.constants import CONFIG_NAME, SAFETENSORS_SINGLE_FILE
 from lerobot.configs import PreTrainedConfig
 from lerobot.policies.pretrained import PreTrainedPolicy
+from lerobot.policies.rtc.modeling_rtc import RTCProcessor
 from lerobot.utils.constants import ACTION, OBS_STATE
+from safetensors import SafetensorError
 from torch import Tensor, nn
 from torch.func import functional_call
 from torch.nn.attention import SDPBackend, sdpa_kernel
+from torch.utils.hooks import RemovableHandle
 
 from .backbone_resnet import EBVLAResNetBackbone
 from .configuration_ebvla import EBVLAConfig
 from .energy_head import ContextKV, EBVLAEnergyHead, repeat_context_kv
 from .mcmc import EnergyFn, RefinementResult, refine_actions, sample_initial_actions
-from .ood_response import EnergyOODResponse, OODResponseDecision, respond_to_energy
+from .runtime.response import EnergyOODResponse, OODResponseDecision, respond_to_energy
 
 logger = logging.getLogger(__name__)
 
@@ -47,6 +55,27 @@ class EnergyReadout:
     final_energy: Tensor
 
 
+@dataclass
+class RTCPrefix:
+    """The previous chunk's leftover that real-time chunking inpaints (`rtc_prefix`, `mcmc.refine_actions`).
+
+    Attributes:
+        actions: abar, (B, chunk_size, action_dim): the leftover from timestep 0, zero past its end.
+        held_steps: d: the actions held at abar.
+        weights: w_t, (chunk_size,): LeRobot's prefix-attention schedule, 0 past the guided overlap.
+        guidance_weight: lambda of the pull towards abar.
+    """
+
+    actions: Tensor
+    held_steps: int
+    weights: Tensor
+    guidance_weight: float
+
+
+# hook(policy, batch, readout, decision), called after each refined chunk the policy returns.
+ChunkHook = Callable[["EBVLAPolicy", dict[str, Tensor], EnergyReadout, OODResponseDecision | None], None]
+
+
 class EBVLAPolicy(PreTrainedPolicy):
     """EB-VLA policy: a VLM (or light) backbone and an energy-based transformer head refined by MCMC."""
 
@@ -65,8 +94,10 @@ class EBVLAPolicy(PreTrainedPolicy):
             config.task_instructions = [str(task) for task in dataset_meta.tasks.index]
         self.config = config
         self.model = EBVLA(config)
-        # Set by `from_pretrained` from the checkpoint's ood_calibration.json (see `ood_response.py`).
+        # Set by `configure_ood_response` from the checkpoint's ood_calibration.json (`runtime/response.py`).
         self.ood_response: EnergyOODResponse | None = None
+        # An OrderedDict, as torch keeps module hooks: `RemovableHandle` holds a weak reference to it.
+        self._chunk_hooks: OrderedDict[int, ChunkHook] = OrderedDict()
         self.reset()
 
     @classmethod
@@ -84,11 +115,37 @@ class EBVLAPolicy(PreTrainedPolicy):
         `ood_calibration.json`, if there is one.
         """
         if config is None:
-            config = PreTrainedConfig.from_pretrained(pretrained_name_or_path, **kwargs)
+            config = _load_saved_config(pretrained_name_or_path, **kwargs)
         config.load_pretrained_backbone = False
-        policy = super().from_pretrained(pretrained_name_or_path, config=config, strict=strict, **kwargs)
-        policy.ood_response = EnergyOODResponse.from_pretrained(policy.config, pretrained_name_or_path)
+        try:
+            policy = super().from_pretrained(pretrained_name_or_path, config=config, strict=strict, **kwargs)
+        except SafetensorError as e:
+            raise ValueError(
+                f"The weights {SAFETENSORS_SINGLE_FILE} of {pretrained_name_or_path} cannot be read ({e}): the "
+                "file is damaged or was only partly written or downloaded. Save or download it again."
+            ) from e
+        policy.configure_ood_response(pretrained_name_or_path)
         return policy
+
+    def configure_ood_response(self, pretrained_name_or_path: str | Path, **overrides) -> None:
+        """(Re)builds the OOD response from a checkpoint's calibration, after setting config fields.
+
+        The config is the one source of truth: `ood_response`, `hold_action` and `ood_threshold_k` given here
+        replace the config's (validated as at construction), then the response is rebuilt to match.
+
+        Args:
+            pretrained_name_or_path: The checkpoint whose `ood_calibration.json` (and, to hold, whose
+                pre-processor's normalizer) the response uses.
+            overrides: Any of `ood_response`, `hold_action`, `ood_threshold_k`.
+        """
+        allowed = {"ood_response", "hold_action", "ood_threshold_k"}
+        if unknown := set(overrides) - allowed:
+            raise ValueError(f"Only {sorted(allowed)} can be changed here; got {sorted(unknown)}.")
+        if overrides:
+            config = dataclasses.replace(self.config, **overrides)  # runs __post_init__'s checks
+            config.validate_features()
+            self.config = self.model.config = config
+        self.ood_response = EnergyOODResponse.from_pretrained(self.config, pretrained_name_or_path)
 
     def _save_pretrained(self, save_directory: Path, state_dict: dict[str, Tensor] | None = None) -> None:
         """Saves config and weights so that a save that fails midway leaves the previous files intact.
@@ -110,39 +167,76 @@ class EBVLAPolicy(PreTrainedPolicy):
     def get_optim_params(self) -> list[nn.Parameter]:
         return [p for p in self.parameters() if p.requires_grad]
 
+    def supports_rtc(self) -> bool:
+        """Real-time chunking is native to an energy head: `predict_action_chunk` inpaints the leftover.
+
+        True for every configuration, as LeRobot asks before it sets `config.rtc_config` from
+        `--inference.rtc.*`; RTC acts when `config.rtc_config` is set and enabled.
+        """
+        return True
+
     def reset(self) -> None:
-        """Clears the action queue; call it on `env.reset()`."""
+        """Clears the action queue and the episode's chunk count; call it on `env.reset()`."""
         self._action_queue: deque[Tensor] = deque(maxlen=self.config.n_action_steps)
         self.last_energy: EnergyReadout | None = None
         self.last_ood_decision: OODResponseDecision | None = None
+        # Index of the next chunk in the episode: a phase-aware OOD calibration compares each chunk's energy
+        # with the vanilla energies at the same index.
+        self.chunk_index = 0
 
     def predict_action_chunk(
         self,
         batch: dict[str, Tensor],
         generator: torch.Generator | None = None,
         return_energy: bool = False,
+        inference_delay: int | None = None,
+        prev_chunk_left_over: Tensor | None = None,
+        execution_horizon: int | None = None,
     ) -> Tensor | tuple[Tensor, EnergyReadout]:
         """Refines a chunk of (normalized) actions, (B, chunk_size, action_dim), for each observation.
 
-        The chunk's energies are kept in `self.last_energy` and the OOD response to them (`ood_response.py`:
+        The chunk's energies are kept in `self.last_energy` and the OOD response to them (`runtime/response.py`:
         continue, hold or raise `EnergyOODError`) in `self.last_ood_decision`; held chunks are returned
-        replaced by the hold action.
+        replaced by the hold action. Each call counts as the episode's next chunk (`self.chunk_index`).
 
         Args:
             batch: A pre-processed observation batch.
             generator: Seeds a^(0) and the Langevin noise; on the policy's device.
             return_energy: Also return the chunk's initial and final energies.
+            inference_delay: Real-time chunking (with `config.rtc_config` enabled): the number d of control
+                steps the robot executes from the previous chunk before this one arrives, at most chunk_size.
+            prev_chunk_left_over: The previous chunk's unexecuted (normalized) actions, (B, n, action_dim) or
+                (n, action_dim) as `lerobot-rollout --inference.type=rtc` passes them; the first d are held,
+                the rest of the overlap guided (`mcmc.py`). The energies are those of the whole returned chunk.
+            execution_horizon: Overrides `rtc_config.execution_horizon`, the end of the guided overlap.
         """
         validate_observation(batch, self.config)
         # lerobot-eval runs under inference_mode, but refinement differentiates the energy w.r.t. a.
         with torch.inference_mode(False):
+            prefix = rtc_prefix(
+                self.config, _batch_size(batch), inference_delay, prev_chunk_left_over, execution_horizon
+            )
             refine_batch = _without_inference_tensors(batch)
-            actions, readout = self.model.generate_actions(refine_batch, generator=generator)
+            actions, readout = self.model.generate_actions(refine_batch, generator=generator, prefix=prefix)
         self.last_energy = readout
+        chunk_index, self.chunk_index = self.chunk_index, self.chunk_index + 1
         actions, self.last_ood_decision = respond_to_energy(
-            self.ood_response, self.config, actions, readout.final_energy, batch
+            self.ood_response, self.config, actions, readout.final_energy, batch, chunk_index
         )
+        for hook in list(self._chunk_hooks.values()):
+            hook(self, batch, readout, self.last_ood_decision)
         return (actions, readout) if return_energy else actions
+
+    def register_chunk_hook(self, hook: ChunkHook) -> RemovableHandle:
+        """Calls `hook(policy, batch, readout, decision)` after every chunk the policy refines and returns.
+
+        This is how rollout tools (the energy recorder, a logger) see each chunk's energies with the
+        observation batch that produced them, whichever loop calls `select_action`. A chunk that raises
+        `EnergyOODError` is not returned and reaches no hook. Remove the hook with `handle.remove()`.
+        """
+        handle = RemovableHandle(self._chunk_hooks)
+        self._chunk_hooks[handle.id] = hook
+        return handle
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], generator: torch.Generator | None = None) -> Tensor:
@@ -173,6 +267,51 @@ class EBVLAPolicy(PreTrainedPolicy):
             kv = repeat_context_kv(self.model.encode_context(batch), n)
             energies = self.model.head(candidates.clone().flatten(0, 1), kv).mean(dim=-1)
         return energies.view(b, n)
+
+    def restart_spread(self, batch: dict[str, Tensor], n_chains: int, generator: torch.Generator) -> Tensor:
+        """(B,) spread of `n_chains` chunks refined from independent a^(0) for each observation.
+
+        The std over chains of the normalized actions, averaged over the chunk's H x d_a entries: an
+        ensemble-disagreement baseline for the final energy. It costs `n_chains` refinements per observation.
+        """
+        if n_chains < 2:
+            raise ValueError(f"`n_chains` must be >= 2 for a spread, got {n_chains}.")
+        validate_observation(batch, self.config)
+        with torch.inference_mode(False):
+            batch = repeat_observations(batch, n_chains)
+            actions, _ = self.model.generate_actions(batch, generator=generator)
+        actions = actions.float().unflatten(0, (-1, n_chains))  # (B, N, H, d_a)
+        return actions.std(dim=1, unbiased=False).mean(dim=(1, 2))
+
+    def log_partition(self, batch: dict[str, Tensor], n_samples: int, generator: torch.Generator) -> Tensor:
+        """(B,) Monte-Carlo log Z(C) = log mean_j exp(-E(a_j, C)), a_j ~ N(0, sigma_init^2 I) the MCMC prior.
+
+        The energy is defined up to a per-context offset; E(a, C) + log Z(C) (`normalized_energy`) removes it.
+        """
+        if n_samples < 1:
+            raise ValueError(f"`n_samples` must be >= 1, got {n_samples}.")
+        cfg = self.config
+        batch_size = _batch_size(batch)
+        shape = (batch_size, n_samples, cfg.chunk_size, cfg.action_dim)
+        device = next(self.parameters()).device
+        samples = cfg.init_action_std * torch.randn(shape, device=device, generator=generator)
+        energies = self.score_action_chunks(batch, samples).float()  # (B, N)
+        return torch.logsumexp(-energies, dim=1) - math.log(n_samples)
+
+    def normalized_energy(
+        self, batch: dict[str, Tensor], final_energy: Tensor, n_samples: int, generator: torch.Generator
+    ) -> Tensor:
+        """(B,) E(a^(K_inf), C) + log Z(C): the final energy relative to the prior's energies under the same
+        context (`log_partition`), so that contexts whose whole landscape sits higher do not look OOD."""
+        return final_energy.float() + self.log_partition(batch, n_samples, generator).to(final_energy.device)
+
+    def context_features(self, batch: dict[str, Tensor]) -> Tensor:
+        """(B, D) the last block's backbone context C_L, averaged over its tokens: the observation's
+        embedding for the feature baselines (Mahalanobis, k-NN)."""
+        validate_observation(batch, self.config)
+        with torch.inference_mode(False), torch.no_grad():
+            contexts = self.model.backbone(_without_inference_tensors(batch))
+        return contexts[-1].float().mean(dim=1)
 
     def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict]:
         """Training loss (Eq. 4) and logged metrics for a pre-processed batch with actions."""
@@ -225,8 +364,17 @@ class EBVLA(nn.Module):
         early_stop_tol: float | None = None,
         energy_fn: EnergyFn | None = None,
         straight_through_clip: bool = False,
+        prefix: RTCPrefix | None = None,
     ) -> RefinementResult:
         cfg = self.config
+        rtc = {}
+        if prefix is not None:
+            rtc = {
+                "prefix": prefix.actions,
+                "held_steps": prefix.held_steps,
+                "prefix_weights": prefix.weights,
+                "guidance_weight": prefix.guidance_weight,
+            }
         return refine_actions(
             energy_fn or (lambda a: self.head(a, kv)),
             initial_actions,
@@ -239,6 +387,7 @@ class EBVLA(nn.Module):
             create_graph=create_graph,
             early_stop_tol=early_stop_tol,
             straight_through_clip=straight_through_clip,
+            **rtc,
         )
 
     def _initial_actions(
@@ -262,19 +411,37 @@ class EBVLA(nn.Module):
         # grad, AOTAutograd's backward would also compute every weight gradient (the eager engine skips them).
         params = {name: p.detach() for name, p in self.head.named_parameters()}
         params.update(self.head.named_buffers())
-        energy = compiled_head_energy()
-        return lambda a: energy(self.head, params, a, kv)
+        mode = self.config.compile_refinement_mode
+        energy = compiled_head_energy(mode)
+        if mode in ("default", "max-autotune-no-cudagraphs"):
+            return lambda a: energy(self.head, params, a, kv)
+        for tensor in params.values():
+            # The parameters never move, so CUDA graphs read them in place instead of copying every weight
+            # into the graph's input buffers at each replay.
+            torch._dynamo.mark_static_address(tensor)
+        # A CUDA-graph replay overwrites the buffers of the previous one: the step energies kept in
+        # `RefinementResult` (and `last_energy`) must be copies.
+        return lambda a: energy(self.head, params, a, kv).clone()
 
     def generate_actions(
-        self, batch: dict[str, Tensor], generator: torch.Generator | None = None
+        self,
+        batch: dict[str, Tensor],
+        generator: torch.Generator | None = None,
+        prefix: RTCPrefix | None = None,
     ) -> tuple[Tensor, EnergyReadout]:
-        """Inference: K_inf steps of constant size alpha from noise; with restarts, the lowest-energy chain."""
+        """Inference: K_inf steps of constant size alpha from noise; with restarts, the lowest-energy chain.
+
+        With an RTC `prefix` every chain inpaints it; the final energy is that of the whole chunk.
+        """
         cfg = self.config
         with torch.no_grad():
             kv = self.encode_context(batch)
         batch_size, restarts = kv[0][0].shape[0], cfg.num_restarts
         kv = repeat_context_kv(kv, restarts)
         initial = self._initial_actions(batch_size * restarts, kv[0][0], generator)
+        if prefix is not None:
+            actions = prefix.actions.to(initial.device).repeat_interleave(restarts, dim=0)
+            prefix = dataclasses.replace(prefix, actions=actions)
         result = self._refine(
             kv,
             initial,
@@ -282,6 +449,7 @@ class EBVLA(nn.Module):
             generator,
             early_stop_tol=cfg.early_stop_tol,
             energy_fn=self._inference_energy_fn(kv),
+            prefix=prefix,
         )
         with torch.no_grad():
             final_energy = self.head(result.actions, kv).mean(dim=-1)
@@ -403,9 +571,20 @@ def head_energy(head: EBVLAEnergyHead, params: dict[str, Tensor], actions: Tenso
 
 
 @functools.cache
-def compiled_head_energy():
-    """`head_energy` under torch.compile, built once per process (`EBVLAConfig.compile_refinement`)."""
-    return torch.compile(head_energy, dynamic=False)
+def compiled_head_energy(mode: str = "default"):
+    """`head_energy` under torch.compile in `mode`, built once per process and mode (`compile_refinement`)."""
+    return torch.compile(head_energy, dynamic=False, mode=None if mode == "default" else mode)
+
+
+def _load_saved_config(pretrained_name_or_path: str | Path, **kwargs) -> PreTrainedConfig:
+    """The saved config; a value its checks reject is reported with the file and the field, which draccus's
+    own "Couldn't instantiate class" message leaves out."""
+    try:
+        return PreTrainedConfig.from_pretrained(pretrained_name_or_path, **kwargs)
+    except draccus.utils.ParsingError as e:
+        if not isinstance(e.__cause__, ValueError | TypeError):
+            raise
+        raise ValueError(f"{CONFIG_NAME} of {pretrained_name_or_path}: {e.__cause__}") from e
 
 
 def make_backbone(config: EBVLAConfig) -> nn.Module:
@@ -446,6 +625,64 @@ def validate_observation(batch: dict[str, Tensor], config: EBVLAConfig) -> None:
         _check_finite(state, OBS_STATE)
 
 
+def rtc_prefix(
+    config: EBVLAConfig,
+    batch_size: int,
+    inference_delay: int | None,
+    prev_chunk_left_over: Tensor | None,
+    execution_horizon: int | None = None,
+) -> RTCPrefix | None:
+    """The leftover to inpaint, from the arguments `lerobot-rollout --inference.type=rtc` passes.
+
+    None when there is nothing to inpaint: no leftover (the first chunk), an empty one, or RTC disabled in
+    `config.rtc_config` (LeRobot then appends chunks instead of replacing them). The overlap is
+    min(execution_horizon, leftover length, chunk_size) steps, the length without the rows of zeros LeRobot's
+    engine pads a short leftover with; d is capped at it, as LeRobot's schedule does.
+    Raises a ValueError naming the argument that does not fit the config.
+    """
+    if prev_chunk_left_over is None:
+        return None
+    rtc = config.rtc_config
+    if rtc is None:
+        raise ValueError(
+            "`prev_chunk_left_over` was given but `rtc_config` is None: set `rtc_config` "
+            "(lerobot-rollout --inference.type=rtc does) to refine chunks by real-time chunking."
+        )
+    if not rtc.enabled:
+        return None
+    if inference_delay is not None and not 0 <= inference_delay <= config.chunk_size:
+        raise ValueError(
+            f"`inference_delay` must be in [0, chunk_size={config.chunk_size}] control steps. Got "
+            f"{inference_delay}: the chunk would arrive after all its actions were due."
+        )
+    if execution_horizon is not None and execution_horizon < 1:
+        raise ValueError(f"`execution_horizon` must be >= 1. Got {execution_horizon}.")
+    leftover = prev_chunk_left_over
+    if leftover.ndim == 2:
+        leftover = leftover.unsqueeze(0)
+    if (
+        leftover.ndim != 3
+        or leftover.shape[0] not in (1, batch_size)
+        or leftover.shape[2] != config.action_dim
+    ):
+        raise ValueError(
+            f"`prev_chunk_left_over` must be (B={batch_size}, n, action_dim={config.action_dim}) or "
+            f"(n, {config.action_dim}). Got {tuple(prev_chunk_left_over.shape)}."
+        )
+    _check_finite(leftover, "prev_chunk_left_over")
+    # LeRobot's RTC engine pads a leftover shorter than `execution_horizon` with rows of zeros: not actions.
+    rows = leftover.ne(0).any(dim=2).any(dim=0).nonzero()
+    length = int(rows[-1]) + 1 if len(rows) else 0
+    horizon = min(execution_horizon or rtc.execution_horizon, length, config.chunk_size)
+    if horizon == 0:
+        return None
+    actions = leftover.new_zeros(batch_size, config.chunk_size, config.action_dim, dtype=torch.float32)
+    actions[:, :horizon] = leftover[:, :horizon]
+    held_steps = min(inference_delay or 0, horizon)
+    weights = RTCProcessor(rtc).get_prefix_weights(held_steps, horizon, config.chunk_size)
+    return RTCPrefix(actions, held_steps, weights.to(actions.device), rtc.max_guidance_weight)
+
+
 def validate_actions(batch: dict[str, Tensor], config: EBVLAConfig) -> None:
     """Raises a ValueError when the training target is missing, misshapen or non-finite."""
     expected = (config.chunk_size, config.action_dim)
@@ -455,6 +692,27 @@ def validate_actions(batch: dict[str, Tensor], config: EBVLAConfig) -> None:
     if action.ndim != 3 or tuple(action.shape[1:]) != expected:
         raise ValueError(f"`{ACTION}` must be (B, {expected[0]}, {expected[1]}). Got {tuple(action.shape)}.")
     _check_finite(action, ACTION)
+
+
+def _batch_size(batch: dict[str, Tensor]) -> int:
+    return next(v.shape[0] for v in batch.values() if isinstance(v, Tensor) and v.ndim > 0)
+
+
+def repeat_observations(batch: dict[str, Tensor], n: int) -> dict[str, Tensor]:
+    """Each observation repeated n times in a row, (B, ...) -> (B * n, ...); per-observation lists likewise.
+
+    Tensors made under `torch.inference_mode` (lerobot-eval) come back as normal tensors autograd can use.
+    """
+    batch_size = _batch_size(batch)
+
+    def repeat(value):
+        if isinstance(value, Tensor) and value.ndim > 0 and value.shape[0] == batch_size:
+            return value.clone().repeat_interleave(n, dim=0)
+        if isinstance(value, list | tuple) and len(value) == batch_size:
+            return [item for item in value for _ in range(n)]
+        return value.clone() if isinstance(value, Tensor) else value
+
+    return {key: repeat(value) for key, value in batch.items()}
 
 
 def _without_inference_tensors(batch: dict[str, Tensor]) -> dict[str, Tensor]:

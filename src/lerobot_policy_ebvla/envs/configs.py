@@ -8,38 +8,14 @@ the simulator is imported when the env is built.
 
 from dataclasses import dataclass
 
-from lerobot.envs.configs import EnvConfig, _make_vec_env_cls
+from lerobot.envs.configs import EnvConfig
 from lerobot.envs.configs import MetaworldEnv as LeRobotMetaworldEnvConfig
 
-# The perturbation dimensions of LIBERO-Plus that MetaWorld allows, by name (magnitudes: envs/metaworld.py).
-CAMERA_PERTURBATIONS = ("pose", "fov", "pose_fov")
-LIGHTING_PERTURBATIONS = ("light_dim", "light_bright", "light_color", "light_direction")
-SENSOR_PERTURBATIONS = ("noise", "blur", "blank")
-SCENE_PERTURBATIONS = ("table_color", "table_texture", "distractor")
-ROBOT_PERTURBATIONS = ("robot_init",)
-PERTURBATIONS = (
-    "none",
-    *CAMERA_PERTURBATIONS,
-    *LIGHTING_PERTURBATIONS,
-    *SENSOR_PERTURBATIONS,
-    *SCENE_PERTURBATIONS,
-    *ROBOT_PERTURBATIONS,
-)
-MAX_SEVERITY = 5
+from ..lerobot_private import make_vec_env_cls
+from .perturbations import PERTURBATIONS, check_perturbation
+
 # MetaWorld truncates every episode after `max_path_length` = 500 steps; an env step past it raises.
 METAWORLD_MAX_PATH_LENGTH = 500
-
-
-def check_perturbation(perturbation: str, severity: int) -> None:
-    """Raises a ValueError naming the field and its allowed values if (perturbation, severity) is invalid."""
-    if perturbation not in PERTURBATIONS:
-        raise ValueError(f"`perturbation` must be one of {PERTURBATIONS}, got {perturbation!r}.")
-    if isinstance(severity, bool) or not isinstance(severity, int) or not 0 <= severity <= MAX_SEVERITY:
-        raise ValueError(f"`perturbation_severity` must be an int in [0, {MAX_SEVERITY}], got {severity!r}.")
-    if perturbation == "none" and severity != 0:
-        raise ValueError(
-            f"`perturbation_severity` > 0 needs a `perturbation` other than 'none' (one of {PERTURBATIONS[1:]})."
-        )
 
 
 @EnvConfig.register_subclass("metaworld_ebvla")
@@ -55,10 +31,10 @@ class MetaworldEBVLAEnv(LeRobotMetaworldEnvConfig):
     Args:
         fast_render: Turn off the scene's shadows and reflections, which renders about 3x faster. Images
             look different (no shadows), so record and evaluate with the same setting.
-        perturbation: One of `PERTURBATIONS`: "none"; camera "pose", "fov", "pose_fov"; lighting
-            "light_dim", "light_bright", "light_color", "light_direction"; sensor "noise", "blur", "blank"
-            (a black image, to check that a policy uses its camera); scene "table_color", "table_texture",
-            "distractor"; robot "robot_init" (the hand starts elsewhere).
+        perturbation: One of `perturbations.PERTURBATIONS`: "none"; camera "pose", "fov", "pose_fov";
+            lighting "light_dim", "light_bright", "light_color", "light_direction"; sensor "noise", "blur",
+            "blank" (a black image, to check that a policy uses its camera); scene "table_color",
+            "table_texture", "distractor"; robot "robot_init" (the hand starts elsewhere).
         perturbation_severity: Severity level, 0 (no change) to 5. At 0 `perturbation` is set to "none",
             so `perturbation` always names the perturbation actually applied (what energy records store).
         camera_perturbation: Older name of `perturbation`, kept so existing commands work; after
@@ -116,5 +92,5 @@ class MetaworldEBVLAEnv(LeRobotMetaworldEnvConfig):
             task=self.task,
             n_envs=n_envs,
             gym_kwargs=self.gym_kwargs,
-            env_cls=_make_vec_env_cls(use_async_envs, n_envs),
+            env_cls=make_vec_env_cls(use_async_envs, n_envs),
         )

@@ -24,12 +24,13 @@ from typing import Any
 import gymnasium as gym
 import mujoco
 import numpy as np
-from lerobot.envs.libero import LiberoEnv, _get_suite, _select_task_ids
-from lerobot.envs.utils import _LazyAsyncVectorEnv, parse_camera_names
+from lerobot.envs.libero import LiberoEnv
+from lerobot.envs.utils import parse_camera_names
 from scipy.spatial.transform import Rotation
 
-from .libero_configs import LIBERO_MAX_SEVERITY, check_libero_perturbation
+from ..lerobot_private import LazyAsyncVectorEnv, get_libero_suite, select_libero_task_ids
 from .lighting import LIGHT_INTENSITY_PERTURBATIONS, perturb_light_intensity
+from .perturbations import MAX_SEVERITY, check_libero_perturbation
 
 # The MuJoCo camera behind LeRobot's `agentview_image` (`observation.images.image`).
 AGENTVIEW_CAMERA = "agentview"
@@ -112,7 +113,7 @@ def perturb_camera(model: mujoco.MjModel, camera_name: str, kind: str, severity:
         raise ValueError(f"The scene has no camera named {camera_name!r}.")
     if model.cam_bodyid[camera_id] != 0:
         raise ValueError(f"Camera {camera_name!r} is not attached to the world body; it cannot be moved.")
-    level = severity / LIBERO_MAX_SEVERITY
+    level = severity / MAX_SEVERITY
     if kind == "fov":
         model.cam_fovy[camera_id] *= 1.0 + FOVY_GROWTH_PER_LEVEL * severity
         return
@@ -153,7 +154,7 @@ def perturb_libero_model(
     if perturbation == "none" or severity == 0:
         return
     if perturbation in LIGHT_INTENSITY_PERTURBATIONS:
-        perturb_light_intensity(model, perturbation, severity, LIBERO_MAX_SEVERITY)
+        perturb_light_intensity(model, perturbation, severity, MAX_SEVERITY)
     elif perturbation == "light_direction":
         tilt_lights(model, LIGHT_TILT_DEG_PER_LEVEL * severity)
     else:
@@ -164,7 +165,7 @@ class LiberoEBVLAGymEnv(LiberoEnv):
     """LeRobot's `LiberoEnv` with the scene perturbation of `LiberoEBVLAEnv` (see its docstring).
 
     Args:
-        perturbation: A name of `libero_configs.LIBERO_PERTURBATIONS`.
+        perturbation: A name of `perturbations.LIBERO_PERTURBATIONS`.
         perturbation_severity: 0 (no change) to 5.
         *args, **kwargs: LeRobot's `LiberoEnv` arguments.
     """
@@ -221,9 +222,9 @@ def create_libero_ebvla_envs(
     is_async = env_cls is gym.vector.AsyncVectorEnv
     envs: dict[str, dict[int, Any]] = {}
     for suite_name in suite_names:
-        suite = _get_suite(suite_name)
+        suite = get_libero_suite(suite_name)
         envs[suite_name] = {}
-        for task_id in _select_task_ids(len(suite.tasks), task_ids):
+        for task_id in select_libero_task_ids(len(suite.tasks), task_ids):
             env_fns = [
                 partial(
                     LiberoEBVLAGymEnv,
@@ -242,7 +243,7 @@ def create_libero_ebvla_envs(
                 for episode_index in range(n_envs)
             ]
             if is_async:
-                envs[suite_name][task_id] = _LazyAsyncVectorEnv(env_fns)
+                envs[suite_name][task_id] = LazyAsyncVectorEnv(env_fns)
             elif env_cls is gym.vector.SyncVectorEnv:
                 # As LeRobot's LIBERO envs: the terminal observation is returned, the reset comes next step.
                 envs[suite_name][task_id] = gym.vector.SyncVectorEnv(

@@ -16,33 +16,9 @@ from dataclasses import dataclass
 from lerobot.envs.configs import EnvConfig
 from lerobot.envs.configs import LiberoEnv as LeRobotLiberoEnvConfig
 
-# LIBERO-Plus's camera dimension, whose variants change one of three things: "pose" orbits the agent-view
-# camera (horizontally about the world's vertical axis, vertically about LIBERO-Plus's pivot), "distance" moves
-# it away from the pivot, "rotation" turns it in place. "fov" widens its field of view (a focal change, which
-# LIBERO-Plus's released variants do not include). Magnitudes per severity: envs/libero.py, docs/libero.md.
-LIBERO_CAMERA_PERTURBATIONS = ("pose", "distance", "rotation", "fov")
-LIBERO_LIGHTING_PERTURBATIONS = ("light_dim", "light_bright", "light_color", "light_direction")
-LIBERO_PERTURBATIONS = ("none", *LIBERO_CAMERA_PERTURBATIONS, *LIBERO_LIGHTING_PERTURBATIONS)
-LIBERO_MAX_SEVERITY = 5
-
-
-def check_libero_perturbation(perturbation: str, severity: int) -> None:
-    """Raises a ValueError naming the field and its allowed values if (perturbation, severity) is invalid."""
-    if perturbation not in LIBERO_PERTURBATIONS:
-        raise ValueError(f"`perturbation` must be one of {LIBERO_PERTURBATIONS}, got {perturbation!r}.")
-    if (
-        isinstance(severity, bool)
-        or not isinstance(severity, int)
-        or not 0 <= severity <= LIBERO_MAX_SEVERITY
-    ):
-        raise ValueError(
-            f"`perturbation_severity` must be an int in [0, {LIBERO_MAX_SEVERITY}], got {severity!r}."
-        )
-    if perturbation == "none" and severity != 0:
-        raise ValueError(
-            "`perturbation_severity` > 0 needs a `perturbation` other than 'none' "
-            f"(one of {LIBERO_PERTURBATIONS[1:]})."
-        )
+from ..lerobot_private import make_vec_env_cls
+from .libero_assets import require_libero_ready
+from .perturbations import check_libero_perturbation
 
 
 @EnvConfig.register_subclass("libero_ebvla")
@@ -57,8 +33,8 @@ class LiberoEBVLAEnv(LeRobotLiberoEnvConfig):
     Args:
         task: LIBERO suite(s), comma-separated (`libero_object`, `libero_spatial`, `libero_goal`, `libero_10`,
             `libero_90`); restrict tasks with `task_ids`.
-        perturbation: One of `LIBERO_PERTURBATIONS`: "none"; camera "pose", "distance", "rotation", "fov";
-            lighting "light_dim", "light_bright", "light_color", "light_direction".
+        perturbation: One of `perturbations.LIBERO_PERTURBATIONS`: "none"; camera "pose", "distance",
+            "rotation", "fov"; lighting "light_dim", "light_bright", "light_color", "light_direction".
         perturbation_severity: Severity level, 0 (no change) to 5. At 0 `perturbation` is set to "none", so
             `perturbation` always names the perturbation actually applied (what energy records store).
     """
@@ -82,10 +58,6 @@ class LiberoEBVLAEnv(LeRobotLiberoEnvConfig):
         }
 
     def create_envs(self, n_envs: int, use_async_envs: bool = False):
-        from lerobot.envs.configs import _make_vec_env_cls
-
-        from lerobot_policy_ebvla.scripts.install_libero_assets import require_libero_ready
-
         if self.task is None:
             raise ValueError(
                 "LIBERO requires a task (suite) to be specified, e.g. `--env.task=libero_object`."
@@ -99,7 +71,7 @@ class LiberoEBVLAEnv(LeRobotLiberoEnvConfig):
             gym_kwargs=self.gym_kwargs,
             camera_name=self.camera_name,
             init_states=self.init_states,
-            env_cls=_make_vec_env_cls(use_async_envs, n_envs),
+            env_cls=make_vec_env_cls(use_async_envs, n_envs),
             control_mode=self.control_mode,
             episode_length=self.episode_length,
             camera_name_mapping=self.camera_name_mapping,

@@ -24,10 +24,10 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 from lerobot.envs.metaworld import DIFFICULTY_TO_TASKS, MetaworldEnv
-from lerobot.envs.utils import _LazyAsyncVectorEnv
 
-from .configs import CAMERA_PERTURBATIONS, MAX_SEVERITY, check_perturbation
+from ..lerobot_private import LazyAsyncVectorEnv
 from .lighting import LIGHT_INTENSITY_PERTURBATIONS, perturb_light_intensity
+from .perturbations import CAMERA_PERTURBATIONS, MAX_SEVERITY, check_perturbation
 
 # Camera. Per severity level: degrees of azimuth and elevation of the "pose" orbit, relative widening of "fov".
 AZIMUTH_DEG_PER_LEVEL = 5.0
@@ -211,7 +211,7 @@ def perturb_model(model: mujoco.MjModel, camera_name: str, perturbation: str, se
     Args:
         model: The MuJoCo model, edited in place, before the first frame is rendered.
         camera_name: The camera observations are rendered from (LeRobot's MetaWorld env uses "corner2").
-        perturbation: A name of `configs.PERTURBATIONS`.
+        perturbation: A name of `perturbations.PERTURBATIONS`.
         severity: 0 (no change) to 5; every change grows linearly with it.
     """
     check_perturbation(perturbation, severity)
@@ -376,5 +376,5 @@ def create_metaworld_ebvla_envs(
             env_fns = [partial(MetaworldEBVLAGymEnv, task=task_name, **gym_kwargs) for _ in range(n_envs)]
             # LeRobot's lazy async env only starts its worker processes when the task is evaluated.
             is_async = env_cls is gym.vector.AsyncVectorEnv
-            envs[group][task_id] = _LazyAsyncVectorEnv(env_fns) if is_async else env_cls(env_fns)
+            envs[group][task_id] = LazyAsyncVectorEnv(env_fns) if is_async else env_cls(env_fns)
     return envs

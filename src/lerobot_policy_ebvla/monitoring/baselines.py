@@ -1,9 +1,13 @@
 """The post-hoc confidence scores the paper says the final energy replaces, scored from the same records.
 
 Every score is per chunk, higher meaning less confident, and a rollout's score aggregates its chunks as the
-final energy's does (`ood.rollout_score`), so all of them go through the same threshold and metrics:
+final energy's does (`scores.episode_scores`), so all of them go through the same threshold and metrics:
 
 - "final_energy": E(a^(K_inf), C), the paper's score.
+- "phase_energy": the final energy against the vanilla final energy at the same chunk index,
+  (E_t - mu_v[t]) / sigma_v[t] with mu_v[t], sigma_v[t] from the calibration rollouts
+  (`runtime.calibration.PhaseStatistics`): the energy's level follows the task's phase, so a chunk is compared
+  with what is normal at its point of the task. Needs only the final energy and the chunk index.
 - "initial_energy": E(a^(0), C), the energy of the unrefined sample (always recorded).
 - "normalized_energy": the final energy plus the log of the mean Boltzmann weight exp(-E) of N chunks drawn
   from the MCMC prior under the same context (recorder option `normalized_energy_samples`): the energy is
@@ -14,22 +18,34 @@ final energy's does (`ood.rollout_score`), so all of them go through the same th
   calibration rollouts (recorder option `record_context_features`). Mahalanobis uses the calibration
   features' mean and their Ledoit-Wolf shrunk covariance (D can exceed the number of chunks); k-NN is the
   Euclidean distance to the k-th nearest calibration feature, features standardized per dimension by the
-  calibration mean and std, skipping features of the same episode so that in-sample scores are not
-  trivially zero.
+  calibration mean and std.
+
+The reference scores ("phase_energy", "mahalanobis", "knn") are fitted on the calibration rollouts
+(`fit_score_reference`). A calibration rollout is scored leave-one-episode-out, against a reference fitted
+without it: in-sample, its own chunks would pull its score down and with it the threshold fitted on these
+scores.
 """
 
 from collections.abc import Hashable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from .ood import rollout_score
-from .records import EnergyRecord
+from ..runtime.calibration import PhaseStatistics
+from .records import Episode
 
-SCORE_NAMES = ("final_energy", "initial_energy", "normalized_energy", "restart_spread", "mahalanobis", "knn")
+SCORE_NAMES = (
+    "final_energy",
+    "phase_energy",
+    "initial_energy",
+    "normalized_energy",
+    "restart_spread",
+    "mahalanobis",
+    "knn",
+)
 FEATURE_SCORES = ("mahalanobis", "knn")
-
-Episode = Sequence[EnergyRecord]
+# Scores fitted on the calibration rollouts (`ScoreReference`).
+REFERENCE_SCORES = ("phase_energy", *FEATURE_SCORES)
 
 
 def _ledoit_wolf(centered: np.ndarray) -> np.ndarray:
@@ -37,18 +53,32 @@ def _ledoit_wolf(centered: np.ndarray) -> np.ndarray:
     n, d = centered.shape
     sample_cov = centered.T @ centered / n
     mu = np.trace(sample_cov) / d
-    squared = centered**2
-    beta = (np.sum(squared.T @ squared) / n - np.sum(sample_cov**2)) / n  # sum of the entries' variances
+    # The sum of the entries' variances. The sum of all entries of squared.T @ squared, with squared = centered**2,
+    # is the sum over samples of |x|^4: O(N D) instead of O(N D^2).
+    beta = (np.sum(np.sum(centered**2, axis=1) ** 2) / n - np.sum(sample_cov**2)) / n
     delta = np.sum((sample_cov - mu * np.eye(d)) ** 2)  # distance of S to the target
     shrinkage = 0.0 if delta == 0 else min(beta, delta) / delta
     return (1 - shrinkage) * sample_cov + shrinkage * mu * np.eye(d)
+
+
+def _mean_and_precision(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    mean = features.mean(axis=0)
+    covariance = _ledoit_wolf(features - mean)
+    try:
+        # The shrunk covariance is positive definite unless the shrinkage is 0: invert it through its Cholesky
+        # factor, several times faster than the pseudo-inverse (a refit per calibration episode adds up).
+        inverse_factor = np.linalg.inv(np.linalg.cholesky(covariance))
+        return mean, inverse_factor.T @ inverse_factor
+    except np.linalg.LinAlgError:
+        return mean, np.linalg.pinv(covariance, hermitian=True)
 
 
 @dataclass
 class ContextFeatureModel:
     """Mahalanobis and k-NN distances of context features to the calibration rollouts' contexts.
 
-    Build it with `fit`; `reference_ids` names the episode of each reference feature.
+    Build it with `fit`; `reference_ids` names the episode of each reference feature. Both distances of an
+    episode named by `episode_id` leave that episode's features out of the reference (leave-one-episode-out).
     """
 
     mean: np.ndarray
@@ -57,6 +87,8 @@ class ContextFeatureModel:
     reference: np.ndarray
     reference_ids: list
     k: int = 5
+    # Mahalanobis's mean and precision without one episode, by episode id, fitted when first needed.
+    _left_out: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @classmethod
     def fit(cls, features: np.ndarray, episode_ids: Sequence[Hashable], k: int = 5) -> "ContextFeatureModel":
@@ -69,21 +101,35 @@ class ContextFeatureModel:
             )
         if k < 1:
             raise ValueError(f"`k` (nearest neighbours) must be >= 1, got {k}.")
-        mean = features.mean(axis=0)
+        mean, precision = _mean_and_precision(features)
         scale = np.maximum(features.std(axis=0), 1e-12)  # constant dimensions carry no distance
-        precision = np.linalg.pinv(_ledoit_wolf(features - mean), hermitian=True)
         return cls(mean, scale, precision, (features - mean) / scale, list(episode_ids), k)
 
-    def mahalanobis(self, features: np.ndarray) -> np.ndarray:
-        centered = np.asarray(features, dtype=np.float64) - self.mean
-        return np.sqrt(np.maximum(np.einsum("nd,de,ne->n", centered, self.precision, centered), 0.0))
+    def _same_episode(self, episode_id: Hashable) -> np.ndarray:
+        return np.array([i == episode_id for i in self.reference_ids])
+
+    def mahalanobis(self, features: np.ndarray, episode_id: Hashable = None) -> np.ndarray:
+        """Mahalanobis distance of each feature to the reference features outside episode `episode_id`.
+
+        A calibration episode's distances come from a mean and covariance refitted without its features
+        (cached per episode); with fewer than two features left, the full fit is used.
+        """
+        mean, precision = self.mean, self.precision
+        same_episode = self._same_episode(episode_id)
+        if same_episode.any() and np.sum(~same_episode) >= 2:
+            if episode_id not in self._left_out:
+                others = self.reference[~same_episode] * self.scale + self.mean
+                self._left_out[episode_id] = _mean_and_precision(others)
+            mean, precision = self._left_out[episode_id]
+        centered = np.asarray(features, dtype=np.float64) - mean
+        return np.sqrt(np.maximum(np.sum((centered @ precision) * centered, axis=1), 0.0))
 
     def knn(self, features: np.ndarray, episode_id: Hashable = None) -> np.ndarray:
         """Distance of each feature to its k-th nearest reference feature outside episode `episode_id`."""
         queries = (np.asarray(features, dtype=np.float64) - self.mean) / self.scale
         squared = (queries**2).sum(axis=1)[:, None] - 2 * queries @ self.reference.T
         distances = np.sqrt(np.maximum(squared + (self.reference**2).sum(axis=1)[None, :], 0.0))
-        same_episode = np.array([i == episode_id for i in self.reference_ids])
+        same_episode = self._same_episode(episode_id)
         distances[:, same_episode] = np.inf
         k = min(self.k, int(np.sum(~same_episode)))
         if k == 0:
@@ -91,10 +137,40 @@ class ContextFeatureModel:
         return np.partition(distances, k - 1, axis=1)[:, k - 1]
 
 
+class PhaseEnergyModel:
+    """The phase energy of chunks, against `PhaseStatistics` of the calibration episodes' final energies.
+
+    A calibration episode (named by `episode_id`) is scored against statistics refitted without it (cached
+    per episode); with no other calibration episode the full fit is used.
+    """
+
+    def __init__(self, energies: Mapping[Hashable, np.ndarray]):
+        self.energies = dict(energies)
+        self.statistics = PhaseStatistics.fit(list(self.energies.values()))
+        self._left_out: dict[Hashable, PhaseStatistics] = {}
+
+    def score(self, final_energies: np.ndarray, chunk_indices: np.ndarray, episode_id: Hashable = None):
+        statistics = self.statistics
+        if episode_id in self.energies and len(self.energies) > 1:
+            if episode_id not in self._left_out:
+                others = [e for key, e in self.energies.items() if key != episode_id]
+                self._left_out[episode_id] = PhaseStatistics.fit(others)
+            statistics = self._left_out[episode_id]
+        return statistics.z(final_energies, chunk_indices)
+
+
+@dataclass
+class ScoreReference:
+    """What the reference scores learn from the calibration episodes (`fit_score_reference`)."""
+
+    phase: PhaseEnergyModel
+    features: ContextFeatureModel | None = None
+
+
 def available_scores(episodes: Sequence[Episode]) -> list[str]:
     """The scores every chunk of `episodes` has the data for, in `SCORE_NAMES` order."""
     records = [r for episode in episodes for r in episode]
-    names = ["final_energy", "initial_energy"]
+    names = ["final_energy", "phase_energy", "initial_energy"]
     if records and all(r.normalized_energy is not None for r in records):
         names.append("normalized_energy")
     if records and all(r.restart_spread is not None for r in records):
@@ -111,35 +187,19 @@ def fit_feature_model(episodes: Mapping[Hashable, Episode], k: int = 5) -> Conte
     return ContextFeatureModel.fit(np.stack(features), ids, k=k)
 
 
-def chunk_scores(
-    episode: Episode,
-    score: str,
-    feature_model: ContextFeatureModel | None = None,
-    episode_id: Hashable = None,
-) -> np.ndarray:
-    """The per-chunk scores of one episode, in chunk order."""
-    if score in FEATURE_SCORES:
-        if feature_model is None:
-            raise ValueError(f"Score {score!r} needs a `feature_model` fitted on calibration contexts.")
-        features = np.stack([r.context_feature for r in episode])
-        if score == "mahalanobis":
-            return feature_model.mahalanobis(features)
-        return feature_model.knn(features, episode_id)
-    if score not in SCORE_NAMES:
-        raise ValueError(f"`score` must be one of {SCORE_NAMES}, got {score!r}.")
-    return np.array([getattr(r, score) for r in episode], dtype=np.float64)
+def fit_phase_model(episodes: Mapping[Hashable, Episode]) -> PhaseEnergyModel:
+    """Fits the phase energy on the final energies of the (calibration) episodes, by chunk index."""
+    energies = {}
+    for key, episode in episodes.items():
+        # A missing chunk index stays NaN, which the fit leaves out like any non-finite energy.
+        series = np.full(max((r.chunk_index for r in episode), default=-1) + 1, np.nan)
+        series[[r.chunk_index for r in episode]] = [r.final_energy for r in episode]
+        energies[key] = series
+    return PhaseEnergyModel(energies)
 
 
-def episode_scores(
-    episodes: Mapping[Hashable, Episode],
-    score: str,
-    aggregation: str = "mean",
-    feature_model: ContextFeatureModel | None = None,
-) -> np.ndarray:
-    """One rollout score per episode (in `episodes` order) for the named score."""
-    return np.array(
-        [
-            rollout_score(chunk_scores(episode, score, feature_model, key), aggregation)
-            for key, episode in episodes.items()
-        ]
-    )
+def fit_score_reference(
+    episodes: Mapping[Hashable, Episode], knn_k: int = 5, features: bool = True
+) -> ScoreReference:
+    """Fits the reference scores on calibration episodes; the feature baselines only with `features`."""
+    return ScoreReference(fit_phase_model(episodes), fit_feature_model(episodes, knn_k) if features else None)

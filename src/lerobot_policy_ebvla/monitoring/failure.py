@@ -6,7 +6,7 @@ energies of steps max(1, s - w + 1) .. s against their step numbers. *Slope Star
 E(a^(0), C), *Slope Final* the refined energy E(a^(K_inf), C). A rising final energy means refinement
 struggles more and more to find expert-like actions, which the paper finds to precede failure.
 
-The predictor flags an episode as failing at step s when (the rule of `threshold.py`)
+The predictor flags an episode as failing at step s when (the rule of `runtime/threshold.py`)
 
     slope > mean_ref + k * std_ref,
 
@@ -15,11 +15,14 @@ episodes*: successful episodes only (the one-class analogue of the vanilla calib
 episodes given as reference are filtered out. Positives are failed episodes.
 
 Choices, stated because the paper leaves them open:
-- Carry forward (default, the paper's fixed episode set: its failure rate is the same at every step): an
-  episode that ended before step s keeps its last energy, so every episode is judged at every step and a
-  finished episode's slope decays to 0. With `carry_forward=False`, episodes that ended are left out at
-  that step, from the reference and from the metrics; successful episodes tend to end early, so late steps
-  are then judged on fewer, mostly failing, episodes.
+- Equal elapsed time (default, `carry_forward=False`): at step s only the episodes still running at step s
+  (at least s chunks) are judged, and only those of the reference set the threshold; an episode's label is
+  whether it eventually fails. Successful episodes tend to end early, so late steps are judged on fewer,
+  mostly failing, episodes: `FailurePredictionResult` counts them per step.
+- Carry forward (`carry_forward=True`, the paper's fixed episode set: its failure rate is the same at every
+  step): an episode that ended before step s keeps its last energy, so every episode is judged at every
+  step and a finished episode's slope decays to 0. This is an artefact, not a prediction: a flat slope then
+  separates "done" (mostly successes) from "still running" (mostly failures) at late steps.
 - When the window reaches before step 1 it is truncated to the steps available. A slope of fewer than two
   points is 0 ("no trend yet"); at step 1 every slope is 0 and nothing is flagged.
 - A non-finite slope (a window holding +inf energy) is flagged and left out of the reference statistics.
@@ -28,7 +31,10 @@ Choices, stated because the paper leaves them open:
   both are applied unchanged to held-out episodes. Choosing on the evaluated episodes, as Table IV does, is
   optimistic.
 - No reference slope (no successful episode has reached step s) makes the predictor undefined: its
-  metrics are NaN.
+  metrics are NaN, and it raises no alarm.
+- Lead time (`first_alarms`): run as a monitor, the configuration chosen for each step (its window, k and
+  reference threshold) is applied at that step; an episode's alarm is the first step it is flagged at, and
+  its lead the number of chunks (and env steps) from that chunk to its last, the failure or the step cap.
 """
 
 import dataclasses
@@ -38,16 +44,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..runtime.threshold import MeanStd, exceeds
 from .metrics import BinaryRates, markdown_table, percent
-from .records import EnergyRecord
-from .threshold import exceeds, mean_std_threshold
+from .records import Episode
 
 ENERGY_METRICS = {"final": "final_energy", "start": "initial_energy"}
 DEFAULT_STEPS = tuple(range(1, 21))
 DEFAULT_WINDOWS = tuple(range(2, 21))
 DEFAULT_MULTIPLIERS = tuple(round(0.1 * i, 1) for i in range(1, 21))
-
-Episode = Sequence[EnergyRecord]
 
 
 def linear_slope(values: Sequence[float] | np.ndarray) -> float:
@@ -158,18 +162,30 @@ class _Predictor:
         self.data = _Slopes(episodes, metric, carry_forward, width)
         self.reference = _Slopes(reference, metric, carry_forward, width)
 
+    def _reference_stats(self, step: int, window: int) -> MeanStd | None:
+        reference, _ = self.reference.at(step, window)
+        # Non-finite reference slopes are left out silently (the module docstring says so), not with a warning.
+        reference = reference[np.isfinite(reference)]
+        return MeanStd.fit(reference, "reference slope") if reference.size else None
+
+    def flags(self, step: int, window: int, multiplier: float) -> tuple[np.ndarray, np.ndarray]:
+        """Flags of the episodes counted at `step` (none without a reference), and their rows."""
+        slopes, rows = self.data.at(step, window)
+        stats = self._reference_stats(step, window)
+        if stats is None:
+            return np.zeros(rows.size, dtype=bool), rows
+        return exceeds(slopes, stats.threshold(multiplier)), rows
+
     def evaluate(self, step: int, window: int, multipliers: Sequence[float]) -> list[FailurePredictionResult]:
         slopes, rows = self.data.at(step, window)
         failed = self.data.failed[rows]
-        reference, _ = self.reference.at(step, window)
-        reference = reference[np.isfinite(reference)]
+        stats = self._reference_stats(step, window)
         results = []
         for k in multipliers:
             rates, threshold = BinaryRates(0, 0, 0, 0), math.nan
-            if reference.size:
-                threshold = mean_std_threshold(float(reference.mean()), float(reference.std()), k)
-                flags = exceeds(slopes, threshold)
-                rates = BinaryRates.from_flags(flags[~failed], flags[failed])
+            if stats is not None:
+                threshold = stats.threshold(k)
+                rates = BinaryRates.from_scores(slopes[~failed], slopes[failed], threshold)
             results.append(
                 FailurePredictionResult(
                     **dataclasses.asdict(rates),
@@ -191,7 +207,7 @@ def evaluate_failure_predictor(
     multiplier: float,
     metric: str = "final",
     reference_episodes: Sequence[Episode] | None = None,
-    carry_forward: bool = True,
+    carry_forward: bool = False,
 ) -> FailurePredictionResult:
     """Evaluates one (step, window, k) configuration of the slope predictor.
 
@@ -203,7 +219,8 @@ def evaluate_failure_predictor(
         metric: "final" (Slope Final) or "start" (Slope Start).
         reference_episodes: Episodes whose slopes set mean_ref and std_ref; only the successful ones are
             used. None uses the successful episodes of `episodes` (in-sample, optimistic).
-        carry_forward: Judge every episode at every step, an ended one with its last energy carried forward.
+        carry_forward: Judge every episode at every step, an ended one with its last energy carried forward;
+            False (default) judges at step s only the episodes still running at step s (equal elapsed time).
     """
     predictor = _Predictor(episodes, reference_episodes, metric, carry_forward, width=step)
     return predictor.evaluate(step, window, [multiplier])[0]
@@ -228,7 +245,7 @@ def failure_prediction_sweep(
     multipliers: Sequence[float] = DEFAULT_MULTIPLIERS,
     metric: str = "final",
     reference_episodes: Sequence[Episode] | None = None,
-    carry_forward: bool = True,
+    carry_forward: bool = False,
 ) -> list[FailurePredictionResult]:
     """Table IV: for each step, the (window, k) with the highest balanced accuracy on `episodes`.
 
@@ -272,7 +289,7 @@ def evaluate_configurations(
     chosen: Sequence[FailurePredictionResult],
     metric: str = "final",
     reference_episodes: Sequence[Episode] | None = None,
-    carry_forward: bool = True,
+    carry_forward: bool = False,
 ) -> list[FailurePredictionResult]:
     """Applies configurations chosen elsewhere (one per step) to held-out episodes.
 
@@ -291,14 +308,19 @@ def evaluate_configurations(
 
 
 def format_failure_table(
-    results: Sequence[FailurePredictionResult], chosen_on: Sequence[FailurePredictionResult] | None = None
+    results: Sequence[FailurePredictionResult],
+    chosen_on: Sequence[FailurePredictionResult] | None = None,
+    aurocs: Sequence[str] | None = None,
 ) -> str:
-    """Renders Table IV as markdown, rates in percent, with the episodes and failure rate at each step.
+    """Renders Table IV as markdown: the paper's columns (Step, Win., Std, Acc., Bal. Acc., TPR, Spec.), rates
+    in percent, then the episodes judged at each step, the failed ones and the failure rate.
 
     Args:
         results: One result per step.
         chosen_on: The calibration results the configurations were chosen on (held-out protocol): adds
             their balanced accuracy beside the held-out one.
+        aurocs: One AUROC cell per result (e.g. the slope's at the chosen window, `slope_scores` and
+            `metrics.format_auroc`): adds an AUROC column.
     """
     headers = [
         "Step",
@@ -308,15 +330,17 @@ def format_failure_table(
         "Bal. Acc.",
         "TPR",
         "Spec.",
-        "Episodes",
+        "Episodes judged",
         "Failed",
         "Failure rate",
     ]
     by_step = {c.step: c for c in chosen_on or []}
+    if aurocs is not None:
+        headers.append("AUROC [95% CI]")
     if chosen_on is not None:
         headers.append("Bal. Acc. (calibration)")
     rows = []
-    for r in results:
+    for i, r in enumerate(results):
         rates = [percent(v, 2) for v in (r.accuracy, r.balanced_accuracy, r.tpr, r.specificity)]
         row = [
             r.step,
@@ -327,7 +351,172 @@ def format_failure_table(
             r.n_failed,
             percent(r.failure_rate),
         ]
+        if aurocs is not None:
+            row.append(aurocs[i])
         if chosen_on is not None:
             row.append(percent(by_step[r.step].balanced_accuracy, 2) if r.step in by_step else "")
         rows.append(row)
+    return markdown_table(headers, rows)
+
+
+def slope_scores(
+    episodes: Sequence[Episode], step: int, window: int, metric: str = "final", carry_forward: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """The slopes at (`step`, `window`) of the successful and of the failed episodes judged at `step`.
+
+    The AUROC of these (failed positive) is the slope's separation at that step, free of any threshold. A
+    non-finite slope is +inf (flagged by any threshold, as the predictor does).
+    """
+    data = _Slopes(episodes, metric, carry_forward, width=step)
+    slopes, rows = data.at(step, window)
+    slopes = np.where(np.isnan(slopes), np.inf, slopes)
+    failed = data.failed[rows]
+    return slopes[~failed], slopes[failed]
+
+
+@dataclass(frozen=True)
+class Alarm:
+    """When the per-step chosen configurations first flagged one episode, and how long before its end.
+
+    Args:
+        task: The episode's task.
+        episode_index: Its index in its run.
+        seed: Its env seed.
+        failed: Whether it failed (the alarm is a catch) or succeeded (a false alarm).
+        n_chunks: Its chunks: its last step is `n_chunks`.
+        step: The first step flagged, None when never flagged.
+        lead_chunks: Chunks from the alarm's chunk to the last: `n_chunks - step` (0: at the last chunk).
+        lead_env_steps: Env steps from the alarm chunk's prediction to the last chunk's.
+    """
+
+    task: str
+    episode_index: int
+    seed: int | None
+    failed: bool
+    n_chunks: int
+    step: int | None = None
+    lead_chunks: int | None = None
+    lead_env_steps: int | None = None
+
+
+def first_alarms(
+    episodes: Sequence[Episode],
+    chosen: Sequence[FailurePredictionResult],
+    reference_episodes: Sequence[Episode] | None,
+    *,
+    metric: str = "final",
+    carry_forward: bool = False,
+) -> list[Alarm]:
+    """Runs the chosen configurations as a monitor: each episode's first alarm, one `Alarm` per episode.
+
+    At each step of `chosen` its (window, k), with the threshold of the reference episodes at that step, is
+    applied to the episodes still running (an episode is never flagged after its last chunk).
+
+    Args:
+        episodes: The episodes to monitor, each its records sorted by chunk index.
+        chosen: One configuration per step, e.g. from `select_configurations` on calibration episodes.
+        reference_episodes: See `evaluate_configurations`.
+        metric: "final" (Slope Final) or "start" (Slope Start).
+        carry_forward: See `evaluate_failure_predictor`; the thresholds follow it.
+    """
+    width = max((c.step for c in chosen), default=0)
+    predictor = _Predictor(episodes, reference_episodes, metric, carry_forward, width=width)
+    first: list[int | None] = [None] * len(episodes)
+    for config in sorted(chosen, key=lambda c: c.step):
+        flags, rows = predictor.flags(config.step, config.window, config.multiplier)
+        for row in rows[flags]:
+            if first[row] is None and config.step <= len(episodes[row]):
+                first[row] = config.step
+    alarms = []
+    for episode, step in zip(episodes, first, strict=True):
+        alarm = Alarm(
+            episode[0].task, episode[0].episode_index, episode[0].seed, not episode[0].success, len(episode)
+        )
+        if step is not None:
+            lead_env_steps = episode[-1].env_step - episode[step - 1].env_step
+            alarm = dataclasses.replace(
+                alarm, step=step, lead_chunks=len(episode) - step, lead_env_steps=lead_env_steps
+            )
+        alarms.append(alarm)
+    return alarms
+
+
+@dataclass(frozen=True)
+class LeadTimeSummary:
+    """How far ahead of the failures the alarms came, and how many successes they flagged.
+
+    Medians are over the failed episodes that were alarmed (NaN when none was).
+    """
+
+    n_failed: int
+    n_successful: int
+    failed_alarmed: int
+    failed_alarmed_before_last_chunk: int
+    successful_alarmed: int
+    median_lead_chunks: float
+    median_lead_env_steps: float
+
+    @classmethod
+    def of(cls, alarms: Sequence[Alarm]) -> "LeadTimeSummary":
+        caught = [a for a in alarms if a.failed and a.step is not None]
+        return cls(
+            n_failed=sum(a.failed for a in alarms),
+            n_successful=sum(not a.failed for a in alarms),
+            failed_alarmed=len(caught),
+            failed_alarmed_before_last_chunk=sum(a.lead_chunks > 0 for a in caught),
+            successful_alarmed=sum(not a.failed and a.step is not None for a in alarms),
+            median_lead_chunks=float(np.median([a.lead_chunks for a in caught])) if caught else math.nan,
+            median_lead_env_steps=float(np.median([a.lead_env_steps for a in caught]))
+            if caught
+            else math.nan,
+        )
+
+
+def _fraction(count: int, total: int) -> str:
+    return f"{count}/{total} ({percent(count / total if total else math.nan)})"
+
+
+def format_lead_time_table(summaries: dict[str, LeadTimeSummary]) -> str:
+    """One row per scope (pooled, a task): failures alarmed before their last chunk, the median lead, and
+    the successes alarmed (false alarms)."""
+    headers = [
+        "Scope",
+        "Failed",
+        "Successful",
+        "Failures alarmed before their last chunk",
+        "Failures alarmed",
+        "Median lead (chunks)",
+        "Median lead (env steps)",
+        "Successes alarmed",
+    ]
+    rows = [
+        [
+            scope,
+            s.n_failed,
+            s.n_successful,
+            _fraction(s.failed_alarmed_before_last_chunk, s.n_failed),
+            _fraction(s.failed_alarmed, s.n_failed),
+            f"{s.median_lead_chunks:g}",
+            f"{s.median_lead_env_steps:g}",
+            _fraction(s.successful_alarmed, s.n_successful),
+        ]
+        for scope, s in summaries.items()
+    ]
+    return markdown_table(headers, rows)
+
+
+def format_alarms(alarms: Sequence[Alarm]) -> str:
+    """One row per failed episode: its first alarm and the lead it gave ("never" when not alarmed)."""
+    headers = ["Task", "Episode", "Seed", "Chunks", "First alarm (step)", "Lead (chunks)", "Lead (env steps)"]
+    rows = [
+        [
+            a.task,
+            a.episode_index,
+            a.seed,
+            a.n_chunks,
+            *(("never", "", "") if a.step is None else (a.step, a.lead_chunks, a.lead_env_steps)),
+        ]
+        for a in alarms
+        if a.failed
+    ]
     return markdown_table(headers, rows)

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .threshold import ArrayLike, as_array
+from ..runtime.threshold import ArrayLike, as_array, exceeds
 
 
 def ratio(numerator: float, denominator: float) -> float:
@@ -41,6 +41,16 @@ class BinaryRates:
         """Counts from the detector's decisions on the negatives and on the positives."""
         tp, fp = int(np.sum(positive_flags)), int(np.sum(negative_flags))
         return cls(tp=tp, fp=fp, tn=int(np.size(negative_flags)) - fp, fn=int(np.size(positive_flags)) - tp)
+
+    @classmethod
+    def from_scores(
+        cls, negative_scores: ArrayLike, positive_scores: ArrayLike, threshold: float
+    ) -> "BinaryRates":
+        """Counts of the rule "flag when score > threshold" (`runtime.threshold.exceeds`) on both classes.
+
+        Either side may be empty: its rate is then NaN (the FPR of held-out negatives alone, say).
+        """
+        return cls.from_flags(exceeds(negative_scores, threshold), exceeds(positive_scores, threshold))
 
     @property
     def n(self) -> int:
@@ -132,6 +142,14 @@ def bootstrap_auroc_interval(
     tail = 100 * (1 - level) / 2
     low, high = np.percentile(areas, [tail, 100 - tail])
     return float(low), float(high)
+
+
+def format_auroc(
+    negative_scores: ArrayLike, positive_scores: ArrayLike, n_resamples: int = 1000, seed: int = 0
+) -> str:
+    """The AUROC with its bootstrap 95% interval, as the reports print it: "0.875 [0.700, 1.000]"."""
+    low, high = bootstrap_auroc_interval(negative_scores, positive_scores, n_resamples, seed=seed)
+    return f"{auroc(negative_scores, positive_scores):.3f} [{low:.3f}, {high:.3f}]"
 
 
 def roc_curve(

@@ -11,7 +11,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .failure import Episode, energy_matrix
+from .failure import energy_matrix
+from .records import Episode
 
 if TYPE_CHECKING:
     from .landscape import EnergyLandscape

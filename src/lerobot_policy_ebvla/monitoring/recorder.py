@@ -9,26 +9,23 @@
     records = recorder.records(info, n_episodes=10)    # successes from lerobot-eval's info dict
     write_energy_records("outputs/eval/energy_records.jsonl", records)
 
-While active, the policy's `select_action` is shadowed on the instance (the rollout calls
-`policy.select_action(observation)`); EB-VLA sets `policy.last_energy` to a new `EnergyReadout` each time
-it refines a chunk, so a refinement is detected by object identity. The watched env reports its resets,
-steps and which sub-envs are done: LeRobot's `rollout` keeps stepping finished sub-envs until the whole
-batch is done, and only chunks of sub-envs still running belong to an episode.
+While active, the recorder is registered with `policy.register_chunk_hook`: after every chunk the policy
+refines (whichever loop calls `select_action`) it receives the observation batch, the chunk's `EnergyReadout`
+and the OOD decision. The watched env reports its resets, steps and which sub-envs are done: LeRobot's
+`rollout` keeps stepping finished sub-envs until the whole batch is done, and only chunks of sub-envs still
+running belong to an episode.
 
-Opt-in scores (`baselines.py`) are computed from the same observation right after each refinement,
-without touching the executed chunk or the global random state (they draw from their own generator):
-- `restart_spread_chains=N` (N >= 2): refines N more chunks from independent a^(0) with
-  `policy.model.generate_actions` on the observation repeated N times, and records the std over the N
-  chains, averaged over the chunk's H x d_a normalized actions. It costs N extra refinements per chunk.
-- `normalized_energy_samples=N` (N >= 1): scores N chunks drawn from the MCMC prior N(0, sigma_init^2 I)
-  under the same context (`policy.score_action_chunks`, one batched energy evaluation) and records
-  E(a^(K_inf), C) + log mean_j exp(-E(a_j, C)).
-- `record_context_features=True`: records the pooled context, the mean over tokens of the last block's
-  context of `policy.model.backbone(batch)`, a (D,) vector per chunk.
+Opt-in scores (`baselines.py`) are the policy's own quantities, computed from the same observation right after
+each refinement, without touching the executed chunk or the global random state (they draw from the
+recorder's own generator):
+- `restart_spread_chains=N` (N >= 2): `policy.restart_spread`, the std over N more chains refined from
+  independent a^(0), averaged over the chunk's H x d_a normalized actions. It costs N refinements per chunk.
+- `normalized_energy_samples=N` (N >= 1): `policy.normalized_energy`, E(a^(K_inf), C) + log mean_j
+  exp(-E(a_j, C)) over N chunks drawn from the MCMC prior under the same context (one batched evaluation).
+- `record_context_features=True`: `policy.context_features`, the pooled last-block context, a (D,) vector.
 """
 
 import logging
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -110,58 +107,12 @@ def _task_name(env: Any, default: str) -> str:
     return default
 
 
-def repeat_batch(batch: dict[str, Any], batch_size: int, n: int) -> dict[str, Any]:
-    """Each observation of a batch repeated n times in a row: (B, ...) -> (B * n, ...); lists likewise.
-
-    Tensors made under `torch.inference_mode` (lerobot-eval) come back as normal tensors autograd can use.
-    """
-
-    def repeat(value: Any) -> Any:
-        if isinstance(value, Tensor) and value.ndim > 0 and value.shape[0] == batch_size:
-            return value.clone().repeat_interleave(n, dim=0)
-        if isinstance(value, list | tuple) and len(value) == batch_size:
-            return [item for item in value for _ in range(n)]
-        return value.clone() if isinstance(value, Tensor) else value
-
-    return {key: repeat(value) for key, value in batch.items()}
-
-
-def restart_spread(policy: Any, batch: dict[str, Any], n_chains: int, generator: torch.Generator) -> Tensor:
-    """(B,) spread of `n_chains` chunks refined for each observation: std over chains, mean over (H, d_a)."""
-    batch_size = next(v.shape[0] for v in batch.values() if isinstance(v, Tensor) and v.ndim > 0)
-    with torch.inference_mode(False):
-        actions, _ = policy.model.generate_actions(
-            repeat_batch(batch, batch_size, n_chains), generator=generator
-        )
-    actions = actions.float().view(batch_size, n_chains, *actions.shape[1:])  # (B, N, H, d_a)
-    return actions.std(dim=1, unbiased=False).mean(dim=(1, 2))
-
-
-def log_partition(policy: Any, batch: dict[str, Any], n_samples: int, generator: torch.Generator) -> Tensor:
-    """(B,) log mean_j exp(-E(a_j, C)) over `n_samples` chunks a_j ~ N(0, sigma_init^2 I), the MCMC prior."""
-    config = policy.config
-    batch_size = next(v.shape[0] for v in batch.values() if isinstance(v, Tensor) and v.ndim > 0)
-    shape = (batch_size, n_samples, config.chunk_size, config.action_dim)
-    device = next(policy.parameters()).device
-    samples = config.init_action_std * torch.randn(shape, device=device, generator=generator)
-    energies = policy.score_action_chunks(batch, samples).float()  # (B, N)
-    return torch.logsumexp(-energies, dim=1) - math.log(n_samples)
-
-
-def pooled_context(policy: Any, batch: dict[str, Any]) -> Tensor:
-    """(B, D) mean over tokens of the last block's backbone context C_L."""
-    batch_size = next(v.shape[0] for v in batch.values() if isinstance(v, Tensor) and v.ndim > 0)
-    with torch.inference_mode(False), torch.no_grad():
-        contexts = policy.model.backbone(repeat_batch(batch, batch_size, 1))
-    return contexts[-1].float().mean(dim=1)
-
-
 class EnergyRecorder:
     """Records each refined chunk's energies (and opt-in baselines) during rollouts; see the module docstring.
 
     Args:
-        policy: An `EBVLAPolicy` (anything exposing `select_action` and `last_energy`; the baselines also
-            need `policy.model.generate_actions` and `policy.model.backbone`).
+        policy: An `EBVLAPolicy` (anything with `register_chunk_hook`; the opt-in scores also need its
+            `restart_spread`, `normalized_energy` and `context_features`).
         restart_spread_chains: N >= 2 records the restart spread over N chains; 0 (default) does not.
         normalized_energy_samples: N >= 1 records the normalized energy with N prior chunks; 0 (default) does not.
         record_context_features: Record the pooled backbone context of every chunk's observation.
@@ -192,29 +143,22 @@ class EnergyRecorder:
         self.watching: WatchedVecEnv | None = None
         self.chunks: list[_Chunk] = []
         self._generator: torch.Generator | None = None
-        self._last_readout: Any = None
-        self._n_select_action_calls = 0
+        self._hook: Any = None
 
     def __enter__(self) -> "EnergyRecorder":
-        select_action = self.policy.select_action
-
-        def select_action_and_record(batch: dict[str, Any], *args: Any, **kwargs: Any) -> Any:
-            action = select_action(batch, *args, **kwargs)
-            self._n_select_action_calls += 1
-            readout = getattr(self.policy, "last_energy", None)
-            if readout is not None and readout is not self._last_readout:
-                self._last_readout = readout
-                self._record(readout, batch)
-            return action
-
-        # An instance attribute shadows the method: `rollout` calls `policy.select_action(observation)`.
-        self.policy.select_action = select_action_and_record
+        if hasattr(self.policy, "register_chunk_hook"):
+            self._hook = self.policy.register_chunk_hook(self._on_chunk)
+        else:  # another LeRobot policy (the diffusion baseline) is evaluated the same way, without energies
+            logger.warning("%s has no energy to record: no records are written.", type(self.policy).__name__)
         return self
 
     def __exit__(self, *exc: Any) -> None:
-        del self.policy.select_action
-        if self._n_select_action_calls and not self.chunks:
-            logger.warning("The policy exposes no `last_energy`: no energy was recorded.")
+        if self._hook is not None:
+            self._hook.remove()
+            self._hook = None
+
+    def _on_chunk(self, policy: Any, batch: dict[str, Any], readout: Any, decision: Any) -> None:
+        self._record(readout, batch, decision)
 
     def watch(self, env: Any, task_group: str, task_id: int) -> WatchedVecEnv:
         """Wraps a vector env so the recorder knows each chunk's episode, step and seed."""
@@ -226,19 +170,22 @@ class EnergyRecorder:
             self._generator = torch.Generator(device).manual_seed(self.seed)
         return self._generator
 
-    def _baselines(self, batch: dict[str, Any]) -> tuple[list | None, list | None, list | None]:
-        spread = features = partition = None
+    def _baselines(self, batch: dict[str, Any], final_energy: Tensor) -> tuple[list | None, ...]:
+        spread = features = normalized = None
         if self.restart_spread_chains:
             n = self.restart_spread_chains
-            spread = restart_spread(self.policy, batch, n, self._generator_for_baselines()).cpu().tolist()
+            spread = self.policy.restart_spread(batch, n, self._generator_for_baselines()).cpu().tolist()
         if self.normalized_energy_samples:
             n = self.normalized_energy_samples
-            partition = log_partition(self.policy, batch, n, self._generator_for_baselines()).cpu().tolist()
+            normalized = self.policy.normalized_energy(
+                batch, final_energy, n, self._generator_for_baselines()
+            )
+            normalized = normalized.cpu().tolist()
         if self.record_context_features:
-            features = list(pooled_context(self.policy, batch).cpu().numpy())
-        return spread, features, partition
+            features = list(self.policy.context_features(batch).cpu().numpy())
+        return spread, features, normalized
 
-    def _record(self, readout: Any, batch: dict[str, Any]) -> None:
+    def _record(self, readout: Any, batch: dict[str, Any], decision: Any) -> None:
         env = self.watching
         if env is None:
             raise RuntimeError("Energies were produced for an env that `EnergyRecorder.watch` did not wrap.")
@@ -248,9 +195,7 @@ class EnergyRecorder:
             raise ValueError(
                 f"Expected energies of shape ({env.num_envs},), got {len(initial)} and {len(final)}."
             )
-        spread, features, partition = self._baselines(batch)
-        # Set with `last_energy` by an EB-VLA policy that has an OOD response (`ood_response.py`).
-        decision = getattr(self.policy, "last_ood_decision", None)
+        spread, features, normalized = self._baselines(batch, readout.final_energy.detach())
         held = None if decision is None else decision.held.reshape(-1).tolist()
         for i in np.flatnonzero(~env.done):
             self.chunks.append(
@@ -265,7 +210,7 @@ class EnergyRecorder:
                     final_energy=final[i],
                     seed=None if env.seeds[i] is None else int(env.seeds[i]),
                     restart_spread=None if spread is None else spread[i],
-                    normalized_energy=None if partition is None else final[i] + partition[i],
+                    normalized_energy=None if normalized is None else normalized[i],
                     held=None if held is None else bool(held[i]),
                     context_feature=None if features is None else features[i],
                 )

@@ -15,15 +15,25 @@ read as None):
 - `held`: written when the policy has an OOD response: whether it replaced the chunk by its hold action;
 - `context_feature`: a (D,) vector per row, stored compactly beside the records as float32 rows of
   `energy_records.features.npy` (row i belongs to line i of the records), attached to the records on read.
+
+Records to commit are gzip-compressed: `energy_records.jsonl.gz`, its features
+`energy_records.features.npy.gz` (the same bytes, gzipped). Both are written without a timestamp, so
+compressing the same records twice gives the same bytes. Every reader takes either form (a folder must hold
+one of them, not both); `compress_records` turns a folder of records into the compressed form:
+
+    python -m lerobot_policy_ebvla.monitoring.records --paths='[benchmarks/results/my_study]'
 """
 
 import dataclasses
 import glob
+import gzip
+import io
 import json
 import math
 import os
+import sys
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -31,6 +41,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 ENERGY_RECORDS_FILENAME = "energy_records.jsonl"
+GZIP_SUFFIX = ".gz"
+COMPRESSED_RECORDS_FILENAME = ENERGY_RECORDS_FILENAME + GZIP_SUFFIX
 VANILLA_PERTURBATION = "none"
 FEATURES_SUFFIX = ".features.npy"
 # Fields every row has had since the first version of the format; later fields are optional on read.
@@ -97,6 +109,10 @@ class EnergyRecord:
         return self.perturbation == VANILLA_PERTURBATION
 
 
+# One rollout's chunk records, in chunk order.
+Episode = Sequence[EnergyRecord]
+
+
 class EpisodeKey(NamedTuple):
     """Identifies an episode in a record file: lerobot-eval restarts `episode_index` for each task."""
 
@@ -130,10 +146,35 @@ def record_to_json(record: EnergyRecord) -> str:
     return json.dumps(row, allow_nan=False)
 
 
+def is_compressed(path: str | Path) -> bool:
+    return Path(path).name.endswith(GZIP_SUFFIX)
+
+
 def features_path(records_path: str | Path) -> Path:
-    """Where the context features of a records file live: `energy_records.features.npy` beside it."""
+    """Where a records file's context features are written: `energy_records.features.npy` beside it, or
+    `energy_records.features.npy.gz` beside a compressed `energy_records.jsonl.gz`."""
     records_path = Path(records_path)
-    return records_path.with_name(records_path.stem + FEATURES_SUFFIX)
+    name = records_path.name.removesuffix(GZIP_SUFFIX)
+    features = Path(name).stem + FEATURES_SUFFIX
+    return records_path.with_name(features + (GZIP_SUFFIX if is_compressed(records_path) else ""))
+
+
+def _features_paths(records_path: Path) -> list[Path]:
+    """Where a records file's features may be, its own form first: records compressed by hand keep theirs."""
+    written = features_path(records_path)
+    other = written.with_name(written.name.removesuffix(GZIP_SUFFIX)) if is_compressed(written) else None
+    return [written, other or written.with_name(written.name + GZIP_SUFFIX)]
+
+
+def _save_features(features: np.ndarray, compressed: bool) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, features)
+    return gzip.compress(buffer.getvalue(), mtime=0) if compressed else buffer.getvalue()
+
+
+def _load_features(path: Path) -> np.ndarray:
+    data = path.read_bytes()
+    return np.load(io.BytesIO(gzip.decompress(data) if is_compressed(path) else data))
 
 
 def _stack_features(records: list[EnergyRecord]) -> np.ndarray | None:
@@ -165,7 +206,8 @@ def write_energy_records(path: str | Path, records: Iterable[EnergyRecord], over
     The rename means a reader never sees a half-written file, even if evaluation is killed mid-write.
 
     Args:
-        path: Destination file, usually `<eval output dir>/energy_records.jsonl`.
+        path: Destination file, usually `<eval output dir>/energy_records.jsonl`; a name ending in `.gz`
+            writes gzip-compressed records (and features).
         records: The records, written in the given order.
         overwrite: Replace an existing file. Without it an existing file is an error.
 
@@ -181,12 +223,17 @@ def write_energy_records(path: str | Path, records: Iterable[EnergyRecord], over
     path.parent.mkdir(parents=True, exist_ok=True)
     records = list(records)
     features = _stack_features(records)
+    compressed = is_compressed(path)
     text = "".join(record_to_json(record) + "\n" for record in records).encode("utf-8")
+    if compressed:
+        text = gzip.compress(text, mtime=0)
     # Features first: a reader that finds the new records also finds their features.
+    written = features_path(path)
     if features is None:
-        features_path(path).unlink(missing_ok=True)  # a previous run's features no longer match
+        written.unlink(missing_ok=True)  # a previous run's features no longer match
     else:
-        _write_atomically(features_path(path), lambda f: np.save(f, features))
+        data = _save_features(features, compressed)
+        _write_atomically(written, lambda f: f.write(data))
     _write_atomically(path, lambda f: f.write(text))
     return path
 
@@ -256,11 +303,24 @@ def _parse_optional_bool(value: Any, name: str, where: str) -> bool | None:
     return value
 
 
+def records_file_in(folder: str | Path) -> Path | None:
+    """The records file of a folder: its `energy_records.jsonl` or `energy_records.jsonl.gz`, None if neither.
+
+    Raises:
+        ValueError: The folder holds both (which one is meant?).
+    """
+    folder = Path(folder)
+    found = [f for f in (ENERGY_RECORDS_FILENAME, COMPRESSED_RECORDS_FILENAME) if (folder / f).is_file()]
+    if len(found) > 1:
+        raise ValueError(f"{folder} holds both {' and '.join(found)}: remove the one that is not meant.")
+    return folder / found[0] if found else None
+
+
 def read_energy_records(path: str | Path) -> list[EnergyRecord]:
-    """Reads an `energy_records.jsonl` file. Blank lines are skipped.
+    """Reads an `energy_records.jsonl` file, or a compressed `energy_records.jsonl.gz`. Skips blank lines.
 
     Args:
-        path: The file, or a folder holding `energy_records.jsonl`.
+        path: The file, or a folder holding one of them.
 
     Raises:
         FileNotFoundError: The file does not exist.
@@ -269,9 +329,11 @@ def read_energy_records(path: str | Path) -> list[EnergyRecord]:
     """
     path = Path(path)
     if path.is_dir():
-        path = path / ENERGY_RECORDS_FILENAME
+        path = records_file_in(path) or path / ENERGY_RECORDS_FILENAME
     records = []
-    with open(path, encoding="utf-8") as f:
+    with (
+        gzip.open(path, "rt", encoding="utf-8") if is_compressed(path) else open(path, encoding="utf-8") as f
+    ):
         for line_number, line in enumerate(f, start=1):
             if not line.strip():
                 continue
@@ -281,11 +343,12 @@ def read_energy_records(path: str | Path) -> list[EnergyRecord]:
             except json.JSONDecodeError as e:
                 raise ValueError(f"{where}: invalid JSON ({e.msg}).") from e
             records.append(record_from_json(row, where))
-    if features_path(path).exists():
-        features = np.load(features_path(path))
+    found = [f for f in _features_paths(path) if f.exists()]
+    if found:
+        features = _load_features(found[0])
         if features.ndim != 2 or features.shape[0] != len(records):
             raise ValueError(
-                f"{features_path(path)}: expected ({len(records)}, D) context features, one row per record "
+                f"{found[0]}: expected ({len(records)}, D) context features, one row per record "
                 f"of {path}, got shape {features.shape}."
             )
         records = [dataclasses.replace(r, context_feature=f) for r, f in zip(records, features, strict=True)]
@@ -316,10 +379,12 @@ def group_by_episode(records: Iterable[EnergyRecord]) -> dict[EpisodeKey, list[E
 
 
 def resolve_record_files(paths: Iterable[str | Path]) -> list[Path]:
-    """The record files named by paths: files, eval folders (their `energy_records.jsonl`) or glob patterns.
+    """The record files named by paths: files, eval folders (their `energy_records.jsonl` or
+    `energy_records.jsonl.gz`) or glob patterns.
 
     Raises:
         FileNotFoundError: A path or pattern names no record file.
+        ValueError: A folder holds both forms.
     """
     files = []
     for pattern in paths:
@@ -327,10 +392,12 @@ def resolve_record_files(paths: Iterable[str | Path]) -> list[Path]:
         matches = (
             [Path(m) for m in sorted(glob.glob(pattern))] if glob.has_magic(pattern) else [Path(pattern)]
         )
-        found = [m / ENERGY_RECORDS_FILENAME if m.is_dir() else m for m in matches]
-        found = [f.resolve() for f in found if f.is_file()]  # one spelling per file: overlaps are found
+        found = [records_file_in(m) if m.is_dir() else m for m in matches]
+        found = [f.resolve() for f in found if f and f.is_file()]  # one spelling per file: overlaps are found
         if not found:
-            raise FileNotFoundError(f"No {ENERGY_RECORDS_FILENAME} found at {pattern}.")
+            raise FileNotFoundError(
+                f"No {ENERGY_RECORDS_FILENAME} (or {COMPRESSED_RECORDS_FILENAME}) found at {pattern}."
+            )
         files += found
     return list(dict.fromkeys(files))
 
@@ -353,3 +420,66 @@ def load_episodes(
         for key, chunks in group_by_episode(records).items():
             episodes[(str(path), key)] = chunks
     return episodes
+
+
+def compress_records(paths: Iterable[str | Path], keep_original: bool = False) -> list[Path]:
+    """Compresses records for committing: each `energy_records.jsonl` into `energy_records.jsonl.gz`.
+
+    Each file (or every `energy_records.jsonl` below each folder) is read, written compressed beside itself
+    with its features, read back and compared, and only then, unless `keep_original`, removed with its
+    features (a folder holding both forms would be refused by every reader).
+
+    Returns:
+        The compressed files written.
+
+    Raises:
+        FileNotFoundError: A path names no records file.
+    """
+    files = []
+    for path in map(Path, paths):
+        found = sorted(path.rglob(ENERGY_RECORDS_FILENAME)) if path.is_dir() else [path]
+        if not found or not all(f.is_file() for f in found):
+            raise FileNotFoundError(f"No {ENERGY_RECORDS_FILENAME} found at {path}.")
+        files += found
+    written = []
+    for file in files:
+        records = read_energy_records(file)
+        target = write_energy_records(file.with_name(file.name + GZIP_SUFFIX), records, overwrite=True)
+        _check_same_records(records, read_energy_records(target), target)
+        if not keep_original:
+            features_path(file).unlink(missing_ok=True)
+            file.unlink()
+        written.append(target)
+    return written
+
+
+def _check_same_records(expected: list[EnergyRecord], read: list[EnergyRecord], path: Path) -> None:
+    # Compared as their JSON lines: a NaN energy equals itself there, not as a float.
+    same = [record_to_json(r) for r in read] == [record_to_json(r) for r in expected]
+    features = _stack_features(read), _stack_features(expected)
+    if any(f is not None for f in features):
+        same = same and all(f is not None for f in features) and np.array_equal(*features, equal_nan=True)
+    if not same:
+        raise RuntimeError(f"{path} does not read back as the records it was written from; originals kept.")
+
+
+@dataclass
+class CompressRecordsConfig:
+    """Compresses energy records for committing (`compress_records`)."""
+
+    # Records files, or folders searched recursively for `energy_records.jsonl`.
+    paths: list[str] = field(default_factory=list)
+    # Keep the uncompressed files (readers then refuse the folder until one form is removed).
+    keep_original: bool = False
+
+
+def main(args: list[str] | None = None) -> None:
+    import draccus  # only this command parses a config: the records need no draccus
+
+    cfg = draccus.parse(CompressRecordsConfig, args=sys.argv[1:] if args is None else args)
+    for path in compress_records(cfg.paths, cfg.keep_original):
+        sys.stdout.write(f"{path}\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,8 +1,8 @@
 """What the policy does with a chunk its energy flags as out of distribution (beyond the paper).
 
 After each refinement, the final energy E(a^(K_inf), C) of every chunk is compared to the threshold
-T = mu_v + k * sigma_v (Eq. 5) of the checkpoint's `ood_calibration.json`, with the same rule as
-`EnergyOODMonitor`: only E <= T is in distribution, so +inf (diverged refinement) and NaN are flagged.
+T = mu_v + k * sigma_v (Eq. 5) of the checkpoint's `ood_calibration.json`, with the one rule of
+`threshold.py`: only E <= T is in distribution, so +inf (diverged refinement) and NaN are flagged.
 `EBVLAConfig.ood_response` picks what happens to a flagged chunk:
 
 - "continue": it is executed and a warning is logged (the default).
@@ -20,8 +20,10 @@ so that after the post-processor the robot receives exactly a zero delta, or its
 """
 
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 from lerobot.lerobot_types import TransitionKey
@@ -34,8 +36,11 @@ from lerobot.processor.converters import create_transition
 from lerobot.utils.constants import OBS_STATE, POLICY_PREPROCESSOR_DEFAULT_NAME
 from torch import Tensor
 
-from .configuration_ebvla import EBVLAConfig
-from .monitoring import OOD_CALIBRATION_FILENAME, EnergyOODMonitor, OODCalibration
+from .calibration import OOD_CALIBRATION_FILENAME, OODCalibration
+from .threshold import exceeds
+
+if TYPE_CHECKING:  # annotations only: run-time code reads the config's fields and imports nothing above it
+    from ..configuration_ebvla import EBVLAConfig
 
 logger = logging.getLogger(__name__)
 
@@ -61,14 +66,16 @@ class EnergyOODError(RuntimeError):
     """Raised with `ood_response="raise"` when a refined chunk's final energy exceeds the OOD threshold.
 
     Attributes:
-        energy: The highest final energy among the flagged chunks.
+        energy: The highest score (the calibration's `score`: final energy or phase energy) among the flagged chunks.
         threshold: The threshold T it exceeded.
         decision: The full per-batch-element decision.
     """
 
-    def __init__(self, energy: float, threshold: float, decision: OODResponseDecision):
+    def __init__(
+        self, energy: float, threshold: float, decision: OODResponseDecision, score: str = "final_energy"
+    ):
         super().__init__(
-            f"EB-VLA refined a chunk with final energy {energy:.4g} above the OOD threshold {threshold:.4g} "
+            f"EB-VLA refined a chunk with {score} {energy:.4g} above the OOD threshold {threshold:.4g} "
             "(`ood_response='raise'`): the observation looks out of distribution."
         )
         self.energy = energy
@@ -117,26 +124,32 @@ class HoldAction:
 
 
 class EnergyOODResponse:
-    """Applies `EBVLAConfig.ood_response` to refined chunks, with a checkpoint's calibrated threshold.
+    """Applies the config's OOD response to refined chunks, with a checkpoint's calibrated threshold.
+
+    The config is the one source of truth: `ood_response`, `hold_action` and `ood_threshold_k` are read from
+    it at every chunk, so a response never disagrees with the config it was built for. What comes from the
+    checkpoint is what the config cannot hold: the calibration and the normalizer of the hold action.
 
     Args:
-        response: "continue", "hold" or "raise".
-        monitor: The OOD monitor holding the calibration and the threshold T.
-        hold_action: The hold action; required for "hold".
+        config: The policy's config (read at every call).
+        calibration: The vanilla statistics of the checkpoint's `ood_calibration.json`.
+        hold_action: The hold action of `config.hold_action`, with the checkpoint's normalizer; required
+            while `config.ood_response == "hold"`.
     """
 
-    def __init__(self, response: str, monitor: EnergyOODMonitor, hold_action: HoldAction | None = None):
-        if response == "hold" and hold_action is None:
-            raise ValueError("`ood_response='hold'` needs a `hold_action`.")
-        self.response = response
-        self.monitor = monitor
+    def __init__(
+        self, config: "EBVLAConfig", calibration: OODCalibration, hold_action: HoldAction | None = None
+    ):
+        self.config = config
+        self.calibration = calibration
         self.hold_action = hold_action
+        self._check_hold_action()
 
     @classmethod
     def from_pretrained(
-        cls, config: EBVLAConfig, pretrained_name_or_path: str | Path
+        cls, config: "EBVLAConfig", pretrained_name_or_path: str | Path
     ) -> "EnergyOODResponse | None":
-        """The response of a checkpoint: its `ood_calibration.json`, with `config.ood_threshold_k` if set.
+        """The response of a checkpoint: its `ood_calibration.json`, and the pre-processor's normalizer to hold.
 
         Returns None for `ood_response="continue"` when the checkpoint has no calibration.
 
@@ -153,44 +166,58 @@ class EnergyOODResponse:
                 f"{OOD_CALIBRATION_FILENAME} beside the weights, and {pretrained_name_or_path} has none: "
                 "calibrate it with `ebvla-ood-report --calibrate_to=<pretrained_model>` on vanilla rollouts."
             ) from e
-        if config.ood_threshold_k is not None:
-            calibration = calibration.with_k(config.ood_threshold_k)
         hold_action = None
         if config.ood_response == "hold":
             hold_action = HoldAction.from_pretrained(config.hold_action, pretrained_name_or_path)
-        return cls(config.ood_response, EnergyOODMonitor(calibration), hold_action)
+        return cls(config, calibration, hold_action)
 
     @property
     def threshold(self) -> float:
-        return self.monitor.threshold
+        """T of the calibration, at the config's `ood_threshold_k` when it sets one."""
+        k = self.config.ood_threshold_k
+        return (self.calibration if k is None else self.calibration.with_k(k)).threshold
+
+    def _check_hold_action(self) -> None:
+        kind = self.config.hold_action
+        if self.config.ood_response == "hold" and (self.hold_action is None or self.hold_action.kind != kind):
+            raise ValueError(
+                f"`ood_response='hold'` with `hold_action={kind!r}` needs that hold action built from the "
+                "checkpoint's normalizer: change the response with "
+                "`policy.configure_ood_response(<checkpoint>, ood_response=..., hold_action=...)`."
+            )
 
     def __call__(
-        self, actions: Tensor, final_energy: Tensor, batch: dict[str, Tensor]
+        self, actions: Tensor, final_energy: Tensor, batch: dict[str, Tensor], chunk_index: int = 0
     ) -> tuple[Tensor, OODResponseDecision]:
         """Checks each chunk (B, H, action_dim) against T and continues, holds or raises.
 
+        `chunk_index` is the chunk's index in its episode, for a calibration whose score depends on it.
         Returns the chunks to execute (held ones replaced) and the decision.
         """
-        decisions = self.monitor.check(final_energy.detach().float().cpu().reshape(-1))
-        flagged = torch.tensor([d.is_ood for d in decisions], dtype=torch.bool)
-        held = flagged if self.response == "hold" else torch.zeros_like(flagged)
-        decision = OODResponseDecision(self.response, self.threshold, flagged, held)
+        response, threshold = self.config.ood_response, self.threshold
+        energies = final_energy.detach().float().cpu().reshape(-1)
+        # The calibration's score: the final energy itself, or its z-score at this chunk index (phase energy).
+        scores = torch.as_tensor(self.calibration.chunk_score(energies, chunk_index), dtype=torch.float32)
+        energies = scores.reshape(-1)
+        flagged = torch.from_numpy(exceeds(energies, threshold))
+        held = flagged if response == "hold" else torch.zeros_like(flagged)
+        decision = OODResponseDecision(response, threshold, flagged, held)
         if not flagged.any():
             return actions, decision
-        energy = max(d.energy for d in decisions if d.is_ood)
-        if self.response == "raise":
-            raise EnergyOODError(energy, self.threshold, decision)
+        # NaN sorts as the highest: report it rather than a finite energy beside it.
+        energy = float(energies[flagged].nan_to_num(nan=math.inf).max())
+        if response == "raise":
+            raise EnergyOODError(energy, threshold, decision, self.calibration.score)
         logger.warning(
             "EB-VLA: %d of %d chunks have a final energy above the OOD threshold %.4g (highest %.4g): %s.",
             int(flagged.sum()),
             flagged.numel(),
-            self.threshold,
+            threshold,
             energy,
-            "holding them"
-            if self.response == "hold"
-            else "executing them anyway (`ood_response='continue'`)",
+            "holding them" if response == "hold" else "executing them anyway (`ood_response='continue'`)",
         )
-        if self.response == "hold":
+        if response == "hold":
+            self._check_hold_action()
             batch_size, _, action_dim = actions.shape
             hold = self.hold_action(batch, batch_size, action_dim).to(actions.device, actions.dtype)
             mask = held.to(actions.device)[:, None, None]  # (B, 1, 1)
@@ -200,10 +227,11 @@ class EnergyOODResponse:
 
 def respond_to_energy(
     response: EnergyOODResponse | None,
-    config: EBVLAConfig,
+    config: "EBVLAConfig",
     actions: Tensor,
     final_energy: Tensor,
     batch: dict[str, Tensor],
+    chunk_index: int = 0,
 ) -> tuple[Tensor, OODResponseDecision | None]:
     """The policy's entry point: applies `response`, or checks that none is needed without a calibration.
 
@@ -214,8 +242,8 @@ def respond_to_energy(
         if config.ood_response != "continue":
             raise ValueError(
                 f"`ood_response={config.ood_response!r}` needs the threshold of an OOD calibration: load the "
-                f"policy with `EBVLAPolicy.from_pretrained` from a checkpoint holding {OOD_CALIBRATION_FILENAME}, "
-                "or set `policy.ood_response = EnergyOODResponse(...)`."
+                f"policy with `EBVLAPolicy.from_pretrained` from a checkpoint holding {OOD_CALIBRATION_FILENAME} "
+                "(or call `policy.configure_ood_response(<checkpoint>)`)."
             )
         return actions, None
-    return response(actions, final_energy, batch)
+    return response(actions, final_energy, batch, chunk_index)

@@ -1,0 +1,78 @@
+"""Every private LeRobot name the plugin uses, in one place.
+
+LeRobot may rename or remove its private names in any release. They were checked against LeRobot
+`LEROBOT_VERSION_CHECKED`; `tests/test_lerobot_private.py` fails, naming the installed version, when one of
+`PRIVATE_NAMES` has moved. Every other module of the package takes these names from here.
+
+- `make_vec_env_cls`: LeRobot's choice of vector env class, so that our env configs build the same vector envs
+  as LeRobot's own (`EnvConfig.create_envs`).
+- `LazyAsyncVectorEnv`: LeRobot's async vector env that starts its worker processes only when a task is
+  evaluated, as `lerobot.envs.metaworld` and `lerobot.envs.libero` use.
+- `get_libero_suite`, `select_libero_task_ids`: LeRobot's validation of LIBERO suite names and task ids. They
+  import `lerobot.envs.libero` when called: it imports the optional `libero` package, which asks questions on
+  stdin until LIBERO is set up (`ebvla-install-libero-assets`).
+- `POLICY_SERVER_CHUNK_METHOD`: the private method of LeRobot's `PolicyServer` that `EBVLAPolicyServer`
+  (serving.py, run by `ebvla-policy-server`) overrides to see every chunk it serves.
+"""
+
+import importlib
+import importlib.metadata
+from collections.abc import Iterable
+from typing import Any
+
+__all__ = [
+    "LEROBOT_VERSION_CHECKED",
+    "POLICY_SERVER_CHUNK_METHOD",
+    "PRIVATE_NAMES",
+    "LazyAsyncVectorEnv",
+    "get_libero_suite",
+    "make_vec_env_cls",
+    "select_libero_task_ids",
+]
+
+# The LeRobot release every name below was checked against (`pip show lerobot`).
+LEROBOT_VERSION_CHECKED = "0.6.1"
+POLICY_SERVER_CHUNK_METHOD = "_predict_action_chunk"
+LIBERO_MODULE = "lerobot.envs.libero"
+# (module, attribute) of every private LeRobot name above; attributes of a class are dotted.
+PRIVATE_NAMES = (
+    ("lerobot.envs.configs", "_make_vec_env_cls"),
+    ("lerobot.envs.utils", "_LazyAsyncVectorEnv"),
+    (LIBERO_MODULE, "_get_suite"),
+    (LIBERO_MODULE, "_select_task_ids"),
+    ("lerobot.async_inference.policy_server", f"PolicyServer.{POLICY_SERVER_CHUNK_METHOD}"),
+)
+
+
+def moved_message(module: str, name: str) -> str:
+    """The error for a private name LeRobot no longer has, naming the installed and the checked version."""
+    return (
+        f"LeRobot {importlib.metadata.version('lerobot')} has no `{module}.{name}`, which "
+        f"lerobot_policy_ebvla uses (checked against LeRobot {LEROBOT_VERSION_CHECKED}): "
+        "update lerobot_private.py."
+    )
+
+
+def lerobot_private_name(module: str, name: str) -> Any:
+    """`module.name` (a dotted `name` reaches into a class); an ImportError naming the version if it is gone."""
+    target = importlib.import_module(module)
+    try:
+        for part in name.split("."):
+            target = getattr(target, part)
+    except AttributeError as error:
+        raise ImportError(moved_message(module, name)) from error
+    return target
+
+
+make_vec_env_cls = lerobot_private_name("lerobot.envs.configs", "_make_vec_env_cls")
+LazyAsyncVectorEnv = lerobot_private_name("lerobot.envs.utils", "_LazyAsyncVectorEnv")
+
+
+def get_libero_suite(name: str) -> Any:
+    """LeRobot's `_get_suite`: the LIBERO benchmark suite `name`, with a clear error for an unknown name."""
+    return lerobot_private_name(LIBERO_MODULE, "_get_suite")(name)
+
+
+def select_libero_task_ids(total_tasks: int, task_ids: Iterable[int] | None) -> list[int]:
+    """LeRobot's `_select_task_ids`: the sorted task ids to build (all when `task_ids` is None), validated."""
+    return lerobot_private_name(LIBERO_MODULE, "_select_task_ids")(total_tasks, task_ids)

@@ -1,0 +1,436 @@
+"""The OOD detection report (paper Table III) on held-out rollouts, with the baselines side by side.
+
+`OODReportConfig` is the configuration `ebvla-ood-report` parses; `write_ood_report` builds the report from
+record files and writes `ood_report.md`, the figures `roc_curve.png`, `roc_baselines.png` and
+`energy_histogram.png`, and on request the checkpoint's `ood_calibration.json`. Its sections: the protocol and
+calibration, energy vs success drop per condition, AUROC with bootstrap 95% intervals per score, the same
+AUROCs over each episode's first k chunks beside the whole episode's, Table III per condition in the paper's
+layout with every score's balanced accuracy beside it, and Table III again over the first k chunks.
+"""
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..runtime.calibration import (
+    CALIBRATED_SCORES,
+    OOD_CALIBRATION_FILENAME,
+    SCORE_AGGREGATIONS,
+    THRESHOLD_RULES,
+    OODCalibration,
+)
+from .baselines import ScoreReference, available_scores, fit_score_reference
+from .metrics import BinaryRates, auroc, format_auroc, markdown_table, percent, roc_curve
+from .ood import (
+    TABLE_III_MULTIPLIERS,
+    format_balanced_accuracy_table,
+    format_table_iii,
+    ood_detection_table,
+)
+from .plots import plot_roc, plot_score_histograms
+from .protocol import check_held_out
+from .records import load_episodes, resolve_record_files
+from .scores import aggregate_episodes, episode_chunk_scores
+
+logger = logging.getLogger(__name__)
+
+ALL_CONDITIONS = "all perturbations"
+
+
+@dataclass
+class OODReportConfig:
+    """Energy-based OOD detection report (Table III) on held-out rollouts, with the baselines side by side.
+
+    Calibrate (mu_v, sigma_v of Eq. 5, the conformal threshold, the feature baselines) on `calibration`
+    vanilla rollouts; report on held-out `vanilla` rollouts (the negatives) and `ood` rollouts (the
+    positives, one condition per perturbation and severity their records carry). Each path is a records
+    file, an eval folder or a glob pattern; lists are written `--ood='[outputs/eval/pose*,outputs/eval/fov2]'`.
+    """
+
+    # Vanilla rollouts that set mu_v, sigma_v, the conformal threshold and the feature baselines.
+    calibration: list[str] = field(default_factory=list)
+    # Held-out vanilla rollouts (other seeds than the calibration's): the negatives.
+    vanilla: list[str] = field(default_factory=list)
+    # Perturbed rollouts: the positives, reported per (perturbation, severity) and all together.
+    ood: list[str] = field(default_factory=list)
+    # Allow a report set that shares files or episode seeds with `calibration`, or no `calibration` (then
+    # `vanilla` calibrates): the report is labelled IN-SAMPLE. Without it such a report is refused.
+    in_sample: bool = False
+    # Folder for ood_report.md and the figures.
+    output_dir: Path = Path("outputs/ood_report")
+    # How a rollout's chunk scores form its score: mean, max, last or median.
+    aggregation: str = "mean"
+    # Std multipliers k of Table III's rows (T = mu_v + k sigma_v).
+    multipliers: list[float] = field(default_factory=lambda: list(TABLE_III_MULTIPLIERS))
+    # False-alarm rate alpha of the conformal threshold (its last row in Table III).
+    false_alarm_rate: float = 0.05
+    # Bootstrap resamples of the AUROC intervals.
+    n_bootstrap: int = 1000
+    # Seed of the bootstrap generator.
+    seed: int = 0
+    # Neighbours of the k-NN feature baseline.
+    knn_k: int = 5
+    # Detection on the first chunks: every score's AUROC over each episode's first k chunks, for each k,
+    # beside the whole episode's (an episode shorter than k uses all its chunks).
+    first_chunks: list[int] = field(default_factory=lambda: [1, 3, 5])
+    # Table III once more over each episode's first k chunks, thresholds from the calibration rollouts' first
+    # k chunks; 0 leaves it out.
+    table_iii_first_chunks: int = 3
+    # Write ood_calibration.json (`score`, fitted on `calibration`) into this pretrained_model folder.
+    calibrate_to: Path | None = None
+    # The chunk score the saved calibration is of: final_energy (the paper's) or phase_energy (the final
+    # energy against the calibration rollouts' final energy at the same chunk index).
+    score: str = "final_energy"
+    # k saved in the calibration.
+    k: float = 1.0
+    # Threshold the policy's monitor applies from the saved calibration: mean_std (Eq. 5) or conformal.
+    threshold_rule: str = "mean_std"
+    # Replace an existing ood_calibration.json.
+    overwrite_calibration: bool = False
+
+    def validate(self) -> None:
+        # Not __post_init__: draccus would wrap the ValueError in a less readable ParsingError.
+        if self.aggregation not in SCORE_AGGREGATIONS:
+            raise ValueError(f"`aggregation` must be one of {SCORE_AGGREGATIONS}, got {self.aggregation!r}.")
+        if self.threshold_rule not in THRESHOLD_RULES:
+            raise ValueError(
+                f"`threshold_rule` must be one of {THRESHOLD_RULES}, got {self.threshold_rule!r}."
+            )
+        if self.score not in CALIBRATED_SCORES:
+            raise ValueError(f"`score` must be one of {CALIBRATED_SCORES}, got {self.score!r}.")
+        if any(k < 1 for k in self.first_chunks) or self.table_iii_first_chunks < 0:
+            raise ValueError(
+                f"`first_chunks` must be >= 1 and `table_iii_first_chunks` >= 0, got {self.first_chunks} "
+                f"and {self.table_iii_first_chunks}."
+            )
+        if not self.vanilla or not self.ood:
+            raise ValueError(
+                "Give held-out vanilla (`--vanilla`) and perturbed (`--ood`) rollouts to report on."
+            )
+
+
+def _condition_name(perturbation: str, severity: float) -> str:
+    return f"{perturbation} {severity:g}" if perturbation != "none" else "unperturbed (from --ood)"
+
+
+def _success_rate(episodes: dict) -> float:
+    return float(np.mean([e[0].success for e in episodes.values()])) if episodes else float("nan")
+
+
+def _successes(episodes: dict) -> str:
+    n_success = sum(e[0].success for e in episodes.values())
+    return f"{n_success}/{len(episodes)} ({percent(_success_rate(episodes))})"
+
+
+def _interval(negatives: np.ndarray, positives: np.ndarray, cfg: OODReportConfig) -> str:
+    return format_auroc(negatives, positives, cfg.n_bootstrap, cfg.seed)
+
+
+@dataclass
+class _Scored:
+    """Every score of the held-out rollouts over the same chunks: negatives, and positives per condition."""
+
+    negatives: dict[str, np.ndarray]
+    positives: dict[str, dict[str, np.ndarray]]
+
+
+def _chunks_label(first_chunks: int | None) -> str:
+    if first_chunks is None:
+        return "whole episode"
+    return f"first {first_chunks} chunk{'s' if first_chunks > 1 else ''}"
+
+
+def _check_vanilla_only(flag: str, episodes: dict) -> None:
+    perturbed = sorted(
+        {f"{key.perturbation} {key.severity:g}" for _, key in episodes if key.perturbation != "none"}
+    )
+    if perturbed:
+        raise ValueError(f"`{flag}` must hold vanilla rollouts only, but has perturbed ones: {perturbed}.")
+
+
+def _conditions(ood: dict) -> dict[str, dict]:
+    """All perturbed rollouts together, then one condition per (perturbation, severity)."""
+    conditions: dict[str, dict] = {ALL_CONDITIONS: ood}
+    for key, episode in sorted(ood.items(), key=lambda item: (item[0][1].perturbation, item[0][1].severity)):
+        conditions.setdefault(_condition_name(key[1].perturbation, key[1].severity), {})[key] = episode
+    return conditions
+
+
+def write_ood_report(cfg: OODReportConfig) -> str:
+    """Builds the report, writes it and the figures to `cfg.output_dir`, and returns its markdown.
+
+    Raises:
+        ValueError: An invalid option, a refused in-sample report (`monitoring.protocol`), or perturbed
+            rollouts in a vanilla set.
+        FileExistsError: `calibrate_to` holds a calibration and `overwrite_calibration` is False.
+    """
+    cfg.validate()
+    calibration_file = cfg.calibrate_to / OOD_CALIBRATION_FILENAME if cfg.calibrate_to else None
+    if calibration_file is not None and calibration_file.exists() and not cfg.overwrite_calibration:
+        raise FileExistsError(
+            f"{calibration_file} exists; pass `--overwrite_calibration=true` to replace it."
+        )
+    vanilla = load_episodes(cfg.vanilla)
+    ood = load_episodes(cfg.ood)
+    calibration_set = load_episodes(cfg.calibration) if cfg.calibration else None
+    in_sample = check_held_out(calibration_set, {**vanilla, **ood}, cfg.in_sample)
+    if calibration_set is None:
+        calibration_set = vanilla
+    n_calibration_files = len(resolve_record_files(cfg.calibration or cfg.vanilla))
+    _check_vanilla_only("--calibration", calibration_set)
+    _check_vanilla_only("--vanilla", vanilla)
+    conditions = _conditions(ood)
+
+    names = available_scores([*calibration_set.values(), *vanilla.values(), *ood.values()])
+    reference = fit_score_reference(calibration_set, cfg.knn_k, features="mahalanobis" in names)
+
+    # Each chunk is scored once; the whole-episode and first-chunk scores aggregate the same chunk scores.
+    calibration_chunks, vanilla_chunks, ood_chunks = (
+        {name: episode_chunk_scores(episodes, name, reference) for name in names}
+        for episodes in (calibration_set, vanilla, ood)
+    )
+    condition_chunks = {
+        c: {name: {key: ood_chunks[name][key] for key in episodes} for name in names}
+        for c, episodes in conditions.items()
+    }
+
+    def scores(chunks: dict, first_chunks: int | None = None) -> np.ndarray:
+        return aggregate_episodes(chunks, cfg.aggregation, first_chunks)
+
+    def fit(name: str, first_chunks: int | None = None) -> OODCalibration:
+        calibration_scores = scores(calibration_chunks[name], first_chunks)
+        return OODCalibration.fit(
+            calibration_scores, cfg.k, cfg.aggregation, cfg.false_alarm_rate, cfg.threshold_rule
+        )
+
+    scored: dict[int | None, _Scored] = {}
+    for first_chunks in [None, *cfg.first_chunks, cfg.table_iii_first_chunks or None]:
+        if first_chunks not in scored:
+            scored[first_chunks] = _Scored(
+                {name: scores(vanilla_chunks[name], first_chunks) for name in names},
+                {
+                    c: {name: scores(chunks[name], first_chunks) for name in names}
+                    for c, chunks in condition_chunks.items()
+                },
+            )
+    fits = {name: fit(name) for name in names}
+    negatives, positives = scored[None].negatives, scored[None].positives
+
+    label = "IN-SAMPLE (calibration and report sets overlap: optimistic)" if in_sample else "held-out"
+    sections = [
+        f"# Energy-based OOD detection ({label})",
+        f"Calibration: {len(calibration_set)} vanilla rollouts from {n_calibration_files} record file(s). "
+        f"Report: {len(vanilla)} held-out vanilla rollouts (negatives), {len(ood)} perturbed rollouts "
+        f"(positives). Rollout score: {cfg.aggregation} of the chunk scores. Thresholds: T = mu + k sigma "
+        f"(Eq. 5) and the conformal threshold at false-alarm rate alpha = {percent(cfg.false_alarm_rate)}. "
+        f"Scores: {', '.join(names)}. Held out changes only what is fitted on the calibration rollouts: the "
+        "thresholds and the reference scores (phase_energy"
+        + (", mahalanobis, knn" if reference.features else "")
+        + "); an AUROC of the final energy needs no threshold. A calibration rollout's own reference scores "
+        "are computed leave-one-episode-out.",
+        "## Calibration\n\n" + _calibration_table(fits, negatives, cfg) + _conformal_note(fits, cfg),
+        "## Energy vs success drop (final energy)\n\n"
+        + _success_table(vanilla, conditions, fits, negatives, positives, cfg),
+        "## AUROC [bootstrap 95% interval] by score\n\n"
+        + _auroc_table(conditions, names, negatives, positives, cfg),
+        _first_chunks_section(scored, vanilla, conditions, names, cfg),
+        *_table_iii_sections("Table III", fits, scored[None], vanilla, conditions, names, cfg),
+    ]
+    if cfg.table_iii_first_chunks:
+        k = cfg.table_iii_first_chunks
+        sections.append(
+            f"## Table III on the first {k} chunks\n\nThe same tables with every score over each episode's "
+            f"first {k} chunks (an episode shorter than {k} uses all its chunks); mu_v, sigma_v and the "
+            f"conformal threshold from the calibration rollouts' first {k} chunks."
+        )
+        first_fits = {name: fit(name, k) for name in names}
+        sections += _table_iii_sections(
+            f"Table III, first {k} chunks", first_fits, scored[k], vanilla, conditions, names, cfg
+        )
+    report = "\n\n".join(sections) + "\n"
+
+    cfg.output_dir.mkdir(parents=True, exist_ok=True)
+    (cfg.output_dir / "ood_report.md").write_text(report, encoding="utf-8")
+    _figures(cfg, fits, scores(calibration_chunks["final_energy"]), negatives, positives, names)
+    if cfg.calibrate_to is not None:
+        path = _calibration_to_save(fits, reference, cfg).save(
+            cfg.calibrate_to, overwrite=cfg.overwrite_calibration
+        )
+        logger.info(f"Saved the OOD calibration ({cfg.score}, T = {fits[cfg.score].threshold:.3f}) to {path}")
+    return report
+
+
+def _calibration_to_save(fits: dict, reference: ScoreReference, cfg: OODReportConfig) -> OODCalibration:
+    if cfg.score != "phase_energy":
+        return fits[cfg.score]
+    # The run-time monitor scores chunks against the phase statistics of every calibration rollout.
+    phase = reference.phase.statistics
+    return dataclasses.replace(fits[cfg.score], score=cfg.score, phase_mean=phase.mean, phase_std=phase.std)
+
+
+def _first_chunks_section(scored, vanilla, conditions, names, cfg) -> str:
+    lengths = [k for k in scored if k is not None and k in cfg.first_chunks]
+    lines = [
+        "## Detection on the first chunks: AUROC [bootstrap 95% interval]\n\n"
+        "Every score over each episode's first k chunks only (an episode shorter than k uses all its "
+        "chunks): what a monitor has seen k chunks into an episode, before a failure that follows the "
+        "condition. "
+        f"Held-out vanilla rollouts (the negatives): {len(vanilla)}, success {_successes(vanilla)}."
+    ]
+    headers = ["Score", *(_chunks_label(k) for k in lengths), _chunks_label(None)]
+    for condition, episodes in conditions.items():
+        rows = [
+            [
+                name,
+                *(
+                    _interval(scored[k].negatives[name], scored[k].positives[condition][name], cfg)
+                    for k in [*lengths, None]
+                ),
+            ]
+            for name in names
+        ]
+        lines.append(
+            f"### {condition}: {len(episodes)} perturbed rollouts, success {_successes(episodes)}\n\n"
+            + markdown_table(headers, rows)
+        )
+    return "\n\n".join(lines)
+
+
+def _table_iii_sections(title, fits, scored, vanilla, conditions, names, cfg) -> list[str]:
+    """Per condition: the final energy's Table III as the paper prints it, then every score's balanced
+    accuracy at the same rules."""
+    sections = []
+    for condition, episodes in conditions.items():
+        negatives, positives = scored.negatives, scored.positives[condition]
+        rows = {
+            name: ood_detection_table(negatives[name], positives[name], cfg.multipliers, fits[name])
+            for name in names
+        }
+        final = "final_energy"
+        sections.append(
+            f"## {title}: {condition} ({len(vanilla)} vanilla vs {len(episodes)} perturbed rollouts)\n\n"
+            + format_table_iii(
+                rows[final],
+                fits[final],
+                _interval(negatives[final], positives[final], cfg),
+                len(vanilla),
+                len(episodes),
+            )
+            + "\n\nBalanced accuracy of every score at the same rules:\n\n"
+            + format_balanced_accuracy_table(rows)
+        )
+    return sections
+
+
+def _calibration_table(fits: dict, negatives: dict, cfg: OODReportConfig) -> str:
+    rows = []
+    for name, fit in fits.items():
+        t_k = fit.with_k(cfg.k).threshold
+        rows.append(
+            [
+                name,
+                fit.n_rollouts,
+                f"{fit.mu_v:.4g}",
+                f"{fit.sigma_v:.4g}",
+                f"{t_k:.4g}",
+                percent(BinaryRates.from_scores(negatives[name], [], t_k).fpr),
+                f"{fit.conformal_threshold:.4g}",
+                percent(BinaryRates.from_scores(negatives[name], [], fit.conformal_threshold).fpr),
+            ]
+        )
+    headers = [
+        "Score",
+        "Rollouts",
+        "mu",
+        "sigma",
+        f"T (k={cfg.k:g})",
+        "Held-out FPR",
+        f"T conformal (α={percent(cfg.false_alarm_rate)})",
+        "Held-out FPR (conformal)",
+    ]
+    return markdown_table(headers, rows)
+
+
+def _conformal_note(fits: dict, cfg: OODReportConfig) -> str:
+    if np.isfinite(fits["final_energy"].conformal_threshold):
+        return ""
+    needed = math.ceil(1 / cfg.false_alarm_rate - 1 - 1e-9)
+    return (
+        f"\n\nThe conformal threshold is +inf (nothing flagged): alpha = {percent(cfg.false_alarm_rate)} needs "
+        f"at least {needed} calibration rollouts, {fits['final_energy'].n_rollouts} were given."
+    )
+
+
+def _success_table(vanilla, conditions, fits, negatives, positives, cfg) -> str:
+    vanilla_success = _success_rate(vanilla)
+    final = fits["final_energy"]
+    held_out = negatives["final_energy"]
+    reference = float(np.mean(held_out))
+    vanilla_fpr = BinaryRates.from_scores(held_out, [], final.conformal_threshold).fpr
+    rows = [
+        ["vanilla (held-out)", len(vanilla), percent(vanilla_success), "", "0", "0", "", percent(vanilla_fpr)]
+    ]
+    for condition, episodes in conditions.items():
+        scores = positives[condition]["final_energy"]
+        shift = float(np.mean(scores)) - reference
+        drop = 100 * (vanilla_success - _success_rate(episodes))
+        sigma_units = f"{shift / final.sigma_v:+.2f}" if final.sigma_v > 0 else "n/a"
+        rows.append(
+            [
+                condition,
+                len(episodes),
+                percent(_success_rate(episodes)),
+                f"{drop:+.1f} pts",
+                f"{shift:+.4g}",
+                sigma_units,
+                _interval(held_out, scores, cfg),
+                percent(BinaryRates.from_scores(held_out, scores, final.conformal_threshold).tpr),
+            ]
+        )
+    headers = [
+        "Condition",
+        "Episodes",
+        "Success",
+        "Success drop",
+        "Score shift",
+        "Shift / sigma_v",
+        "AUROC [95% CI]",
+        "Flagged at conformal T",
+    ]
+    return markdown_table(headers, rows)
+
+
+def _auroc_table(conditions, names, negatives, positives, cfg) -> str:
+    rows = [
+        [condition, len(episodes), *(_interval(negatives[n], positives[condition][n], cfg) for n in names)]
+        for condition, episodes in conditions.items()
+    ]
+    return markdown_table(["Condition", "Episodes", *names], rows)
+
+
+def _figures(cfg, fits, calibration_scores, negatives, positives, names) -> None:
+    def curve(negative, positive):
+        fpr, tpr, _ = roc_curve(negative, positive)
+        return fpr, tpr, auroc(negative, positive)
+
+    final = "final_energy"
+    plot_roc(
+        {c: curve(negatives[final], p[final]) for c, p in positives.items()}, cfg.output_dir / "roc_curve.png"
+    )
+    plot_roc(
+        {n: curve(negatives[n], positives[ALL_CONDITIONS][n]) for n in names},
+        cfg.output_dir / "roc_baselines.png",
+    )
+    fit = fits[final]
+    groups = {"calibration": calibration_scores, "vanilla (held-out)": negatives[final]}
+    groups.update({c: p[final] for c, p in positives.items() if c != ALL_CONDITIONS})
+    thresholds = {
+        f"T = mu_v + {cfg.k:g} sigma_v": fit.with_k(cfg.k).threshold,
+        f"T conformal (α={percent(cfg.false_alarm_rate)})": fit.conformal_threshold,
+    }
+    xlabel = f"rollout score ({cfg.aggregation} of chunk final energies)"
+    plot_score_histograms(groups, thresholds, cfg.output_dir / "energy_histogram.png", xlabel)

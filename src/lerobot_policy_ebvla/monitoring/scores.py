@@ -1,0 +1,93 @@
+"""Per-episode scores: the one way every report, summary and benchmark turns chunk records into a score.
+
+Each chunk of an episode has a score (its final energy, the paper's; or another score of `baselines.py`), and
+an episode's score aggregates its chunks in order as the run-time monitor does
+(`runtime.calibration.rollout_score`), over all its chunks or over its first k only (what a monitor has seen
+k chunks into the episode).
+"""
+
+from collections.abc import Hashable, Mapping
+
+import numpy as np
+
+from ..runtime.calibration import rollout_score
+from .baselines import FEATURE_SCORES, REFERENCE_SCORES, SCORE_NAMES, ScoreReference
+from .records import Episode
+
+
+def chunk_scores(
+    episode: Episode,
+    score: str,
+    reference: ScoreReference | None = None,
+    episode_id: Hashable = None,
+) -> np.ndarray:
+    """The per-chunk scores of one episode, in chunk order.
+
+    Args:
+        episode: The episode's chunk records, in chunk order.
+        score: One of `baselines.SCORE_NAMES`.
+        reference: The calibration episodes' fit, needed by the reference scores (`REFERENCE_SCORES`).
+        episode_id: The episode's key; a calibration episode is then scored leave-one-episode-out.
+    """
+    if score not in SCORE_NAMES:
+        raise ValueError(f"`score` must be one of {SCORE_NAMES}, got {score!r}.")
+    if score in REFERENCE_SCORES and (
+        reference is None or (score in FEATURE_SCORES and not reference.features)
+    ):
+        raise ValueError(f"Score {score!r} needs a `reference` fitted on calibration episodes.")
+    if score == "phase_energy":
+        energies = np.array([r.final_energy for r in episode], dtype=np.float64)
+        return reference.phase.score(energies, np.array([r.chunk_index for r in episode]), episode_id)
+    if score in FEATURE_SCORES:
+        features = np.stack([r.context_feature for r in episode])
+        if score == "mahalanobis":
+            return reference.features.mahalanobis(features, episode_id)
+        return reference.features.knn(features, episode_id)
+    return np.array([getattr(r, score) for r in episode], dtype=np.float64)
+
+
+def episode_chunk_scores(
+    episodes: Mapping[Hashable, Episode], score: str, reference: ScoreReference | None = None
+) -> dict[Hashable, np.ndarray]:
+    """The per-chunk scores of every episode, by key (`chunk_scores`, the key as `episode_id`).
+
+    Compute them once and aggregate them in several ways with `aggregate_episodes`: a chunk's score does not
+    depend on how many of the episode's chunks are aggregated.
+    """
+    return {key: chunk_scores(episode, score, reference, key) for key, episode in episodes.items()}
+
+
+def aggregate_episodes(
+    scores: Mapping[Hashable, np.ndarray], aggregation: str = "mean", first_chunks: int | None = None
+) -> np.ndarray:
+    """One rollout score per episode (in `scores` order) from its chunk scores, over its first k chunks or all.
+
+    Args:
+        scores: Each episode's chunk scores, in chunk order (`episode_chunk_scores`).
+        aggregation: How the chunk scores form the episode's (`rollout_score`).
+        first_chunks: Aggregate each episode's first k chunks only; an episode shorter than k uses all its
+            chunks. None aggregates whole episodes.
+    """
+    if first_chunks is not None and first_chunks < 1:
+        raise ValueError(f"`first_chunks` must be >= 1 or None, got {first_chunks}.")
+    return np.array([rollout_score(s[:first_chunks], aggregation) for s in scores.values()])
+
+
+def episode_scores(
+    episodes: Mapping[Hashable, Episode],
+    score: str,
+    aggregation: str = "mean",
+    reference: ScoreReference | None = None,
+    first_chunks: int | None = None,
+) -> np.ndarray:
+    """One rollout score per episode (in `episodes` order) for the named score.
+
+    Args:
+        episodes: Episodes by key, each its chunk records in chunk order.
+        score: One of `baselines.SCORE_NAMES`.
+        aggregation: How the chunk scores form the episode's (`rollout_score`).
+        reference: See `chunk_scores`.
+        first_chunks: Score each episode over its first k chunks only; an episode shorter than k uses all
+            its chunks. None scores whole episodes.
+    """
+    return aggregate_episodes(episode_chunk_scores(episodes, score, reference), aggregation, first_chunks)

@@ -1,0 +1,8 @@
+"""Multi-step jobs built from the library, each the body of a console script.
+
+- `eval_energy`: LeRobot's evaluation with the energy of every refined chunk recorded (`ebvla-eval`), and the
+  fast-render MetaWorld evaluation of a checkpoint that the quickstart and the benchmarks run.
+- `landscape`: the energy landscape of a saved policy around one observation, as a PNG (`ebvla-landscape`).
+- `quickstart`: record MetaWorld demonstrations, train the light policy, evaluate it in three conditions and
+  summarise the energies (`ebvla-quickstart`).
+"""

@@ -1,0 +1,282 @@
+"""Recording a scripted LIBERO-Object expert as a LeRobotDataset shaped like HuggingFaceVLA/libero.
+
+Every LIBERO-Object task is "pick up the X and place it in the basket". The expert (`LiberoObjectExpert`) reads
+the object to move and its container from the task's BDDL goal, the poses of both from the simulator (privileged
+information no policy sees), and drives LIBERO's own controller (OSC_POSE, delta end-effector actions in [-1, 1],
+gripper -1 open / +1 closed) through waypoints: above the object, down to it, close, lift, over the basket,
+down, open. Episodes run in LeRobot's LIBERO env (through `--env.type=libero_ebvla`, so perturbations are the same
+options as in evaluation), starting from LIBERO's fixed initial states (attempt i of a task uses state i).
+
+The dataset has the features of `HuggingFaceVLA/libero` as LeRobot's LIBERO env and docs define them, so a policy
+trained on it takes the same inputs as one trained on the real dataset, and evaluates with
+`lerobot-eval --env.type=libero` unchanged:
+
+- `observation.images.image` (agent view) and `observation.images.image2` (wrist): 256x256x3 images, rotated by
+  180 degrees from the simulator's frames, which is what LeRobot's `LiberoProcessorStep` does to the env's frames
+  (`policy_frame`);
+- `observation.state`: 8 floats, end-effector position, axis-angle orientation and the two gripper joints, computed
+  by that same processor step;
+- `action`: the 7 floats sent to the env; the task string. One frame per control step.
+
+Only successful episodes are kept (`keep_failed` keeps all); every attempt is listed, with the expert's success
+rate per task, in `<root>/meta/recording_report.json`. An existing dataset is never replaced unless `overwrite`.
+"""
+
+import logging
+from collections.abc import Generator
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from lerobot.utils.constants import ACTION, HF_LEROBOT_HOME, OBS_IMAGES, OBS_STATE
+
+from ..envs.libero_assets import require_libero_ready
+from ..envs.libero_configs import LiberoEBVLAEnv
+from .loop import Episode, episode_counts, prepare_root, record_episodes, success_rates, write_report
+
+# HuggingFaceVLA/libero's metadata: 10 frames per second (each frame one LIBERO control step), robot "panda",
+# 256x256 cameras, an 8-d state and a 7-d action with these names.
+DATASET_FPS = 10
+ROBOT_TYPE = "panda"
+IMAGE_SIZE = 256
+STATE_NAMES = ["x", "y", "z", "axis_angle1", "axis_angle2", "axis_angle3", "gripper", "gripper"]
+ACTION_NAMES = ["x", "y", "z", "axis_angle1", "axis_angle2", "axis_angle3", "gripper"]
+CAMERA_KEYS = (f"{OBS_IMAGES}.image", f"{OBS_IMAGES}.image2")
+
+# The expert. LIBERO's OSC_POSE controller moves the end-effector target by 0.05 m per unit of action.
+OSC_METRES_PER_UNIT = 0.05
+MAX_ACTION = 0.6  # speed limit (0.03 m per step), slow enough that the gripper does not knock objects over
+GRIPPER_OPEN, GRIPPER_CLOSED = -1.0, 1.0
+HOVER_HEIGHT = 0.10  # above the object before descending, metres
+CARRY_HEIGHT = 0.28  # end-effector height while carrying, above the floor of LIBERO-Object's scene
+RELEASE_HEIGHT = 0.16  # above the basket's origin when opening
+REACHED = 0.012  # waypoint tolerance, metres
+GRIP_STEPS = 12  # steps with the gripper closing (or opening) before moving on
+# The hand stops this far below the top of a tall object (bottles, cartons): the fingers' length. Objects are
+# grasped at their centre or this far below their top, whichever is higher.
+FINGER_DEPTH = 0.035
+DESCEND_MAX_STEPS = 40  # close the gripper where the hand is if the grasp height is not reached by then
+
+
+@dataclass
+class RecordLiberoConfig:
+    # The env: suite (`--env.task=libero_object`), tasks (`--env.task_ids=[0,1]`), perturbation. Frames are
+    # always rendered at 256x256, the dataset's image size (`--env.observation_height/width` are ignored).
+    env: LiberoEBVLAEnv = field(default_factory=LiberoEBVLAEnv)
+    # Dataset repo id (stored locally; nothing is pushed).
+    repo_id: str = "local/libero_object_expert"
+    # Dataset folder; defaults to $HF_LEROBOT_HOME/<repo_id>.
+    root: Path | None = None
+    # Expert episodes attempted per task; attempt i starts from LIBERO's initial state i of the task.
+    episodes_per_task: int = 10
+    # Steps after which an attempt counts as failed; None: LeRobot's limit for the suite (280 for libero_object).
+    max_steps: int | None = None
+    # Also keep the episodes the expert failed (they are always listed in the report).
+    keep_failed: bool = False
+    # Store images as MP4 videos instead of PNG frames (HuggingFaceVLA/libero stores PNG frames).
+    use_videos: bool = False
+    # Replace an existing dataset at `root`.
+    overwrite: bool = False
+
+    def __post_init__(self):
+        if self.episodes_per_task < 1:
+            raise ValueError(f"`episodes_per_task` must be >= 1, got {self.episodes_per_task}.")
+        if self.env.task != "libero_object":
+            raise ValueError(
+                f"The scripted expert knows LIBERO-Object only: `env.task` must be 'libero_object', got {self.env.task!r}."
+            )
+        if self.env.obs_type != "pixels_agent_pos":
+            raise ValueError(
+                f"`env.obs_type` must be 'pixels_agent_pos' to record, got {self.env.obs_type!r}."
+            )
+        # Frames are rendered at HuggingFaceVLA/libero's size, whatever `--env.observation_*` says.
+        self.env.observation_height = self.env.observation_width = IMAGE_SIZE
+        if self.max_steps is not None and self.max_steps < 1:
+            raise ValueError(f"`max_steps` must be >= 1 or None, got {self.max_steps}.")
+        if self.root is None:
+            self.root = HF_LEROBOT_HOME / self.repo_id
+
+
+def dataset_features(use_videos: bool) -> dict[str, dict]:
+    """The features of HuggingFaceVLA/libero (keys, dtypes, shapes, names)."""
+    camera = {
+        "dtype": "video" if use_videos else "image",
+        "shape": (IMAGE_SIZE, IMAGE_SIZE, 3),
+        "names": ["height", "width", "channel"],
+    }
+    return {
+        CAMERA_KEYS[0]: dict(camera),
+        CAMERA_KEYS[1]: dict(camera),
+        OBS_STATE: {"dtype": "float32", "shape": (8,), "names": {"motors": STATE_NAMES}},
+        ACTION: {"dtype": "float32", "shape": (7,), "names": {"motors": ACTION_NAMES}},
+    }
+
+
+class LiberoObjectExpert:
+    """Scripted pick-and-place for LIBERO-Object from privileged object poses (see the module docstring).
+
+    Args:
+        env: A `LiberoEBVLAGymEnv` (or LeRobot's `LiberoEnv`) that has been reset.
+    """
+
+    def __init__(self, env: Any):
+        self.scene = env._env.env  # LIBERO's robosuite env
+        goal = self.scene.parsed_problem["goal_state"]
+        if len(goal) != 1 or goal[0][0].lower() != "in":
+            raise ValueError(
+                f"Expected a LIBERO-Object goal `(In <object> <basket>_contain_region)`, got {goal}."
+            )
+        self.object_name = goal[0][1]
+        self.container_name = goal[0][2].removesuffix("_contain_region")
+        self.phase = "approach"
+        self.phase_steps = 0
+
+    def _position(self, name: str) -> np.ndarray:
+        return np.array(self.scene.sim.data.body_xpos[self.scene.obj_body_id[name]])
+
+    def _grasp_position(self, name: str) -> np.ndarray:
+        """The object's centre, raised to `FINGER_DEPTH` below its top for objects taller than the fingers."""
+        model, data = self.scene.sim.model._model, self.scene.sim.data._data
+        body = self.scene.obj_body_id[name]
+        geoms = np.flatnonzero(model.body_rootid[model.geom_bodyid] == body)
+        top = max(data.geom_xpos[g][2] + model.geom_aabb[g][5] for g in geoms)
+        position = self._position(name)
+        position[2] = max(position[2], top - FINGER_DEPTH)
+        return position
+
+    def _waypoint(self, eef: np.ndarray) -> tuple[np.ndarray, float, str | None]:
+        """(target position, gripper command, next phase once the target is reached) of the current phase."""
+        obj, container = self._grasp_position(self.object_name), self._position(self.container_name)
+        if self.phase == "approach":
+            return np.array([*obj[:2], obj[2] + HOVER_HEIGHT]), GRIPPER_OPEN, "descend"
+        if self.phase == "descend":
+            return obj, GRIPPER_OPEN, "grasp"
+        if self.phase == "grasp":
+            return eef, GRIPPER_CLOSED, "lift" if self.phase_steps >= GRIP_STEPS else None
+        if self.phase == "lift":
+            return np.array([*eef[:2], CARRY_HEIGHT]), GRIPPER_CLOSED, "carry"
+        if self.phase == "carry":
+            return np.array([*container[:2], CARRY_HEIGHT]), GRIPPER_CLOSED, "lower"
+        if self.phase == "lower":
+            return np.array([*container[:2], container[2] + RELEASE_HEIGHT]), GRIPPER_CLOSED, "release"
+        if self.phase == "release":
+            return eef, GRIPPER_OPEN, "retreat" if self.phase_steps >= GRIP_STEPS else None
+        # "retreat": up and open, until the env reports success.
+        return np.array([*eef[:2], CARRY_HEIGHT]), GRIPPER_OPEN, None
+
+    def act(self, eef_position: np.ndarray) -> np.ndarray:
+        """The next 7-d action for an end-effector at `eef_position` (the raw observation's `robot0_eef_pos`)."""
+        target, gripper, next_phase = self._waypoint(eef_position)
+        error = target - eef_position
+        done = self.phase in ("grasp", "release") or (
+            self.phase == "descend" and self.phase_steps >= DESCEND_MAX_STEPS
+        )
+        if next_phase is not None and (done or np.linalg.norm(error) < REACHED):
+            self.phase, self.phase_steps = next_phase, 0
+        else:
+            self.phase_steps += 1
+        move = np.clip(error / OSC_METRES_PER_UNIT, -MAX_ACTION, MAX_ACTION)
+        return np.array([*move, 0.0, 0.0, 0.0, gripper], dtype=np.float32)
+
+
+def policy_frame(observation: dict[str, Any]) -> dict[str, np.ndarray]:
+    """The images and state LeRobot's LIBERO env processing gives a policy, as dataset frame values."""
+    from lerobot.envs.utils import preprocess_observation
+    from lerobot.processor import LiberoProcessorStep
+
+    batch = {k: v[None] if isinstance(v, np.ndarray) else v for k, v in observation["pixels"].items()}
+    robot_state = _add_batch_dim(observation["robot_state"])
+    processed = LiberoProcessorStep().observation(
+        preprocess_observation({"pixels": batch, "robot_state": robot_state})
+    )
+    frame = {OBS_STATE: processed[OBS_STATE][0].numpy().astype(np.float32)}
+    for key in CAMERA_KEYS:
+        image = processed[key][0].permute(1, 2, 0)  # (H, W, 3) in [0, 1]
+        frame[key] = torch.round(image * 255).to(torch.uint8).numpy()
+    return frame
+
+
+def _add_batch_dim(tree: Any) -> Any:
+    if isinstance(tree, dict):
+        return {k: _add_batch_dim(v) for k, v in tree.items()}
+    return np.asarray(tree)[None]
+
+
+def record_expert_episode(env: Any, dataset: Any, max_steps: int) -> tuple[bool, int]:
+    """Rolls the expert out once from the env's next initial state, adding every frame to the episode buffer."""
+    observation, _ = env.reset()
+    expert = LiberoObjectExpert(env)
+    success, n_steps = False, 0
+    while n_steps < max_steps and not success:
+        action = expert.act(np.asarray(observation["robot_state"]["eef"]["pos"]))
+        dataset.add_frame({**policy_frame(observation), ACTION: action, "task": env.task_description})
+        observation, _, terminated, _, info = env.step(action)
+        n_steps += 1
+        success = bool(info["is_success"])
+        if terminated and not success:
+            break
+    return success, n_steps
+
+
+def expert_episodes(
+    envs: dict[int, Any], episodes_per_task: int, max_steps: int, dataset: Any
+) -> Generator[Episode, None, None]:
+    """The episodes to attempt, task by task; each task's vector env is closed once its episodes are recorded."""
+    for task_id, vec_env in envs.items():
+        env = vec_env.envs[0]
+        try:
+            for attempt in range(episodes_per_task):
+                yield Episode(
+                    task=env.task,
+                    start={"task_id": task_id, "initial_state": attempt},
+                    label=f"task {task_id} ({env.task}) initial state {attempt}",
+                    rollout=partial(record_expert_episode, env, dataset, max_steps),
+                )
+        finally:
+            vec_env.close()
+
+
+def record_libero(cfg: RecordLiberoConfig) -> dict:
+    """Records the dataset described by `cfg` and returns the report written to `meta/recording_report.json`."""
+    from lerobot.datasets import LeRobotDataset
+    from lerobot.envs.libero import TASK_SUITE_MAX_STEPS
+
+    require_libero_ready()
+    root = Path(cfg.root)
+    prepare_root(root, cfg.overwrite)
+    envs = cfg.env.create_envs(n_envs=1)[cfg.env.task]
+    max_steps = cfg.max_steps or TASK_SUITE_MAX_STEPS[cfg.env.task]
+    dataset = LeRobotDataset.create(
+        repo_id=cfg.repo_id,
+        fps=DATASET_FPS,
+        features=dataset_features(cfg.use_videos),
+        root=root,
+        robot_type=ROBOT_TYPE,
+        use_videos=cfg.use_videos,
+    )
+    episodes = record_episodes(
+        dataset, expert_episodes(envs, cfg.episodes_per_task, max_steps, dataset), cfg.keep_failed
+    )
+    report = {
+        "repo_id": cfg.repo_id,
+        "env": {
+            "type": cfg.env.type,
+            "task": cfg.env.task,
+            "task_ids": cfg.env.task_ids,
+            "perturbation": cfg.env.perturbation,
+            "perturbation_severity": cfg.env.perturbation_severity,
+        },
+        "max_steps": max_steps,
+        "use_videos": cfg.use_videos,
+        "keep_failed": cfg.keep_failed,
+        **episode_counts(episodes),
+        "success_rate_per_task": success_rates(episodes),
+        "episodes": [ep.to_dict() for ep in episodes],
+    }
+    write_report(root, report)
+    rates = "\n".join(f"  {task}: {rate:.0%}" for task, rate in report["success_rate_per_task"].items())
+    logging.info("Recorded %s at %s; expert success rate per task:\n%s", cfg.repo_id, root, rates)
+    return report
