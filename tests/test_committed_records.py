@@ -78,3 +78,28 @@ def test_the_auroc_beside_table_iii_recomputed_from_the_committed_records_matche
 
 def test_the_committed_records_are_small():
     assert sum(f.stat().st_size for f in RECORDS.rglob("*.gz")) < 20_000
+
+
+STUDY = Path(__file__).parents[1] / "benchmarks" / "results" / "metaworld_5task_ktrain8_15_paper" / "records"
+
+
+def test_the_published_table_iii_of_the_paper_recipe_at_k_train_8_15_comes_out_of_its_committed_records():
+    """BENCHMARKS.md section 6: pose severity 5, k = 1.0 (threshold 5.093, 71.0% balanced accuracy, FP 7, FN 22)."""
+    from lerobot_policy_ebvla.monitoring.metrics import auroc
+    from lerobot_policy_ebvla.monitoring.ood import ood_detection_table
+    from lerobot_policy_ebvla.monitoring.records import load_episodes
+    from lerobot_policy_ebvla.monitoring.scores import episode_scores
+    from lerobot_policy_ebvla.runtime import OODCalibration
+
+    def scores(folder: str):
+        episodes = load_episodes(sorted((STUDY / folder).glob("*")))
+        assert len(episodes) == 50
+        return episode_scores(episodes, "final_energy")
+
+    calibration = OODCalibration.fit(scores("calibration"))
+    vanilla, pose = scores("vanilla"), scores("pose5")
+    row = {r.multiplier: r for r in ood_detection_table(vanilla, pose, calibration=calibration)}[1.0]
+    assert f"{row.threshold:.3f}" == "5.093"
+    assert (row.fp, row.fn) == (7, 22)
+    assert f"{row.balanced_accuracy:.1%}" == "71.0%"
+    assert f"{auroc(vanilla, pose):.3f}" == "0.717"
