@@ -35,7 +35,17 @@ ALLOWED = {
     "recording": {"envs", "lerobot_private"},
     "monitoring": {"core", "runtime"},
     "pipelines": {"core", "runtime", "envs", "lerobot_private", "recording", "monitoring"},
-    "scripts": {"core", "runtime", "envs", "lerobot_private", "recording", "monitoring", "pipelines", "serving", "facade"},
+    "scripts": {
+        "core",
+        "runtime",
+        "envs",
+        "lerobot_private",
+        "recording",
+        "monitoring",
+        "pipelines",
+        "serving",
+        "facade",
+    },
     "serving": {"core", "runtime", "lerobot_private"},
     "facade": {"core", "runtime", "envs"},
 }
@@ -146,7 +156,9 @@ def test_the_policy_core_imports_nothing_from_the_analysis():
     core = [m for m in GRAPH if part_of(m) in ("core", "runtime")]
     assert core, "the layout changed: no core module found"
     for module in core:
-        assert not {t for t in GRAPH[module] if part_of(_resolve(t)) in ("monitoring", "pipelines", "scripts")}
+        assert not {
+            t for t in GRAPH[module] if part_of(_resolve(t)) in ("monitoring", "pipelines", "scripts")
+        }
 
 
 def test_no_library_module_benchmark_or_example_imports_a_cli():

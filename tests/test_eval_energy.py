@@ -130,7 +130,9 @@ def test_a_policy_without_energies_is_evaluated_with_no_records(caplog):
     policy = PlainPolicy()
     env = gym.vector.SyncVectorEnv([lambda: CountdownEnv(3)])
     with EnergyRecorder(policy) as recorder:
-        rollout(recorder.watch(env, "countdown", 0), policy, identity, identity, identity, identity, seeds=[0])
+        rollout(
+            recorder.watch(env, "countdown", 0), policy, identity, identity, identity, identity, seeds=[0]
+        )
     assert recorder.chunks == [] and "no energy to record" in caplog.text
 
 

@@ -103,7 +103,10 @@ def save_sim_arm_checkpoint(path, calibration: OODCalibration | None = BELOW_ALL
 
 
 def run_lerobot_rollout(monkeypatch, tmp_path, *flags):
-    """Runs `lerobot-rollout`'s main on `SimArm` for 2 s; returns the robot and the loaded policy."""
+    """Runs `lerobot-rollout`'s main on `SimArm` for 5 s; returns the robot and the loaded policy.
+
+    5 s at 10 fps leaves room for a slow first refinement on a loaded 2-core machine (2 s once sent one action).
+    """
     from lerobot.rollout import context
     from lerobot.scripts import lerobot_rollout
 
@@ -124,7 +127,7 @@ def run_lerobot_rollout(monkeypatch, tmp_path, *flags):
         "--strategy.type=base",
         "--task=reach the goal",
         "--fps=10",
-        "--duration=2",
+        "--duration=5",
         "--device=cpu",
         "--play_sounds=false",
         "--return_to_initial_position=false",

@@ -31,11 +31,20 @@ from typing import Any
 
 import numpy as np
 import torch
-from lerobot.utils.constants import ACTION, HF_LEROBOT_HOME, OBS_IMAGES, OBS_STATE
+from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 
 from ..envs.libero_assets import require_libero_ready
 from ..envs.libero_configs import LiberoEBVLAEnv
-from .loop import Episode, episode_counts, prepare_root, record_episodes, success_rates, write_report
+from .loop import (
+    Episode,
+    RecordingConfig,
+    check_env_records_images_and_state,
+    episode_counts,
+    prepare_root,
+    record_episodes,
+    success_rates,
+    write_report,
+)
 
 # HuggingFaceVLA/libero's metadata: 10 frames per second (each frame one LIBERO control step), robot "panda",
 # 256x256 cameras, an 8-d state and a 7-d action with these names.
@@ -62,42 +71,31 @@ DESCEND_MAX_STEPS = 40  # close the gripper where the hand is if the grasp heigh
 
 
 @dataclass
-class RecordLiberoConfig:
+class RecordLiberoConfig(RecordingConfig):
+    """The recorder's options; images are stored as PNG frames by default, as in HuggingFaceVLA/libero."""
+
     # The env: suite (`--env.task=libero_object`), tasks (`--env.task_ids=[0,1]`), perturbation. Frames are
     # always rendered at 256x256, the dataset's image size (`--env.observation_height/width` are ignored).
     env: LiberoEBVLAEnv = field(default_factory=LiberoEBVLAEnv)
     # Dataset repo id (stored locally; nothing is pushed).
     repo_id: str = "local/libero_object_expert"
-    # Dataset folder; defaults to $HF_LEROBOT_HOME/<repo_id>.
-    root: Path | None = None
     # Expert episodes attempted per task; attempt i starts from LIBERO's initial state i of the task.
     episodes_per_task: int = 10
     # Steps after which an attempt counts as failed; None: LeRobot's limit for the suite (280 for libero_object).
     max_steps: int | None = None
-    # Also keep the episodes the expert failed (they are always listed in the report).
-    keep_failed: bool = False
-    # Store images as MP4 videos instead of PNG frames (HuggingFaceVLA/libero stores PNG frames).
-    use_videos: bool = False
-    # Replace an existing dataset at `root`.
-    overwrite: bool = False
 
     def __post_init__(self):
-        if self.episodes_per_task < 1:
-            raise ValueError(f"`episodes_per_task` must be >= 1, got {self.episodes_per_task}.")
+        super().__post_init__()
         if self.env.task != "libero_object":
             raise ValueError(
-                f"The scripted expert knows LIBERO-Object only: `env.task` must be 'libero_object', got {self.env.task!r}."
+                "The scripted expert knows LIBERO-Object only: `env.task` must be 'libero_object', "
+                f"got {self.env.task!r}."
             )
-        if self.env.obs_type != "pixels_agent_pos":
-            raise ValueError(
-                f"`env.obs_type` must be 'pixels_agent_pos' to record, got {self.env.obs_type!r}."
-            )
+        check_env_records_images_and_state(self.env)
         # Frames are rendered at HuggingFaceVLA/libero's size, whatever `--env.observation_*` says.
         self.env.observation_height = self.env.observation_width = IMAGE_SIZE
         if self.max_steps is not None and self.max_steps < 1:
             raise ValueError(f"`max_steps` must be >= 1 or None, got {self.max_steps}.")
-        if self.root is None:
-            self.root = HF_LEROBOT_HOME / self.repo_id
 
 
 def dataset_features(use_videos: bool) -> dict[str, dict]:

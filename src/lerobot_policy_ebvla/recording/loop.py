@@ -1,10 +1,11 @@
 """The recording loop every simulator's expert recorder runs: attempt episodes, keep or drop each, report.
 
-A recorder (`recording.metaworld`, `recording.libero`) creates its LeRobotDataset in a folder made ready by
-`prepare_root` (which never deletes what is not a dataset), then hands `record_episodes` a generator of
-`Episode`s: each rolls the expert out once into the dataset's episode buffer. The loop saves the episode when
-the expert succeeded (or `keep_failed`), clears the buffer otherwise, and returns one `EpisodeReport` per
-attempt; `write_report` stores them, with their counts, in `<root>/meta/recording_report.json`.
+A recorder (`recording.metaworld`, `recording.libero`) extends `RecordingConfig` with its env and expert
+options, creates its LeRobotDataset in a folder made ready by `prepare_root` (which never deletes what is not a
+dataset), then hands `record_episodes` a generator of `Episode`s: each rolls the expert out once into the
+dataset's episode buffer. The loop saves the episode when the expert succeeded (or `keep_failed`), clears the
+buffer otherwise, and returns one `EpisodeReport` per attempt; `write_report` stores them, with their counts, in
+`<root>/meta/recording_report.json`.
 """
 
 import json
@@ -17,8 +18,39 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from lerobot.utils.constants import HF_LEROBOT_HOME
 
 REPORT_FILENAME = "recording_report.json"
+
+
+@dataclass
+class RecordingConfig:
+    """The options every expert recorder has: where the dataset goes, how many episodes, which to keep."""
+
+    # Dataset repo id (stored locally; nothing is pushed).
+    repo_id: str = "local/expert"
+    # Dataset folder; defaults to $HF_LEROBOT_HOME/<repo_id>.
+    root: Path | None = None
+    # Expert episodes attempted per task.
+    episodes_per_task: int = 10
+    # Also keep the episodes the expert failed (they are always listed in the report).
+    keep_failed: bool = False
+    # Store images as MP4 videos instead of PNG frames (smaller, but slower to decode when training).
+    use_videos: bool = False
+    # Replace an existing dataset at `root`.
+    overwrite: bool = False
+
+    def __post_init__(self):
+        if self.episodes_per_task < 1:
+            raise ValueError(f"`episodes_per_task` must be >= 1, got {self.episodes_per_task}.")
+        if self.root is None:
+            self.root = HF_LEROBOT_HOME / self.repo_id
+
+
+def check_env_records_images_and_state(env_cfg: Any) -> None:
+    """Raises a ValueError unless the env config gives observations with images and state, as datasets store."""
+    if env_cfg.obs_type != "pixels_agent_pos":
+        raise ValueError(f"`env.obs_type` must be 'pixels_agent_pos' to record, got {env_cfg.obs_type!r}.")
 
 
 @dataclass(frozen=True)

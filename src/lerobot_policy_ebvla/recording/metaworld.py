@@ -24,11 +24,20 @@ from typing import Any
 import numpy as np
 import torch
 from lerobot.envs.utils import env_to_policy_features
-from lerobot.utils.constants import ACTION, HF_LEROBOT_HOME, OBS_IMAGE, OBS_STATE
+from lerobot.utils.constants import ACTION, OBS_IMAGE, OBS_STATE
 from torchvision.transforms.v2 import functional as tvf
 
 from ..envs import MetaworldEBVLAEnv
-from .loop import Episode, episode_counts, format_report, prepare_root, record_episodes, write_report
+from .loop import (
+    Episode,
+    RecordingConfig,
+    check_env_records_images_and_state,
+    episode_counts,
+    format_report,
+    prepare_root,
+    record_episodes,
+    write_report,
+)
 
 # Names of the 4-d state (`agent_pos`: end-effector position and gripper opening) and action.
 STATE_NAMES = ["hand_x", "hand_y", "hand_z", "gripper_distance"]
@@ -36,38 +45,22 @@ ACTION_NAMES = ["delta_x", "delta_y", "delta_z", "gripper_effort"]
 
 
 @dataclass
-class RecordMetaworldConfig:
+class RecordMetaworldConfig(RecordingConfig):
     # The env: tasks (`--env.task=reach-v3,push-v3` or a difficulty group such as `easy`), fast rendering
     # (`--env.fast_render=true`), camera perturbation and severity, episode step limit.
     env: MetaworldEBVLAEnv = field(default_factory=MetaworldEBVLAEnv)
     # Dataset repo id (stored locally; nothing is pushed).
     repo_id: str = "local/metaworld_expert"
-    # Dataset folder; defaults to $HF_LEROBOT_HOME/<repo_id>.
-    root: Path | None = None
-    # Expert episodes attempted per task.
-    episodes_per_task: int = 10
     # Episode i of every task is seeded with `seed + i` (lerobot-eval's seeds start at 1000: keep clear).
     seed: int = 0
     # Side of the square images stored; frames are rendered at 480x480 and resized with antialiasing.
     image_size: int = 128
-    # Also keep the episodes the expert failed (they are always listed in the report).
-    keep_failed: bool = False
-    # Store images as MP4 videos instead of PNG frames (smaller, but slower to decode when training).
-    use_videos: bool = False
-    # Replace an existing dataset at `root`.
-    overwrite: bool = False
 
     def __post_init__(self):
-        if self.episodes_per_task < 1:
-            raise ValueError(f"`episodes_per_task` must be >= 1, got {self.episodes_per_task}.")
-        if self.env.obs_type != "pixels_agent_pos":
-            raise ValueError(
-                f"`env.obs_type` must be 'pixels_agent_pos' to record, got {self.env.obs_type!r}."
-            )
+        super().__post_init__()
+        check_env_records_images_and_state(self.env)
         if self.image_size < 8:
             raise ValueError(f"`image_size` must be >= 8, got {self.image_size}.")
-        if self.root is None:
-            self.root = HF_LEROBOT_HOME / self.repo_id
 
 
 def dataset_features(env_cfg: MetaworldEBVLAEnv, image_size: int, use_videos: bool) -> dict[str, dict]:
