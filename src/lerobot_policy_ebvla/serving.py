@@ -80,6 +80,7 @@ class EBVLAPolicyServer(PolicyServer):
             self.logger.info(f"EB-VLA OOD response: {overrides}")
         return response
 
+    # LeRobot private hook (`lerobot_private.POLICY_SERVER_CHUNK_METHOD`, checked by tests/test_lerobot_private.py).
     def _predict_action_chunk(self, observation_t: TimedObservation) -> list[TimedAction]:
         if self.policy_type != POLICY_TYPE:
             return super()._predict_action_chunk(observation_t)
