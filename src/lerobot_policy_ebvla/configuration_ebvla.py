@@ -458,20 +458,25 @@ class EBVLAConfig(PreTrainedConfig):
             height, width = (
                 self.crop_shape or self.resize_shape or next(iter(self.image_features.values())).shape[1:]
             )
-            # Each kept ResNet stage halves the map after a 4x stem; on a 1x1 map the keypoints are constant.
-            stride = 2 ** (self.vision_backbone_stages + 1)
-            if min(height, width) <= stride:
-                raise ValueError(
-                    f"The light backbone with `vision_backbone_stages={self.vision_backbone_stages}` needs "
-                    f"images larger than {stride} px (got {height}x{width} after `resize_shape`/`crop_shape`): "
-                    "smaller ones give a 1x1 ResNet feature map whose keypoints carry no information."
-                )
+            self.validate_light_backbone_image(height, width)
         if self.ood_response == "hold" and self.hold_action == "current_state":
             self._validate_current_state_hold()
         if self.backbone == "resnet" and len({f.shape for f in self.image_features.values()}) > 1:
             raise ValueError(
                 "The light backbone needs all cameras at the same shape (set `resize_shape`). Got "
                 f"{ {k: tuple(f.shape) for k, f in self.image_features.items()} }."
+            )
+
+    def validate_light_backbone_image(self, height: int, width: int) -> None:
+        """Raises a ValueError when images of height x width (after resize and crop) are too small for the light
+        backbone's kept ResNet stages."""
+        # Each kept ResNet stage halves the map after a 4x stem; on a 1x1 map the keypoints are constant.
+        stride = 2 ** (self.vision_backbone_stages + 1)
+        if min(height, width) <= stride:
+            raise ValueError(
+                f"The light backbone with `vision_backbone_stages={self.vision_backbone_stages}` needs "
+                f"images larger than {stride} px (got {height}x{width} after `resize_shape`/`crop_shape`): "
+                "smaller ones give a 1x1 ResNet feature map whose keypoints carry no information."
             )
 
     def _validate_current_state_hold(self) -> None:

@@ -96,14 +96,10 @@ class QuickstartConfig:
         ):
             if getattr(self, name) < 1:
                 raise ValueError(f"`{name}` must be >= 1, got {getattr(self, name)}.")
-        resize = self.policy.resize_shape or (self.image_size, self.image_size)
-        stride = 2 ** (self.policy.vision_backbone_stages + 1)
-        if min(resize) <= stride:
-            raise ValueError(
-                f"The images the ResNet sees must be larger than {stride} px (it downsamples {stride}x with "
-                f"`policy.vision_backbone_stages={self.policy.vision_backbone_stages}`): got "
-                f"`policy.resize_shape`={self.policy.resize_shape}, `image_size`={self.image_size}."
-            )
+        # The config's own rule, checked now rather than after recording and before training.
+        self.policy.validate_light_backbone_image(
+            *(self.policy.crop_shape or self.policy.resize_shape or (self.image_size, self.image_size))
+        )
         if self.policy.backbone != "resnet":
             raise ValueError(
                 f"The quickstart trains the light backbone offline: `policy.backbone` must be 'resnet', "

@@ -197,8 +197,7 @@ class EnergyOODResponse:
         response, threshold = self.config.ood_response, self.threshold
         energies = final_energy.detach().float().cpu().reshape(-1)
         # The calibration's score: the final energy itself, or its z-score at this chunk index (phase energy).
-        scores = torch.as_tensor(self.calibration.chunk_score(energies, chunk_index), dtype=torch.float32)
-        energies = scores.reshape(-1)
+        energies = torch.as_tensor(self.calibration.chunk_score(energies, chunk_index), dtype=torch.float32)
         flagged = torch.from_numpy(exceeds(energies, threshold))
         held = flagged if response == "hold" else torch.zeros_like(flagged)
         decision = OODResponseDecision(response, threshold, flagged, held)
