@@ -70,6 +70,36 @@ def test_contrastive_term_is_added_and_reported():
     assert 0 < info["contrastive_loss"] < 3 * torch.log(torch.tensor(4.0 + 8.0)).item()
 
 
+def test_contrastive_candidates_follow_the_mismatched_and_noisy_counts():
+    batch = tiny_batch(tiny_config(), batch_size=6)
+    seen = []
+    for mismatched, noisy in ((None, 3), (2, 1), (0, 0)):
+        torch.manual_seed(0)
+        policy = EBVLAPolicy(
+            tiny_config(
+                energy_contrastive_weight=1.0,
+                energy_contrastive_mismatched=mismatched,
+                energy_contrastive_negatives=noisy,
+            )
+        )
+        kv = policy.model.encode_context(batch)
+        sizes = []
+        handle = policy.model.head.register_forward_hook(lambda m, args, out: sizes.append(args[0].shape[0]))
+        loss = policy.model.contrastive_energy_loss(kv, batch["action"], torch.Generator().manual_seed(0))
+        handle.remove()
+        seen.append((sizes, loss.item()))
+    # All B - 1 = 5 other chunks by default; 6 contexts x (1 + M + N) candidates in one head call.
+    assert seen[0][0] == [6 * (1 + 5 + 3)]
+    assert seen[1][0] == [6 * (1 + 2 + 1)]
+    # The positive alone: nothing to rank against, so the InfoNCE is exactly 0.
+    assert seen[2][0] == [6] and seen[2][1] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_contrastive_mismatched_must_not_be_negative():
+    with pytest.raises(ValueError, match="energy_contrastive_mismatched"):
+        tiny_config(energy_contrastive_mismatched=-1)
+
+
 def test_training_with_the_contrastive_term_lowers_it_on_a_fixed_batch():
     torch.manual_seed(0)
     policy = EBVLAPolicy(tiny_config(energy_contrastive_weight=1.0))

@@ -122,9 +122,13 @@ class EBVLAConfig(PreTrainedConfig):
             through any gradient entry it clips. Inference is unchanged.
         energy_contrastive_weight: Weight lambda of an added InfoNCE term that ranks the expert chunk a*
             below negatives under the same context: the expert chunks of the batch's other observations
-            and `energy_contrastive_negatives` noisy copies of a*. 0 (the paper) trains the energy only
+            (`energy_contrastive_mismatched` of them) and `energy_contrastive_negatives` noisy copies of a*. 0 (the paper) trains the energy only
             through the refined chunk's L1 loss (Eq. 4), which constrains its gradient, not its level.
         energy_contrastive_negatives: Noisy copies of a* per observation used as negatives.
+        energy_contrastive_mismatched: Other observations' expert chunks per observation used as negatives;
+            None takes all B - 1 of the batch. The term costs one head forward and backward per (context,
+            candidate) pair, B x (1 + mismatched + noisy) chunks a step, the largest share of a light training
+            step (BENCHMARKS.md, section 7); fewer candidates make it proportionally cheaper.
         energy_contrastive_noise_std: Std of the noise of those copies (normalized action units).
         energy_contrastive_temperature: Temperature of the InfoNCE logits -E / T. The energy level also sets
             the MCMC step length exp(e_t / tau) (Eq. 3); a small T asks for small energy gaps only, so the
@@ -257,6 +261,7 @@ class EBVLAConfig(PreTrainedConfig):
     train_straight_through_clip: bool = False
     energy_contrastive_weight: float = 0.0
     energy_contrastive_negatives: int = 8
+    energy_contrastive_mismatched: int | None = None
     energy_contrastive_noise_std: float = 0.5
     energy_contrastive_temperature: float = 0.1
 
@@ -358,6 +363,11 @@ class EBVLAConfig(PreTrainedConfig):
         if self.energy_contrastive_negatives < 0:
             raise ValueError(
                 f"`energy_contrastive_negatives` must be >= 0. Got {self.energy_contrastive_negatives}."
+            )
+        if self.energy_contrastive_mismatched is not None and self.energy_contrastive_mismatched < 0:
+            raise ValueError(
+                "`energy_contrastive_mismatched` must be >= 0 or None (all of the batch's other chunks). Got "
+                f"{self.energy_contrastive_mismatched}."
             )
         if not self.energy_contrastive_temperature > 0:
             raise ValueError(

@@ -528,12 +528,16 @@ class EBVLA(nn.Module):
     def contrastive_energy_loss(self, kv: ContextKV, target: Tensor, generator: torch.Generator) -> Tensor:
         """InfoNCE over chunks: under each context C_i, the expert chunk a*_i must have the lowest energy.
 
-        Candidates for C_i are a*_i (the positive), the other observations' expert chunks a*_j (a mismatched
-        action for this context) and noisy copies a*_i + sigma n (a nearby worse action), so that E(a, C) ranks
-        how well a chunk fits its context rather than only shaping the descent direction.
+        Candidates for C_i are a*_i (the positive), other observations' expert chunks a*_j (a mismatched
+        action for this context; `energy_contrastive_mismatched` of them, all B - 1 by default) and noisy
+        copies a*_i + sigma n (a nearby worse action), so that E(a, C) ranks how well a chunk fits its context
+        rather than only shaping the descent direction.
         """
         cfg = self.config
         batch_size = target.shape[0]
+        mismatched = batch_size - 1
+        if cfg.energy_contrastive_mismatched is not None:
+            mismatched = min(mismatched, cfg.energy_contrastive_mismatched)
         noise = torch.randn(
             (batch_size, cfg.energy_contrastive_negatives, *target.shape[1:]),
             generator=generator,
@@ -541,10 +545,11 @@ class EBVLA(nn.Module):
             dtype=target.dtype,
         )
         noisy = target.unsqueeze(1) + cfg.energy_contrastive_noise_std * noise  # (B, N_noisy, H, d_a)
-        # Row i: a*_i first (the positive), then a*_{i+1}, ..., a*_{i-1} (mismatched), then the noisy copies.
+        # Row i: a*_i first (the positive), then a*_{i+1}, ..., a*_{i+M} (mismatched; the batch is shuffled, so
+        # these are random other observations), then the noisy copies.
         rows = torch.arange(batch_size, device=target.device)
-        order = (rows[:, None] + rows[None, :]) % batch_size  # (B, B)
-        candidates = torch.cat([target[order], noisy], dim=1)  # (B, B + N_noisy, H, d_a)
+        order = (rows[:, None] + rows[None, : 1 + mismatched]) % batch_size  # (B, 1 + M)
+        candidates = torch.cat([target[order], noisy], dim=1)  # (B, 1 + M + N_noisy, H, d_a)
         num_candidates = candidates.shape[1]
         energies = self.head(candidates.flatten(0, 1), repeat_context_kv(kv, num_candidates)).mean(dim=-1)
         logits = -energies.view(batch_size, num_candidates).float() / cfg.energy_contrastive_temperature

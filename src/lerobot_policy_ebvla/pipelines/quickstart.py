@@ -61,8 +61,10 @@ class QuickstartConfig:
     output_dir: Path = Path("outputs/ebvla_quickstart")
     # Expert episodes recorded per task.
     record_episodes: int = 10
-    # Side of the square images stored in the dataset (the policy resizes them to `policy.resize_shape`).
-    image_size: int = RecordMetaworldConfig.image_size
+    # Side of the square images stored in the dataset (the policy resizes them to `policy.resize_shape`). The
+    # light policy's own 64 px: LeRobot's loader decodes every stored frame of a sample's action chunk, so
+    # frames stored at the size the policy sees halve the loader's time (BENCHMARKS.md, section 7).
+    image_size: int = 64
     # Training steps. The policy's cosine schedule decays over them, with a warm-up of at most a tenth.
     steps: int = 1500
     # Training batch size.
