@@ -9,8 +9,9 @@ Everything runs in one process, on the same machine and the same random, already
   key/value projection + K_inf MCMC steps + the final-energy forward) against its FLOOR, one key/value
   projection plus K_inf forward+backward passes w.r.t. the actions only;
 * with `--variants` (and `--compile`): inference variants that must not change the actions (frozen
-  parameters, SDPA backends, the policy's `compile_refinement` in `--compile-mode`), with their max deviation
-  from the default path.
+  parameters, SDPA backends, the policy's `compile_mode` set to `--compile-mode`: with the backbone's output
+  cached, it compiles the key/value projection and every MCMC step's energy), with their max deviation from
+  the default path.
 
 Policies (`--policies`), all with the image encoder of LeRobot's Diffusion Policy built from the same fields
 (`vision_backbone`, image size, `crop_shape`, `spatial_softmax_num_keypoints`, group norm, no pretrained
@@ -109,13 +110,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--compile",
         action="store_true",
-        help="with --variants: add the policy's compile_refinement (torch.compile, slow to build)",
+        help="with --variants: add the policy's compile_mode (torch.compile, slow to build)",
     )
     parser.add_argument(
         "--compile-mode",
         default="default",
-        choices=COMPILE_MODES,
-        help="with --compile: the policy's `compile_refinement_mode`",
+        choices=[mode for mode in COMPILE_MODES if mode != "off"],
+        help="with --compile: the policy's `compile_mode`",
     )
     parser.add_argument(
         "--quick", action="store_true", help="smoke test: tiny head, diffusion-cpu, 2 repeats"

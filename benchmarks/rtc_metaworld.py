@@ -13,7 +13,10 @@ refines every chunk from scratch. The latency is counted in env steps, so the nu
 speed of the machine. Episodes run in LeRobot's own `lerobot_eval.rollout`, which also says success.
 
 Jump: at each switch, mean over action dimensions of |a(new chunk, first executed) - a(old chunk, planned for
-the same step)|, in raw action units (MetaWorld: end-effector deltas in [-1, 1]).
+the same step)|, in raw action units (MetaWorld: end-effector deltas in [-1, 1]). RTC holds the first d actions
+and pulls the start of the overlap onto the leftover, so its jump there is about 0 by construction; the step
+change (mean and 95th percentile over all executed steps of |a_{t+1} - a_t|, same units) says whether the
+difference moved further into the chunk instead.
 
     MUJOCO_GL=egl python benchmarks/rtc_metaworld.py \\
         --checkpoint=outputs/ebvla_quickstart/train/checkpoints/last/pretrained_model \\
@@ -59,6 +62,7 @@ class DelayedChunking(nn.Module):
         self.pending: tuple[Tensor, int, Tensor | None] | None = None  # chunk, its delay, the leftover
         self.step = self.arrival = 0
         self.switches: list[tuple[Tensor, Tensor]] = []
+        self.executed: list[Tensor] = []  # every action sent to the robot, normalized
 
     def select_action(self, batch: dict[str, Tensor]) -> Tensor:
         if self.pending is None and self.queue.qsize() <= self.queue_threshold:
@@ -75,7 +79,9 @@ class DelayedChunking(nn.Module):
             self.queue.merge(chunk, chunk, delay)
             self.pending = None
         self.step += 1
-        return self.queue.get().unsqueeze(0)
+        action = self.queue.get()
+        self.executed.append(action)
+        return action.unsqueeze(0)
 
 
 def run_arm(robot: DelayedChunking, env, processors: tuple, episodes: int, seed: int) -> dict:
@@ -85,7 +91,7 @@ def run_arm(robot: DelayedChunking, env, processors: tuple, episodes: int, seed:
     handle = robot.policy.register_chunk_hook(
         lambda _p, _b, readout, _d: energies.append(readout.final_energy)
     )
-    successes, jumps = [], []
+    successes, jumps, changes = [], [], []
     try:
         for episode in range(episodes):
             torch.manual_seed(seed + episode)
@@ -102,6 +108,10 @@ def run_arm(robot: DelayedChunking, env, processors: tuple, episodes: int, seed:
             if robot.switches:
                 new, old = (postprocessor(torch.stack(side)) for side in zip(*robot.switches, strict=True))
                 jumps += (new - old).abs().mean(dim=1).tolist()
+            # The jump at a switch can be 0 by construction (RTC holds and pulls the overlap onto the leftover):
+            # the change between consecutive executed actions says where the new chunk's difference went.
+            executed = postprocessor(torch.stack(robot.executed))
+            changes += executed.diff(dim=0).abs().mean(dim=1).tolist()
     finally:
         handle.remove()
     return {
@@ -109,6 +119,8 @@ def run_arm(robot: DelayedChunking, env, processors: tuple, episodes: int, seed:
         "success_rate": sum(successes) / episodes,
         "switches": len(jumps),
         "mean_jump": sum(jumps) / len(jumps) if jumps else math.nan,
+        "mean_step_change": sum(changes) / len(changes) if changes else math.nan,
+        "p95_step_change": torch.tensor(changes).quantile(0.95).item() if changes else math.nan,
         "mean_final_energy": torch.cat(energies).mean().item(),
     }
 
@@ -197,11 +209,15 @@ def main() -> None:
     args = parser.parse_args()
     options = {k: v for k, v in vars(args).items() if k not in ("checkpoint", "output")}
     rows = run(args.checkpoint, **{**options, "latencies": tuple(args.latencies)})
-    print(f"{'latency':>7} {'arm':<6} {'success':>8} {'switches':>8} {'mean jump':>10} {'final energy':>12}")
+    print(
+        f"{'latency':>7} {'arm':<6} {'success':>8} {'switches':>8} {'mean jump':>10} {'step change':>11} "
+        f"{'p95':>7} {'final energy':>12}"
+    )
     for r in rows:
         print(
             f"{r['latency']:>7} {r['arm']:<6} {r['success_rate']:>8.2f} {r['switches']:>8} "
-            f"{r['mean_jump']:>10.4f} {r['mean_final_energy']:>12.4f}"
+            f"{r['mean_jump']:>10.4f} {r['mean_step_change']:>11.4f} {r['p95_step_change']:>7.4f} "
+            f"{r['mean_final_energy']:>12.4f}"
         )
     if args.output is not None:
         args.output.parent.mkdir(parents=True, exist_ok=True)

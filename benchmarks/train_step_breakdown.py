@@ -55,23 +55,40 @@ ROWS = ("ebvla", "ebvla-no-contrastive", "ebvla-fewer-negatives", "diffusion", "
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--policies", nargs="+", choices=ROWS, default=list(ROWS))
-    parser.add_argument("--dataset", type=Path, default=Path("outputs/train_step_breakdown/data"),
-                        help="A MetaWorld expert dataset; recorded there (button-press-v3) if missing.")
+    parser.add_argument(
+        "--dataset",
+        type=Path,
+        default=Path("outputs/train_step_breakdown/data"),
+        help="A MetaWorld expert dataset; recorded there (button-press-v3) if missing.",
+    )
     parser.add_argument("--image_size", type=int, default=64, help="Image side when recording the dataset.")
-    parser.add_argument("--episodes", type=int, default=10, help="Expert episodes when recording the dataset.")
+    parser.add_argument(
+        "--episodes", type=int, default=10, help="Expert episodes when recording the dataset."
+    )
+    parser.add_argument("--use_videos", action="store_true", help="Record the frames as video, not PNG.")
+    parser.add_argument(
+        "--loader_samples",
+        type=int,
+        default=100,
+        help="Samples read one by one (`dataset[i]`) to time the reader alone.",
+    )
     parser.add_argument("--batch_size", type=int, default=16)
     parser.add_argument("--num_workers", type=int, default=0)
     parser.add_argument("--steps", type=int, default=20, help="Timed steps per row and round.")
     parser.add_argument("--warmup", type=int, default=3, help="Untimed steps per row before the first round.")
-    parser.add_argument("--repeats", type=int, default=3, help="Rounds; each part's median is over all of them.")
+    parser.add_argument(
+        "--repeats", type=int, default=3, help="Rounds; each part's median is over all of them."
+    )
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's).")
     parser.add_argument("--json", type=Path, default=None)
     return parser.parse_args(argv)
 
 
-def record_if_missing(root: Path, image_size: int, episodes: int) -> None:
+def record_if_missing(root: Path, image_size: int, episodes: int, use_videos: bool) -> None:
     if (root / "meta" / "info.json").is_file():
         return
     from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
@@ -84,6 +101,7 @@ def record_if_missing(root: Path, image_size: int, episodes: int) -> None:
             root=root,
             episodes_per_task=episodes,
             image_size=image_size,
+            use_videos=use_videos,
         )
     )
 
@@ -127,6 +145,7 @@ class Row:
     batches: object
     image_encoder: torch.nn.Module
     times_ms: dict[str, list[float]] = field(default_factory=lambda: {p: [] for p in (*PARTS, "encoder")})
+    loader_ms_per_sample: float = float("nan")
 
 
 def build_row(name: str, args: argparse.Namespace) -> Row:
@@ -171,7 +190,19 @@ def build_row(name: str, args: argparse.Namespace) -> Row:
             yield from loader
 
     policy.train()
-    return Row(name, policy, preprocessor, optimizer, scheduler, endless(), image_encoder)
+    row = Row(name, policy, preprocessor, optimizer, scheduler, endless(), image_encoder)
+    row.loader_ms_per_sample = time_samples(dataset, args.loader_samples)
+    return row
+
+
+def time_samples(dataset, n: int) -> float:
+    """ms per `dataset[i]` (LeRobot's reader: the frame, the action chunk, decoding), over n spread samples."""
+    indices = [(i * 37) % len(dataset) for i in range(n)]
+    dataset[indices[0]]
+    start = time.perf_counter()
+    for i in indices:
+        dataset[i]
+    return 1000 * (time.perf_counter() - start) / n
 
 
 def timed_step(row: Row, record: bool) -> None:
@@ -218,19 +249,23 @@ def summarize(row: Row) -> dict:
         "step_ms": round(step_ms, 1),
         "steps_per_s": round(1000 / step_ms, 2),
         "timed_steps": len(row.times_ms["forward"]),
+        "loader_ms_per_sample": round(row.loader_ms_per_sample, 2),
     }
 
 
 def print_table(results: dict) -> None:
     header = f"{'policy':<22} {'params M':>8} " + " ".join(f"{p:>10}" for p in PARTS)
-    print(header + f" {'step ms':>8} {'steps/s':>7} {'encoder':>8}")
+    print(header + f" {'step ms':>8} {'steps/s':>7} {'encoder':>8} {'ms/sample':>9}")
     for name, r in results.items():
         parts = " ".join(f"{r['median_ms'][p]:>10.1f}" for p in PARTS)
         print(
             f"{name:<22} {r['params_m']:>8.2f} {parts} {r['step_ms']:>8.1f} {r['steps_per_s']:>7.2f} "
-            f"{r['median_ms']['encoder']:>8.1f}"
+            f"{r['median_ms']['encoder']:>8.1f} {r['loader_ms_per_sample']:>9.2f}"
         )
-    print("(median ms per part; encoder: the image encoder's forward + backward alone, on the same batch)")
+    print(
+        "(median ms per part; encoder: the image encoder's forward + backward alone, on the same batch; "
+        "ms/sample: LeRobot's reader alone, one `dataset[i]`)"
+    )
     if {"ebvla", "ebvla-no-contrastive"} <= set(results):
         full, ablated = results["ebvla"]["median_ms"], results["ebvla-no-contrastive"]["median_ms"]
         contrastive = full["forward"] + full["backward"] - ablated["forward"] - ablated["backward"]
@@ -247,7 +282,7 @@ def main(argv=None) -> dict:
     logging.getLogger("lerobot.utils.import_utils").setLevel(logging.ERROR)
     if args.threads:
         torch.set_num_threads(args.threads)
-    record_if_missing(args.dataset, args.image_size, args.episodes)
+    record_if_missing(args.dataset, args.image_size, args.episodes, args.use_videos)
     torch.manual_seed(0)
     rows = [build_row(name, args) for name in args.policies]
     for row in rows:

@@ -1,24 +1,35 @@
-"""Training-step time and `select_action` latency of the full-size EB-VLA (random weights, bf16) on a GPU.
+"""Training-step time and `select_action` latency of the full-size EB-VLA (random weights, bf16) on a GPU, for each
+`compile_mode`.
 
 The policy is built directly on the device with the paper's sizes (two 224 px cameras, Qwen2.5-0.5B, LoRA 64,
 K_a = 64, L = 4, D = 896, K_inf = 15) and the built-in Qwen2.5-0.5B config of `vlm_size_table.py` (no Hub).
 Inputs are random, already pre-processed batches (random instruction token ids, 20 of 48 real). Run:
 
-    python benchmarks/vlm_gpu_bench.py --batch-sizes 1 8
+    python benchmarks/vlm_gpu_bench.py --batch-sizes 1 8 32 --compile-modes off default reduce-overhead \\
+        max-autotune --out-dir benchmarks/results/gpu_h100_DATE --skip-existing --budget-s 420
 
-`--compile-refinement reduce-overhead` sets the policy's `compile_refinement=True` and
-`compile_refinement_mode="reduce-overhead"`: the inference MCMC steps run the energy's forward and grad_a
-backward in CUDA graphs. It also times the eager refinement in the same run and reports the largest difference
-between the two paths' actions for the same generator. `--tiny` swaps in a tiny model for a CPU smoke test of
-the script itself (a compiled refinement then compiles C++ through inductor, minutes on a CPU). `--profile`
-profiles one training step and one chunk at the first batch size: the costliest ops, the number of GPU kernels
-and the GPU busy fraction.
+A configuration is one training step size (`train_b{B}.json`, eager; `--train-steps 0` skips them) or one
+(compile mode, batch size) pair (`chunk_{mode}_b{B}.json`: a new chunk per `select_action` with the policy's
+`compile_mode` set to that mode). Each writes its JSON into `--out-dir` as soon as it is measured. A chunk
+configuration records the start-up (the first chunk, which compiles and, in the CUDA-graph modes, captures),
+the median and min of `--chunks` timed chunks, the context encoding alone (compiled as the chunk runs it), the
+peak memory and, for a compiled mode, the largest differences of the actions and final energies from the eager
+chunk refined from the same a^(0) and noise. `--skip-existing` skips a configuration whose JSON exists and
+`--budget-s` starts no new one after that many seconds, so the same command, run again in slices of device time
+(`timeout 480 python ...`), goes on where the last slice stopped; a slice killed mid-configuration leaves no
+JSON for it. Modes share the process's memory (CUDA-graph pools stay allocated), so for clean peak memories
+run one compile mode per process. `--profile` adds one profiled chunk per configuration and one profiled
+training step: the costliest ops, the number of GPU kernels and the GPU busy fraction. `--tiny` swaps in a tiny
+model for a CPU smoke test of the script (inductor then compiles C++, about a minute per mode and batch size
+on a 2-core CPU).
 """
 
 import argparse
 import json
+import os
 import statistics
 import time
+from pathlib import Path
 
 import torch
 from lerobot.utils.constants import ACTION, OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS, OBS_STATE
@@ -102,34 +113,127 @@ def peak_gib(device: torch.device) -> float:
     return torch.cuda.max_memory_allocated() / 1024**3 if device.type == "cuda" else float("nan")
 
 
-def compiled_vs_eager(policy: EBVLAPolicy, observation: dict, device: torch.device) -> float:
-    """Largest |a_compiled - a_eager| of one chunk (normalized actions) refined from the same a^(0) and noise."""
-    chunks = []
-    for compile_refinement in (True, False):
-        policy.config.compile_refinement = compile_refinement
-        generator = torch.Generator(device=device).manual_seed(0)
+def reset_peak(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.empty_cache()
+        torch.cuda.reset_peak_memory_stats()
+
+
+def seeded_chunk(
+    policy: EBVLAPolicy, observation: dict, device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """One chunk (normalized actions) and its final energies, refined from a fixed a^(0) and noise."""
+    generator = torch.Generator(device=device).manual_seed(0)
+    with torch.no_grad():
+        actions, readout = policy.predict_action_chunk(observation, generator=generator, return_energy=True)
+    return actions.float(), readout.final_energy.float()
+
+
+def compiled_vs_eager(policy: EBVLAPolicy, observation: dict, device: torch.device) -> dict:
+    """Largest |compiled - eager| of the actions and final energies of one chunk, same a^(0) and noise."""
+    mode = policy.config.compile_mode
+    compiled = seeded_chunk(policy, observation, device)
+    policy.config.compile_mode = "off"
+    try:
+        eager = seeded_chunk(policy, observation, device)
+    finally:
+        policy.config.compile_mode = mode
+    return {
+        "compiled_vs_eager_max_abs_action_diff": (compiled[0] - eager[0]).abs().max().item(),
+        "compiled_vs_eager_max_abs_final_energy_diff": (compiled[1] - eager[1]).abs().max().item(),
+    }
+
+
+def train_configuration(policy, optimizer, batch: dict, args, device: torch.device) -> dict:
+    """Eager training steps (`compile_mode` applies to inference only) after 2 warm-ups."""
+    policy.train()
+
+    def train_step():
+        optimizer.zero_grad(set_to_none=True)
+        loss, _ = policy.forward(batch)
+        loss.backward()
+        optimizer.step()
+
+    reset_peak(device)
+    for _ in range(2):
+        train_step()
+    step_times = [timed(train_step, device) for _ in range(args.train_steps)]
+    row = {
+        "train_step_ms_mean": round(1e3 * statistics.mean(step_times), 1),
+        "train_step_ms_min": round(1e3 * min(step_times), 1),
+        "train_step_ms_max": round(1e3 * max(step_times), 1),
+        "train_peak_GiB": round(peak_gib(device), 2),
+    }
+    if args.profile:
+        row["profile_train_step"] = profile_summary(train_step, device)
+    optimizer.zero_grad(set_to_none=True)
+    return row
+
+
+def chunk_configuration(policy: EBVLAPolicy, observation: dict, args, device: torch.device) -> dict:
+    """`select_action` on a new chunk in `policy.config.compile_mode`: start-up, timed chunks, comparison."""
+    policy.eval()
+
+    def refine_chunk():
+        policy.reset()  # every call refines a new chunk
+        policy.select_action(observation)
+
+    def encode_context():
         with torch.no_grad():
-            chunks.append(policy.predict_action_chunk(observation, generator=generator).float())
-    return (chunks[0] - chunks[1]).abs().max().item()
+            policy.model._inference_context(
+                observation
+            )  # the context encoding the chunk runs, compiled or not
+
+    reset_peak(device)
+    startup_s = timed(refine_chunk, device)
+    for _ in range(2):
+        refine_chunk()
+    chunk_times = [timed(refine_chunk, device) for _ in range(args.chunks)]
+    encode_times = [timed(encode_context, device) for _ in range(args.chunks)]
+    row = {
+        "startup_first_chunk_s": round(startup_s, 1),
+        "select_action_chunk_ms_median": round(1e3 * statistics.median(chunk_times), 1),
+        "select_action_chunk_ms_min": round(1e3 * min(chunk_times), 1),
+        "of_which_context_encoding_ms_median": round(1e3 * statistics.median(encode_times), 1),
+        "inference_peak_GiB": round(peak_gib(device), 2),
+    }
+    if policy.config.compile_mode != "off":
+        row.update(compiled_vs_eager(policy, observation, device))
+    if args.profile:
+        row["profile_select_action_chunk"] = profile_summary(refine_chunk, device)
+    return row
 
 
-def main() -> None:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 8])
-    parser.add_argument("--train-steps", type=int, default=6, help="Timed training steps (after 2 warm-ups).")
-    parser.add_argument("--chunks", type=int, default=10, help="Timed chunk refinements (after 3 warm-ups).")
+    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 8, 32])
+    parser.add_argument(
+        "--compile-modes",
+        nargs="+",
+        choices=COMPILE_MODES,
+        default=["off"],
+        help="the policy's `compile_mode` of each chunk configuration; reduce-overhead and max-autotune "
+        "replay CUDA graphs on a GPU",
+    )
+    parser.add_argument(
+        "--train-steps",
+        type=int,
+        default=6,
+        help="Timed training steps (after 2 warm-ups); 0 skips training.",
+    )
+    parser.add_argument(
+        "--chunks", type=int, default=10, help="Timed chunks (after the start-up and 2 more)."
+    )
     parser.add_argument("--tiny", action="store_true", help="Tiny model, for a CPU smoke test.")
     parser.add_argument("--dtype", choices=["bfloat16", "float32"], default="bfloat16")
-    parser.add_argument("--json", default=None, help="Also write the results to this file.")
+    parser.add_argument("--out-dir", type=Path, default=None, help="One JSON per configuration goes here.")
     parser.add_argument(
-        "--compile-refinement",
-        choices=["off", *COMPILE_MODES],
-        default="off",
-        help="`compile_refinement_mode` of a compiled inference MCMC energy (`compile_refinement`); "
-        "reduce-overhead and max-autotune capture CUDA graphs. The eager path is timed and compared in the "
-        "same run.",
+        "--skip-existing", action="store_true", help="Skip configurations whose JSON is in --out-dir."
+    )
+    parser.add_argument(
+        "--budget-s", type=float, default=None, help="Start no new configuration after this many seconds."
     )
     parser.add_argument(
         "--gradient-checkpointing",
@@ -139,21 +243,41 @@ def main() -> None:
     parser.add_argument(
         "--profile",
         action="store_true",
-        help="Profile one training step and one chunk at the first batch size (top ops, GPU busy fraction).",
+        help="Profile one chunk per configuration and one training step (top ops, GPU busy fraction).",
     )
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    if args.skip_existing and args.out_dir is None:
+        parser.error("--skip-existing needs --out-dir")
+    return args
 
+
+def configurations(args) -> list[tuple[str, str | None, int]]:
+    """(JSON name, compile mode or None for training, batch size), eager training first, then mode by mode."""
+    train = [(f"train_b{b}", None, b) for b in args.batch_sizes] if args.train_steps > 0 else []
+    chunks = [(f"chunk_{mode}_b{b}", mode, b) for mode in args.compile_modes for b in args.batch_sizes]
+    return train + chunks
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
+    started = time.perf_counter()
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     dtype = getattr(torch, args.dtype)
+    # One compiled graph per (mode, batch size) of each compiled function: more than dynamo's default of 8.
+    torch._dynamo.config.recompile_limit = 64
+    todo = [
+        c
+        for c in configurations(args)
+        if not (args.skip_existing and (args.out_dir / f"{c[0]}.json").exists())
+    ]
+    if not todo:
+        print("Every configuration has its JSON in", args.out_dir, flush=True)
+        return
     config = full_size_config(offline=True)
     config.device = device.type
     if args.tiny:
         for name, value in TINY.items():
             setattr(config, name, value)
-    compiled = args.compile_refinement != "off"
-    if compiled:
-        config.compile_refinement = True
-        config.compile_refinement_mode = args.compile_refinement
     torch.manual_seed(0)
     start = time.perf_counter()
     with torch.device(device):
@@ -163,89 +287,39 @@ def main() -> None:
         policy.model.backbone.lm.gradient_checkpointing_enable()
     build_s = time.perf_counter() - start
     optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=1e-4)
-    results = {
+    common = {
         "device": torch.cuda.get_device_name() if device.type == "cuda" else "cpu",
         "dtype": str(dtype),
         "torch": torch.__version__,
+        "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
         "build_s": round(build_s, 1),
         "trainable_params_M": round(sum(p.numel() for p in policy.get_optim_params()) / 1e6, 2),
         "total_params_M": round(sum(p.numel() for p in policy.parameters()) / 1e6, 2),
-        "compile_refinement": args.compile_refinement,
         "gradient_checkpointing": args.gradient_checkpointing,
+        "tiny": args.tiny,
     }
-    print(json.dumps(results), flush=True)
+    print(json.dumps(common), flush=True)
+    if args.out_dir is not None:
+        args.out_dir.mkdir(parents=True, exist_ok=True)
 
-    for batch_size in args.batch_sizes:
+    for name, mode, batch_size in todo:
+        if args.budget_s is not None and time.perf_counter() - started > args.budget_s:
+            print(f"Budget of {args.budget_s:.0f} s spent; not started: {name} and later.", flush=True)
+            break
         batch = make_batch(config, batch_size, device, dtype)
-        policy.train()
-
-        def train_step(batch=batch):
-            optimizer.zero_grad(set_to_none=True)
-            loss, info = policy.forward(batch)
-            loss.backward()
-            optimizer.step()
-            return info
-
-        if device.type == "cuda":
-            torch.cuda.reset_peak_memory_stats()
-        for _ in range(2):
-            train_step()
-        step_times = [timed(train_step, device) for _ in range(args.train_steps)]
-        train_peak = peak_gib(device)
-
-        policy.eval()
-        observation = {k: v for k, v in batch.items() if k not in (ACTION, "action_is_pad")}
-
-        def refine_chunk(observation=observation):
-            policy.reset()  # every call refines a new chunk
-            policy.select_action(observation)
-
-        optimizer.zero_grad(set_to_none=True)
-        if device.type == "cuda":
-            torch.cuda.empty_cache()
-            torch.cuda.reset_peak_memory_stats()
-        for _ in range(3):
-            refine_chunk()
-        chunk_times = [timed(refine_chunk, device) for _ in range(args.chunks)]
-
-        def encode_context(observation=observation):
-            with torch.no_grad():
-                policy.model.encode_context(observation)
-
-        encode_times = [timed(encode_context, device) for _ in range(args.chunks)]
-        extra = {}
-        if compiled:
-            policy.config.compile_refinement = False
-            for _ in range(3):
-                refine_chunk()
-            eager_times = [timed(refine_chunk, device) for _ in range(args.chunks)]
-            extra["eager_select_action_chunk_ms_median"] = round(1e3 * statistics.median(eager_times), 1)
-            extra["compiled_vs_eager_max_abs_action_diff"] = compiled_vs_eager(policy, observation, device)
-            policy.config.compile_refinement = True
-        if args.profile and batch_size == args.batch_sizes[0]:
-            policy.train()
-            extra["profile_train_step"] = profile_summary(train_step, device)
-            optimizer.zero_grad(set_to_none=True)
-            policy.eval()
-            extra["profile_select_action_chunk"] = profile_summary(refine_chunk, device)
-        row = {
-            "batch_size": batch_size,
-            "train_step_ms_mean": round(1e3 * statistics.mean(step_times), 1),
-            "train_step_ms_min": round(1e3 * min(step_times), 1),
-            "train_step_ms_max": round(1e3 * max(step_times), 1),
-            "train_peak_GiB": round(train_peak, 2),
-            "select_action_chunk_ms_median": round(1e3 * statistics.median(chunk_times), 1),
-            "select_action_chunk_ms_min": round(1e3 * min(chunk_times), 1),
-            "of_which_context_encoding_ms_median": round(1e3 * statistics.median(encode_times), 1),
-            "inference_peak_GiB": round(peak_gib(device), 2),
-            **extra,
-        }
-        results[f"batch_{batch_size}"] = row
+        if mode is None:
+            row = train_configuration(policy, optimizer, batch, args, device)
+        else:
+            policy.config.compile_mode = mode
+            observation = {k: v for k, v in batch.items() if k not in (ACTION, "action_is_pad")}
+            row = chunk_configuration(policy, observation, args, device)
+        row = {"configuration": name, "compile_mode": mode, "batch_size": batch_size, **row, **common}
         print(json.dumps(row), flush=True)
-
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(results, f, indent=2)
+        if args.out_dir is not None:
+            # Written whole or not at all: a slice killed while writing must not leave a JSON to skip.
+            partial = args.out_dir / f".{name}.json.partial"
+            partial.write_text(json.dumps(row, indent=2))
+            os.replace(partial, args.out_dir / f"{name}.json")
 
 
 if __name__ == "__main__":

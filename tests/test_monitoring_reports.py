@@ -290,6 +290,37 @@ def test_ood_report_saves_a_phase_energy_calibration_when_asked(record_dirs, tmp
     assert calibration.n_rollouts == 12 and abs(calibration.mu_v) < 1.0  # z-scores of vanilla rollouts
 
 
+def test_ood_report_saves_a_context_distance_calibration_when_asked(record_dirs, tmp_path):
+    checkpoint = tmp_path / "pretrained_model"
+    checkpoint.mkdir()
+    ood_report.main(
+        [
+            *ood_args(*record_dirs, tmp_path / "out"),
+            f"--calibrate_to={checkpoint}",
+            "--score=context_distance",
+        ]
+    )
+    calibration = OODCalibration.load(checkpoint)
+    episodes = load_episodes([record_dirs[0]])
+    reference = fit_score_reference(episodes)
+    assert calibration.score == "context_distance" and calibration.n_rollouts == 12
+    np.testing.assert_allclose(calibration.context.mean, reference.features.statistics.mean)
+    np.testing.assert_allclose(calibration.context.precision, reference.features.statistics.precision)
+    # mu_v is that of the report's mahalanobis score: the calibration rollouts scored leave-one-episode-out.
+    mahalanobis = episode_scores(episodes, "mahalanobis", reference=reference)
+    assert calibration.mu_v == pytest.approx(mahalanobis.mean())
+
+
+def test_ood_report_refuses_a_context_distance_calibration_without_context_features(tmp_path):
+    dirs = (
+        write(tmp_path, "vanilla_a", rollouts(6, 5.0, seed=10)),
+        write(tmp_path, "vanilla_b", rollouts(6, 5.0, seed=11)),
+        write(tmp_path, "camera", rollouts(6, 6.0, "camera", 1.0, seed=1)),
+    )
+    with pytest.raises(ValueError, match="record_context_features"):
+        ood_report.main([*ood_args(*dirs, tmp_path / "out"), "--score=context_distance"])
+
+
 def test_ood_report_refuses_to_calibrate_a_score_the_policy_cannot_compute(record_dirs, tmp_path):
     with pytest.raises(ValueError, match="`score`"):
         ood_report.main([*ood_args(*record_dirs, tmp_path / "out"), "--score=knn"])

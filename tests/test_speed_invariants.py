@@ -2,7 +2,8 @@
 
 Each test runs the default inference path and a faster way to compute the same thing (frozen or detached
 parameters, another attention kernel, a compiled energy, a batch of environments instead of one at a time)
-from the same seed, and asserts that the actions and energies agree to float tolerance.
+from the same seed, and asserts that the actions and energies agree to float tolerance. The policy's own
+compiled chunk (`compile_mode`) is tested in tests/test_compile_mode.py.
 """
 
 import os
@@ -12,7 +13,7 @@ import torch
 from torch.func import functional_call
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
-from lerobot_policy_ebvla import EBVLAPolicy, modeling_ebvla
+from lerobot_policy_ebvla import EBVLAPolicy
 from lerobot_policy_ebvla.mcmc import refine_actions
 
 from .conftest import tiny_batch, tiny_config
@@ -145,55 +146,6 @@ def test_inductor_compiled_energy_gives_the_same_refinement(policy):
     compiled = torch.compile(detached_energy(policy.model.head), dynamic=False)
     got = refine_with_energy(policy, kv, compiled, initial)
     assert_same_refinement((reference.actions, reference.step_energies), (got.actions, got.step_energies))
-
-
-def test_compile_refinement_gives_the_same_refinement(monkeypatch):
-    """`compile_refinement=True` returns the actions and energies of the eager policy (aot_eager graph)."""
-    monkeypatch.setattr(
-        modeling_ebvla,
-        "compiled_head_energy",
-        lambda mode: torch.compile(modeling_ebvla.head_energy, backend="aot_eager", dynamic=False),
-    )
-    batch = tiny_batch(tiny_config(), with_action=False)
-    torch.manual_seed(0)
-    reference = refine(EBVLAPolicy(tiny_config()).eval(), batch)
-    torch.manual_seed(0)
-    compiled = EBVLAPolicy(tiny_config(compile_refinement=True)).eval()
-    assert_same_refinement(reference, refine(compiled, batch))
-    assert all(p.requires_grad for p in compiled.parameters())
-
-
-@pytest.mark.parametrize("mode", ["default", "reduce-overhead", "max-autotune-no-cudagraphs"])
-def test_compile_refinement_mode_is_the_mode_torch_compile_gets(monkeypatch, mode):
-    """`compile_refinement_mode` reaches torch.compile (None for "default"), and the refinement stays eager's.
-
-    The graph is built with `aot_eager`, which takes no mode, so a CPU test can run the CUDA-graph modes' path
-    (static parameter addresses, energies copied out of the graph's buffers).
-    """
-    real_compile, modes = torch.compile, []
-
-    def aot_eager_compile(fn, mode=None, **kwargs):
-        modes.append(mode)
-        return real_compile(fn, backend="aot_eager", **kwargs)
-
-    monkeypatch.setattr(torch, "compile", aot_eager_compile)
-    modeling_ebvla.compiled_head_energy.cache_clear()  # built once per mode and process: build it here
-    try:
-        batch = tiny_batch(tiny_config(), with_action=False)
-        torch.manual_seed(0)
-        reference = refine(EBVLAPolicy(tiny_config()).eval(), batch)
-        torch.manual_seed(0)
-        config = tiny_config(compile_refinement=True, compile_refinement_mode=mode)
-        got = refine(EBVLAPolicy(config).eval(), batch)
-    finally:
-        modeling_ebvla.compiled_head_energy.cache_clear()  # no later test may get the aot_eager graph
-    assert modes == [None if mode == "default" else mode]
-    assert_same_refinement(reference, got)
-
-
-def test_an_unknown_compile_refinement_mode_is_rejected():
-    with pytest.raises(ValueError, match="`compile_refinement_mode`"):
-        tiny_config(compile_refinement=True, compile_refinement_mode="cudagraphs")
 
 
 def test_batched_environments_refine_like_one_environment_at_a_time(policy):

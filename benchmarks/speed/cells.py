@@ -2,7 +2,8 @@
 
 The head cells time `EBVLA.generate_actions` with the backbone's output cached (`CachedContext` stands in for
 the backbone), against the floor the refinement math needs, and, with `--variants`, inference variants that
-must not change the actions. The compiled variant is the policy's own `compile_refinement` path.
+must not change the actions. The compiled variant is the policy's own `compile_mode` path (named
+`compiled_detached` in runs before `compile_mode` replaced `compile_refinement`).
 """
 
 import contextlib
@@ -111,8 +112,8 @@ def frozen_parameters(module: nn.Module):
 class DetachedParamsHead(nn.Module):
     """The energy head evaluated with detached parameters in eager mode (`modeling_ebvla.head_energy`).
 
-    Autograd then records only the path from the actions. This is the function `compile_refinement` compiles,
-    timed here uncompiled to tell the two effects apart.
+    Autograd then records only the path from the actions. This is the energy `compile_mode` compiles, timed
+    here uncompiled to tell the two effects apart.
     """
 
     def __init__(self, head: nn.Module):
@@ -176,10 +177,9 @@ def head_cells(name: str, policy: EBVLAPolicy, scene: Scene, args, device) -> li
         f"sdpa_{fused.name.lower()}": lambda: sdpa_kernel(fused),
     }
     if args.compile:
-        # The policy's own compiled refinement; `--compile-mode` was checked against the config's modes.
-        wrappers["compiled_detached"] = lambda: swapped(
-            cfg, compile_refinement=True, compile_refinement_mode=args.compile_mode
-        )
+        # The policy's own compiled chunk; `--compile-mode` was checked against the config's modes. With the
+        # backbone's output cached, what it compiles is the key/value projection and the MCMC steps' energy.
+        wrappers["compiled_chunk"] = lambda: swapped(cfg, compile_mode=args.compile_mode)
     cells = []
     for tokens in token_options:
         for b in args.batch_sizes:

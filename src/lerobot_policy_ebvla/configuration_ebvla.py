@@ -6,6 +6,7 @@ The light backbone (`backbone="resnet"`) is LeRobot's Diffusion Policy image enc
 head-only experiments (Sec. III-A) and for CPU training.
 """
 
+import warnings
 from dataclasses import dataclass, field
 
 from lerobot.configs import NormalizationMode, PreTrainedConfig
@@ -18,7 +19,7 @@ CAMERA_TOKENS = ("keypoints", "feature_map")
 STEP_SIZE_SAMPLINGS = ("per_chain", "per_mcmc_step")
 OOD_RESPONSES = ("continue", "hold", "raise")
 HOLD_ACTIONS = ("zero_delta", "current_state")
-COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 FROZEN_WEIGHTS_DTYPES = ("bfloat16", "float32")
 
 
@@ -139,15 +140,34 @@ class EBVLAConfig(PreTrainedConfig):
             energy (energy as a verifier). 1 is the paper.
         early_stop_tol: Stop refining once no action moves more than this in one step. None (the paper)
             runs all K_inf steps.
-        compile_refinement: torch.compile the energy evaluated at every inference MCMC step (same actions
-            and energies up to float rounding). Each new batch size compiles again, 15-60 s per shape on a
-            CPU, so it pays off over long rollouts only. On an H100 in bf16 the plain-inductor compile
-            ("default" mode) gave no gain; "reduce-overhead" (CUDA graphs) gave 106 vs 205 ms per chunk at
-            B=8 and nothing at B=1 (docs/vlm_backbone.md).
-        compile_refinement_mode: torch.compile's `mode` for `compile_refinement`: "default" (inductor),
-            "reduce-overhead" (inductor in CUDA graphs: every batch size is captured once, and each step's
-            energies are copied out of the graph's buffers so no replay overwrites what was returned),
-            "max-autotune" or "max-autotune-no-cudagraphs". The CUDA-graph modes need a GPU to pay off.
+        compile_mode: torch.compile the inference chain of every chunk (`select_action`,
+            `predict_action_chunk`): the context encoding (backbone forward and the head's per-block keys and
+            values) and the energy's forward and grad_a backward at each of the K_inf MCMC steps (with the
+            head's parameters detached, so no weight gradient is computed). The sampling loop around them (noise,
+            clip, step, clamp, RTC guidance) and the final-energy forward stay eager; training is never
+            compiled. "off" (the default) runs eagerly; "default" (inductor), "max-autotune" and
+            "max-autotune-no-cudagraphs" are torch.compile's modes; "reduce-overhead" and "max-autotune"
+            replay the compiled code in CUDA graphs on a CUDA device, reading the parameters in place. Shapes
+            are static: each batch size (times `num_restarts` for the energy) compiles on its first chunk, and
+            dynamo keeps 8 of them per process (`torch._dynamo.config.recompile_limit`; further batch sizes run
+            eagerly), so warm up with one chunk at every batch size you deploy. The light backbone's task
+            tokens (`task_instructions`) are looked up by string: each new combination of instructions in a
+            batch compiles the encoding again. Start-up per batch size on a 2-core CPU with an empty inductor
+            cache: about 25 s for the smallest light test policy, 30-50 s for a tiny VLM (whose encoding
+            compiles into 4 graphs: transformers' hidden-state capture breaks dynamo's graph at the language
+            model); inductor's on-disk cache makes later processes start in seconds. The full-size VLM on a
+            GPU is not measured yet. Without CUDA the graph modes cannot apply and run their no-graph form
+            ("reduce-overhead" as "default", "max-autotune" as "max-autotune-no-cudagraphs", with a warning).
+            Everything the compiled code returns is copied out, so a later replay never overwrites an earlier
+            chunk's energies or `last_energy`. Actions and energies equal eager mode up to float rounding
+            (within 1e-5 in fp32; tests/test_compile_mode.py); measured gains: docs/benchmarks_speed.md (CPU)
+            and docs/vlm_backbone.md (H100).
+        compile_refinement: Deprecated, read only from configs saved before `compile_mode`: True maps to
+            `compile_mode=compile_refinement_mode` (it compiled the MCMC steps' energy only; the context
+            encoding is now compiled too), False to leaving `compile_mode` as it is, with a FutureWarning.
+            Both fields are then reset to None. A `compile_mode` other than "off" that differs from the
+            mapped mode is an error.
+        compile_refinement_mode: Deprecated: the mode of `compile_refinement` ("default" when None).
         rtc_config: LeRobot's real-time chunking (`RTCConfig`), which `lerobot-rollout --inference.type=rtc`
             sets from `--inference.rtc.*`. When set and enabled, `predict_action_chunk(batch, inference_delay=d,
             prev_chunk_left_over=abar)` refines the chunk as inpainting (`mcmc.py`): the first d actions are
@@ -155,8 +175,9 @@ class EBVLAConfig(PreTrainedConfig):
             towards it with LeRobot's `prefix_attention_schedule` weights w_t and guidance weight
             lambda = `max_guidance_weight` (each MCMC step closes a fraction min(1, alpha lambda w_t) of the
             gap). None (the default) or `enabled=False` refines every chunk from scratch.
-        ood_response: What the policy does with a refined chunk whose final energy exceeds the OOD
-            threshold T of the checkpoint's `ood_calibration.json` (see `runtime/response.py`): "continue"
+        ood_response: What the policy does with a refined chunk whose score (the calibration's: the final
+            energy by default, or the phase energy or context distance) exceeds the OOD threshold T of the
+            checkpoint's `ood_calibration.json` (see `runtime/response.py`): "continue"
             executes it and logs a warning (the default; without a calibration nothing is checked), "hold"
             executes `hold_action` instead, "raise" raises `EnergyOODError`.
         hold_action: The action a held chunk repeats, required with `ood_response="hold"` because it depends
@@ -268,8 +289,10 @@ class EBVLAConfig(PreTrainedConfig):
     # Inference options beyond the paper (off by default).
     num_restarts: int = 1
     early_stop_tol: float | None = None
-    compile_refinement: bool = False
-    compile_refinement_mode: str = "default"
+    compile_mode: str = "off"
+    # Deprecated: mapped to `compile_mode` (configs saved before it).
+    compile_refinement: bool | None = None
+    compile_refinement_mode: str | None = None
     rtc_config: RTCConfig | None = None
 
     # Deployment.
@@ -402,10 +425,9 @@ class EBVLAConfig(PreTrainedConfig):
             raise ValueError(f"`lora_dropout` must be in [0, 1). Got {self.lora_dropout}.")
         if not self.lora_target_modules:
             raise ValueError("`lora_target_modules` must name at least one language-model module.")
-        if self.compile_refinement_mode not in COMPILE_MODES:
-            raise ValueError(
-                f"`compile_refinement_mode` must be one of {COMPILE_MODES}. Got {self.compile_refinement_mode!r}."
-            )
+        self._map_deprecated_compile_fields()
+        if self.compile_mode not in COMPILE_MODES:
+            raise ValueError(f"`compile_mode` must be one of {COMPILE_MODES}. Got {self.compile_mode!r}.")
         if self.rtc_config is not None and self.rtc_config.execution_horizon < 1:
             raise ValueError(
                 f"`rtc_config.execution_horizon` must be >= 1. Got {self.rtc_config.execution_horizon}."
@@ -432,6 +454,35 @@ class EBVLAConfig(PreTrainedConfig):
                 "`use_group_norm=True` would discard the BatchNorm statistics of "
                 f"`pretrained_backbone_weights={self.pretrained_backbone_weights!r}`: set one of them off."
             )
+
+    def _map_deprecated_compile_fields(self) -> None:
+        """Reads `compile_refinement`/`compile_refinement_mode` (configs saved before `compile_mode`) into
+        `compile_mode`, then clears them, so that a config saved again stores `compile_mode` (and None here)."""
+        if self.compile_refinement is None and self.compile_refinement_mode is None:
+            return
+        legacy_mode = self.compile_refinement_mode or "default"
+        if legacy_mode not in COMPILE_MODES[1:]:
+            raise ValueError(
+                f"`compile_refinement_mode` (deprecated, read into `compile_mode`) must be one of "
+                f"{COMPILE_MODES[1:]}. Got {legacy_mode!r}."
+            )
+        if self.compile_refinement:
+            if self.compile_mode not in ("off", legacy_mode):
+                raise ValueError(
+                    f"`compile_refinement=True` with `compile_refinement_mode={legacy_mode!r}` (deprecated) asks "
+                    f"for `compile_mode={legacy_mode!r}`, but `compile_mode` is {self.compile_mode!r}: set "
+                    "`compile_mode` alone."
+                )
+            self.compile_mode = legacy_mode
+        warnings.warn(
+            f"`compile_refinement={self.compile_refinement}` and `compile_refinement_mode="
+            f"{self.compile_refinement_mode!r}` are deprecated; the config now has `compile_mode="
+            f"{self.compile_mode!r}` (a compiled mode compiles the context encoding too, not only the MCMC "
+            "steps' energy). Set `compile_mode` instead; saving the config again stores it.",
+            FutureWarning,
+            stacklevel=3,
+        )
+        self.compile_refinement = self.compile_refinement_mode = None
 
     def get_optimizer_preset(self) -> AdamWConfig:
         return AdamWConfig(

@@ -197,7 +197,9 @@ class EBVLAPolicy(PreTrainedPolicy):
 
         The chunk's energies are kept in `self.last_energy` and the OOD response to them (`runtime/response.py`:
         continue, hold or raise `EnergyOODError`) in `self.last_ood_decision`; held chunks are returned
-        replaced by the hold action. Each call counts as the episode's next chunk (`self.chunk_index`).
+        replaced by the hold action. Each call counts as the episode's next chunk (`self.chunk_index`). A
+        context-distance calibration scores the chunk's pooled context (`context_features`), taken from the
+        backbone pass that encodes the chunk's context: the backbone still runs once per chunk.
 
         Args:
             batch: A pre-processed observation batch.
@@ -211,17 +213,21 @@ class EBVLAPolicy(PreTrainedPolicy):
             execution_horizon: Overrides `rtc_config.execution_horizon`, the end of the guided overlap.
         """
         validate_observation(batch, self.config)
+        needs_features = self.ood_response is not None and self.ood_response.needs_context_features
         # lerobot-eval runs under inference_mode, but refinement differentiates the energy w.r.t. a.
         with torch.inference_mode(False):
             prefix = rtc_prefix(
                 self.config, _batch_size(batch), inference_delay, prev_chunk_left_over, execution_horizon
             )
             refine_batch = _without_inference_tensors(batch)
-            actions, readout = self.model.generate_actions(refine_batch, generator=generator, prefix=prefix)
+            generated = self.model.generate_actions(
+                refine_batch, generator=generator, prefix=prefix, return_context_features=needs_features
+            )
+        actions, readout, features = generated if needs_features else (*generated, None)
         self.last_energy = readout
         chunk_index, self.chunk_index = self.chunk_index, self.chunk_index + 1
         actions, self.last_ood_decision = respond_to_energy(
-            self.ood_response, self.config, actions, readout.final_energy, batch, chunk_index
+            self.ood_response, self.config, actions, readout.final_energy, batch, chunk_index, features
         )
         for hook in list(self._chunk_hooks.values()):
             hook(self, batch, readout, self.last_ood_decision)
@@ -306,12 +312,12 @@ class EBVLAPolicy(PreTrainedPolicy):
         return final_energy.float() + self.log_partition(batch, n_samples, generator).to(final_energy.device)
 
     def context_features(self, batch: dict[str, Tensor]) -> Tensor:
-        """(B, D) the last block's backbone context C_L, averaged over its tokens: the observation's
-        embedding for the feature baselines (Mahalanobis, k-NN)."""
+        """(B, D) the last block's backbone context C_L, averaged over its tokens (`pooled_context`): the
+        observation's embedding for the feature baselines (Mahalanobis, k-NN) and the context distance."""
         validate_observation(batch, self.config)
         with torch.inference_mode(False), torch.no_grad():
             contexts = self.model.backbone(_without_inference_tensors(batch))
-        return contexts[-1].float().mean(dim=1)
+        return pooled_context(contexts)
 
     def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict]:
         """Training loss (Eq. 4) and logged metrics for a pre-processed batch with actions."""
@@ -350,9 +356,14 @@ class EBVLA(nn.Module):
         self.train_steps += 1
         return torch.Generator(device=device).manual_seed(seed)
 
-    def encode_context(self, batch: dict[str, Tensor]) -> ContextKV:
-        """Backbone contexts C_i projected to each head block's cross-attention keys and values."""
-        return self.head.context_kv(self.backbone(batch))
+    def encode_context(
+        self, batch: dict[str, Tensor], return_features: bool = False
+    ) -> ContextKV | tuple[ContextKV, Tensor]:
+        """Backbone contexts C_i projected to each head block's cross-attention keys and values; with
+        `return_features`, also the pooled last-block context (`pooled_context`) of the same backbone pass."""
+        contexts = self.backbone(batch)
+        kv = self.head.context_kv(contexts)
+        return (kv, pooled_context(contexts)) if return_features else kv
 
     def _refine(
         self,
@@ -403,22 +414,39 @@ class EBVLA(nn.Module):
             generator=generator,
         )
 
+    def _inference_context(self, batch: dict[str, Tensor]) -> ContextKV:
+        """`encode_context` for the inference chain: eager, or compiled in `compile_mode` and copied out."""
+        if self.config.compile_mode == "off":
+            return self.encode_context(batch)
+        mode = effective_compile_mode(self.config.compile_mode, self.head.energy_out.weight.device.type)
+        kv = compiled_context_encoder(mode)(self, batch)
+        # A CUDA-graph replay reuses its output buffers: the next chunk would overwrite this chunk's context.
+        return [(k.clone(), v.clone()) for k, v in kv]
+
+    def _inference_context_and_features(self, batch: dict[str, Tensor]) -> tuple[ContextKV, Tensor]:
+        """`_inference_context` and the pooled last-block context (`pooled_context`) of the same backbone pass."""
+        if self.config.compile_mode == "off":
+            return self.encode_context(batch, return_features=True)
+        mode = effective_compile_mode(self.config.compile_mode, self.head.energy_out.weight.device.type)
+        kv, features = compiled_context_encoder(mode)(self, batch, True)
+        # As in `_inference_context`: a CUDA-graph replay would overwrite this chunk's outputs at the next one.
+        return [(k.clone(), v.clone()) for k, v in kv], features.clone()
+
     def _inference_energy_fn(self, kv: ContextKV) -> EnergyFn:
-        """The energy of the inference MCMC steps: the head itself, or its compiled graph if asked for."""
-        if not self.config.compile_refinement:
+        """The energy of the inference MCMC steps: the head itself, or its compiled graph (`compile_mode`)."""
+        if self.config.compile_mode == "off":
             return lambda a: self.head(a, kv)
         # Detached parameters: the compiled backward then computes grad_a only. With parameters that require
         # grad, AOTAutograd's backward would also compute every weight gradient (the eager engine skips them).
         params = {name: p.detach() for name, p in self.head.named_parameters()}
         params.update(self.head.named_buffers())
-        mode = self.config.compile_refinement_mode
+        mode = effective_compile_mode(self.config.compile_mode, kv[0][0].device.type)
+        if mode in CUDA_GRAPH_MODES:
+            for tensor in params.values():
+                # The parameters never move, so CUDA graphs read them in place instead of copying every weight
+                # into the graph's input buffers at each replay.
+                torch._dynamo.mark_static_address(tensor)
         energy = compiled_head_energy(mode)
-        if mode in ("default", "max-autotune-no-cudagraphs"):
-            return lambda a: energy(self.head, params, a, kv)
-        for tensor in params.values():
-            # The parameters never move, so CUDA graphs read them in place instead of copying every weight
-            # into the graph's input buffers at each replay.
-            torch._dynamo.mark_static_address(tensor)
         # A CUDA-graph replay overwrites the buffers of the previous one: the step energies kept in
         # `RefinementResult` (and `last_energy`) must be copies.
         return lambda a: energy(self.head, params, a, kv).clone()
@@ -428,14 +456,20 @@ class EBVLA(nn.Module):
         batch: dict[str, Tensor],
         generator: torch.Generator | None = None,
         prefix: RTCPrefix | None = None,
-    ) -> tuple[Tensor, EnergyReadout]:
+        return_context_features: bool = False,
+    ) -> tuple[Tensor, EnergyReadout] | tuple[Tensor, EnergyReadout, Tensor]:
         """Inference: K_inf steps of constant size alpha from noise; with restarts, the lowest-energy chain.
 
-        With an RTC `prefix` every chain inpaints it; the final energy is that of the whole chunk.
+        With an RTC `prefix` every chain inpaints it; the final energy is that of the whole chunk. With
+        `return_context_features`, also the (B, D) pooled last-block context of each observation, from the
+        backbone pass that encoded the context.
         """
         cfg = self.config
         with torch.no_grad():
-            kv = self.encode_context(batch)
+            if return_context_features:
+                kv, features = self._inference_context_and_features(batch)
+            else:
+                kv = self._inference_context(batch)
         batch_size, restarts = kv[0][0].shape[0], cfg.num_restarts
         kv = repeat_context_kv(kv, restarts)
         initial = self._initial_actions(batch_size * restarts, kv[0][0], generator)
@@ -466,7 +500,10 @@ class EBVLA(nn.Module):
             best = final_energy.view(batch_size, restarts).argmin(dim=1)
             rows = torch.arange(batch_size, device=best.device) * restarts + best
             actions, initial_energy, final_energy = actions[rows], initial_energy[rows], final_energy[rows]
-        return actions.detach(), EnergyReadout(initial_energy=initial_energy, final_energy=final_energy)
+        readout = EnergyReadout(initial_energy=initial_energy, final_energy=final_energy)
+        if return_context_features:
+            return actions.detach(), readout, features
+        return actions.detach(), readout
 
     def compute_loss(
         self, batch: dict[str, Tensor], generator: torch.Generator | None = None
@@ -575,10 +612,49 @@ def head_energy(head: EBVLAEnergyHead, params: dict[str, Tensor], actions: Tenso
     return functional_call(head, params, (actions, kv))
 
 
+# torch.compile's modes that replay the compiled code in CUDA graphs, and what runs in their place without CUDA.
+CUDA_GRAPH_MODES = {"reduce-overhead": "default", "max-autotune": "max-autotune-no-cudagraphs"}
+
+
+@functools.cache
+def effective_compile_mode(mode: str, device_type: str) -> str:
+    """`compile_mode` as it runs on `device_type`: CUDA graphs need CUDA; elsewhere a graph mode runs its
+    no-graph form (inductor alone), with a warning once per process."""
+    if mode not in CUDA_GRAPH_MODES or device_type == "cuda":
+        return mode
+    logger.warning(
+        "`compile_mode=%r` replays CUDA graphs, which a %s device has not: it runs as %r (inductor without "
+        "graphs).",
+        mode,
+        device_type,
+        CUDA_GRAPH_MODES[mode],
+    )
+    return CUDA_GRAPH_MODES[mode]
+
+
+def compile_static(fn: Callable, mode: str) -> Callable:
+    """`fn` under torch.compile in `mode` ("default": inductor's default), one graph per input shape."""
+    from torch._inductor import list_mode_options
+
+    if mode != "default" and mode not in list_mode_options():
+        raise ValueError(
+            f"`compile_mode={mode!r}` is not a mode of torch {torch.__version__}'s torch.compile, which knows "
+            f"{sorted(list_mode_options())}: choose one of them or 'off'."
+        )
+    return torch.compile(fn, dynamic=False, mode=None if mode == "default" else mode)
+
+
 @functools.cache
 def compiled_head_energy(mode: str = "default"):
-    """`head_energy` under torch.compile in `mode`, built once per process and mode (`compile_refinement`)."""
-    return torch.compile(head_energy, dynamic=False, mode=None if mode == "default" else mode)
+    """`head_energy` compiled in `mode`, built once per process and mode (`compile_mode`)."""
+    return compile_static(head_energy, mode)
+
+
+@functools.cache
+def compiled_context_encoder(mode: str = "default"):
+    """`EBVLA.encode_context(model, batch)` compiled in `mode`, built once per process and mode (`compile_mode`):
+    the backbone forward and the head's per-block keys and values, one graph per batch size."""
+    return compile_static(EBVLA.encode_context, mode)
 
 
 def _load_saved_config(pretrained_name_or_path: str | Path, **kwargs) -> PreTrainedConfig:
@@ -590,6 +666,12 @@ def _load_saved_config(pretrained_name_or_path: str | Path, **kwargs) -> PreTrai
         if not isinstance(e.__cause__, ValueError | TypeError):
             raise
         raise ValueError(f"{CONFIG_NAME} of {pretrained_name_or_path}: {e.__cause__}") from e
+
+
+def pooled_context(contexts: list[Tensor]) -> Tensor:
+    """(B, D) the last block's context C_L averaged over its tokens, in fp32: the observation's embedding that
+    the context distance and the feature baselines compare (`EBVLAPolicy.context_features`)."""
+    return contexts[-1].float().mean(dim=1)
 
 
 def make_backbone(config: EBVLAConfig) -> nn.Module:

@@ -16,9 +16,10 @@ final energy's does (`scores.episode_scores`), so all of them go through the sam
   (recorder option `restart_spread_chains`): an ensemble-disagreement score.
 - "mahalanobis", "knn": how far the observation's pooled backbone context is from the contexts of the
   calibration rollouts (recorder option `record_context_features`). Mahalanobis uses the calibration
-  features' mean and their Ledoit-Wolf shrunk covariance (D can exceed the number of chunks); k-NN is the
-  Euclidean distance to the k-th nearest calibration feature, features standardized per dimension by the
-  calibration mean and std.
+  features' mean and their Ledoit-Wolf shrunk covariance (D can exceed the number of chunks): it is the
+  run-time context distance (`runtime.calibration.ContextStatistics`, `score="context_distance"`), fitted and
+  computed by the same code. k-NN is the Euclidean distance to the k-th nearest calibration feature,
+  features standardized per dimension by the calibration mean and std.
 
 The reference scores ("phase_energy", "mahalanobis", "knn") are fitted on the calibration rollouts
 (`fit_score_reference`). A calibration rollout is scored leave-one-episode-out, against a reference fitted
@@ -31,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..runtime.calibration import PhaseStatistics
+from ..runtime.calibration import ContextStatistics, PhaseStatistics
 from .records import Episode
 
 SCORE_NAMES = (
@@ -48,46 +49,22 @@ FEATURE_SCORES = ("mahalanobis", "knn")
 REFERENCE_SCORES = ("phase_energy", *FEATURE_SCORES)
 
 
-def _ledoit_wolf(centered: np.ndarray) -> np.ndarray:
-    """Ledoit-Wolf (2004) shrinkage of the covariance of (N, D) centered samples toward mu * I."""
-    n, d = centered.shape
-    sample_cov = centered.T @ centered / n
-    mu = np.trace(sample_cov) / d
-    # The sum of the entries' variances. The sum of all entries of squared.T @ squared, with squared = centered**2,
-    # is the sum over samples of |x|^4: O(N D) instead of O(N D^2).
-    beta = (np.sum(np.sum(centered**2, axis=1) ** 2) / n - np.sum(sample_cov**2)) / n
-    delta = np.sum((sample_cov - mu * np.eye(d)) ** 2)  # distance of S to the target
-    shrinkage = 0.0 if delta == 0 else min(beta, delta) / delta
-    return (1 - shrinkage) * sample_cov + shrinkage * mu * np.eye(d)
-
-
-def _mean_and_precision(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    mean = features.mean(axis=0)
-    covariance = _ledoit_wolf(features - mean)
-    try:
-        # The shrunk covariance is positive definite unless the shrinkage is 0: invert it through its Cholesky
-        # factor, several times faster than the pseudo-inverse (a refit per calibration episode adds up).
-        inverse_factor = np.linalg.inv(np.linalg.cholesky(covariance))
-        return mean, inverse_factor.T @ inverse_factor
-    except np.linalg.LinAlgError:
-        return mean, np.linalg.pinv(covariance, hermitian=True)
-
-
 @dataclass
 class ContextFeatureModel:
     """Mahalanobis and k-NN distances of context features to the calibration rollouts' contexts.
 
     Build it with `fit`; `reference_ids` names the episode of each reference feature. Both distances of an
     episode named by `episode_id` leave that episode's features out of the reference (leave-one-episode-out).
+    The Mahalanobis distance is the run-time context distance (`runtime.calibration.ContextStatistics`):
+    `statistics` is what `--score=context_distance` saves with the calibration.
     """
 
-    mean: np.ndarray
+    statistics: ContextStatistics
     scale: np.ndarray
-    precision: np.ndarray
     reference: np.ndarray
     reference_ids: list
     k: int = 5
-    # Mahalanobis's mean and precision without one episode, by episode id, fitted when first needed.
+    # Mahalanobis's statistics without one episode, by episode id, fitted when first needed.
     _left_out: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @classmethod
@@ -101,9 +78,9 @@ class ContextFeatureModel:
             )
         if k < 1:
             raise ValueError(f"`k` (nearest neighbours) must be >= 1, got {k}.")
-        mean, precision = _mean_and_precision(features)
+        statistics = ContextStatistics.fit(features)
         scale = np.maximum(features.std(axis=0), 1e-12)  # constant dimensions carry no distance
-        return cls(mean, scale, precision, (features - mean) / scale, list(episode_ids), k)
+        return cls(statistics, scale, (features - statistics.mean) / scale, list(episode_ids), k)
 
     def _same_episode(self, episode_id: Hashable) -> np.ndarray:
         return np.array([i == episode_id for i in self.reference_ids])
@@ -114,19 +91,18 @@ class ContextFeatureModel:
         A calibration episode's distances come from a mean and covariance refitted without its features
         (cached per episode); with fewer than two features left, the full fit is used.
         """
-        mean, precision = self.mean, self.precision
+        statistics = self.statistics
         same_episode = self._same_episode(episode_id)
         if same_episode.any() and np.sum(~same_episode) >= 2:
             if episode_id not in self._left_out:
-                others = self.reference[~same_episode] * self.scale + self.mean
-                self._left_out[episode_id] = _mean_and_precision(others)
-            mean, precision = self._left_out[episode_id]
-        centered = np.asarray(features, dtype=np.float64) - mean
-        return np.sqrt(np.maximum(np.sum((centered @ precision) * centered, axis=1), 0.0))
+                others = self.reference[~same_episode] * self.scale + self.statistics.mean
+                self._left_out[episode_id] = ContextStatistics.fit(others)
+            statistics = self._left_out[episode_id]
+        return statistics.distance(features)
 
     def knn(self, features: np.ndarray, episode_id: Hashable = None) -> np.ndarray:
         """Distance of each feature to its k-th nearest reference feature outside episode `episode_id`."""
-        queries = (np.asarray(features, dtype=np.float64) - self.mean) / self.scale
+        queries = (np.asarray(features, dtype=np.float64) - self.statistics.mean) / self.scale
         squared = (queries**2).sum(axis=1)[:, None] - 2 * queries @ self.reference.T
         distances = np.sqrt(np.maximum(squared + (self.reference**2).sum(axis=1)[None, :], 0.0))
         same_episode = self._same_episode(episode_id)

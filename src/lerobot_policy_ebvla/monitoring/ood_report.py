@@ -39,6 +39,12 @@ from .scores import aggregate_episodes, episode_chunk_scores
 logger = logging.getLogger(__name__)
 
 ALL_CONDITIONS = "all perturbations"
+# The report's score (`baselines.SCORE_NAMES`) behind each score a calibration can be saved for.
+REPORTED_AS = {
+    "final_energy": "final_energy",
+    "phase_energy": "phase_energy",
+    "context_distance": "mahalanobis",
+}
 
 
 @dataclass
@@ -82,8 +88,10 @@ class OODReportConfig:
     table_iii_first_chunks: int = 3
     # Write ood_calibration.json (`score`, fitted on `calibration`) into this pretrained_model folder.
     calibrate_to: Path | None = None
-    # The chunk score the saved calibration is of: final_energy (the paper's) or phase_energy (the final
-    # energy against the calibration rollouts' final energy at the same chunk index).
+    # The chunk score the saved calibration is of: final_energy (the paper's), phase_energy (the final
+    # energy against the calibration rollouts' final energy at the same chunk index) or context_distance (the
+    # report's mahalanobis score: the chunk's pooled context against the calibration contexts; needs records
+    # with context features).
     score: str = "final_energy"
     # k saved in the calibration.
     k: float = 1.0
@@ -186,6 +194,11 @@ def write_ood_report(cfg: OODReportConfig) -> str:
     conditions = _conditions(ood)
 
     names = available_scores([*calibration_set.values(), *vanilla.values(), *ood.values()])
+    if REPORTED_AS[cfg.score] not in names:
+        raise ValueError(
+            f"`--score={cfg.score}` needs the context feature of every chunk of every set: record them with "
+            "`ebvla-eval --record_context_features=true`."
+        )
     reference = fit_score_reference(calibration_set, cfg.knn_k, features="mahalanobis" in names)
 
     # Each chunk is scored once; the whole-episode and first-chunk scores aggregate the same chunk scores.
@@ -232,7 +245,10 @@ def write_ood_report(cfg: OODReportConfig) -> str:
         + (", mahalanobis, knn" if reference.features else "")
         + "); an AUROC of the final energy needs no threshold. A calibration rollout's own reference scores "
         "are computed leave-one-episode-out.",
-        "## Calibration\n\n" + _calibration_table(fits, negatives, cfg) + _conformal_note(fits, cfg),
+        "## Calibration\n\n"
+        + _calibration_table(fits, negatives, cfg)
+        + _conformal_note(fits, cfg)
+        + _saved_score_note(cfg),
         "## Energy vs success drop (final energy)\n\n"
         + _success_table(vanilla, conditions, fits, negatives, positives, cfg),
         "## AUROC [bootstrap 95% interval] by score\n\n"
@@ -260,16 +276,31 @@ def write_ood_report(cfg: OODReportConfig) -> str:
         path = _calibration_to_save(fits, reference, cfg).save(
             cfg.calibrate_to, overwrite=cfg.overwrite_calibration
         )
-        logger.info(f"Saved the OOD calibration ({cfg.score}, T = {fits[cfg.score].threshold:.3f}) to {path}")
+        threshold = fits[REPORTED_AS[cfg.score]].threshold
+        logger.info(f"Saved the OOD calibration ({cfg.score}, T = {threshold:.3f}) to {path}")
     return report
 
 
 def _calibration_to_save(fits: dict, reference: ScoreReference, cfg: OODReportConfig) -> OODCalibration:
-    if cfg.score != "phase_energy":
-        return fits[cfg.score]
-    # The run-time monitor scores chunks against the phase statistics of every calibration rollout.
-    phase = reference.phase.statistics
-    return dataclasses.replace(fits[cfg.score], score=cfg.score, phase_mean=phase.mean, phase_std=phase.std)
+    fit = fits[REPORTED_AS[cfg.score]]
+    # The run-time monitor scores chunks against the statistics of every calibration rollout; mu_v and
+    # sigma_v come from the calibration rollouts' leave-one-episode-out scores, as a new rollout's would.
+    if cfg.score == "phase_energy":
+        phase = reference.phase.statistics
+        return dataclasses.replace(fit, score=cfg.score, phase_mean=phase.mean, phase_std=phase.std)
+    if cfg.score == "context_distance":
+        return dataclasses.replace(fit, score=cfg.score, context=reference.features.statistics)
+    return fit
+
+
+def _saved_score_note(cfg: OODReportConfig) -> str:
+    if cfg.score != "context_distance":
+        return ""
+    return (
+        "\n\n`--score=context_distance`, the score a calibration saved by this report has `ood_response` act "
+        "on, is the `mahalanobis` score of every table: the same features, fit and leave-one-episode-out "
+        "calibration scores."
+    )
 
 
 def _first_chunks_section(scored, vanilla, conditions, names, cfg) -> str:

@@ -18,26 +18,45 @@ energy of a normal first chunk), so a calibration may instead score each chunk a
 the same chunk index: the *phase energy* z_t = (E_t - mu_v[t]) / sigma_v[t] (`PhaseStatistics`). Its per-index
 statistics are saved in the calibration (`score="phase_energy"`), and `OODCalibration.chunk_score` turns a
 chunk's (final energy, chunk index) into the score the threshold applies to.
+
+A calibration may also score what the policy sees rather than its energy: the *context distance*
+(`score="context_distance"`, opt-in) is the Mahalanobis distance of the chunk's pooled last-block context
+c = mean over tokens of C_L (`EBVLAPolicy.context_features`) from the vanilla calibration contexts,
+
+    d(c) = sqrt((c - mu_c)^T P (c - mu_c)),    P the inverse of the Ledoit-Wolf shrunk covariance,
+
+`ContextStatistics`, fitted on every chunk of the calibration rollouts; mu_v and sigma_v are then those of the
+vanilla rollout scores, as for the energy. mu_c and P (D and D x D numbers, D = 896 for the VLM) are saved
+beside the JSON in `ood_calibration_context.safetensors`.
 """
 
 import dataclasses
+import hashlib
 import json
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import safetensors.numpy
+import torch
+from safetensors import SafetensorError
 from torch import Tensor
 
 from .threshold import ArrayLike, MeanStd, as_array, conformal_threshold, exceeds, mean_std_threshold
 
 OOD_CALIBRATION_FILENAME = "ood_calibration.json"
+# The context distance's mean and precision, beside the JSON: D x D numbers are no JSON (D = 896 for the VLM).
+OOD_CONTEXT_FILENAME = "ood_calibration_context.safetensors"
+# The JSON field that names that file, with its D and SHA-256 (`OODCalibration.save`).
+CONTEXT_FIELD = "context_statistics"
 SCORE_AGGREGATIONS = ("mean", "max", "last", "median")
 THRESHOLD_RULES = ("mean_std", "conformal")
-# The chunk scores a run-time calibration can compute from what the policy reports: the final energy, and the
-# final energy against the vanilla energy at the same chunk index.
-CALIBRATED_SCORES = ("final_energy", "phase_energy")
+# The chunk scores a run-time calibration can compute from what the policy reports: the final energy, the
+# final energy against the vanilla energy at the same chunk index, and the distance of the chunk's pooled
+# context from the vanilla contexts.
+CALIBRATED_SCORES = ("final_energy", "phase_energy", "context_distance")
 # sigma_v[t] is at least this fraction of the pooled sigma of all vanilla chunk energies.
 PHASE_SIGMA_FLOOR = 0.1
 # And at least this, so that a calibration of identical energies still divides by a positive number.
@@ -140,6 +159,132 @@ class PhaseStatistics:
         return (as_array(final_energy) - np.asarray(self.mean)[index]) / np.asarray(self.std)[index]
 
 
+def ledoit_wolf_covariance(centered: np.ndarray) -> np.ndarray:
+    """Ledoit-Wolf (2004) shrinkage of the covariance of (N, D) centered samples toward mu * I.
+
+    D can exceed N (896 features from a few hundred chunks): the sample covariance is then singular, the
+    shrunk one is not.
+    """
+    n, d = centered.shape
+    sample_cov = centered.T @ centered / n
+    mu = np.trace(sample_cov) / d
+    # The sum of the entries' variances. The sum of all entries of squared.T @ squared, with squared = centered**2,
+    # is the sum over samples of |x|^4: O(N D) instead of O(N D^2).
+    beta = (np.sum(np.sum(centered**2, axis=1) ** 2) / n - np.sum(sample_cov**2)) / n
+    delta = np.sum((sample_cov - mu * np.eye(d)) ** 2)  # distance of S to the target
+    shrinkage = 0.0 if delta == 0 else min(beta, delta) / delta
+    return (1 - shrinkage) * sample_cov + shrinkage * mu * np.eye(d)
+
+
+@dataclass(frozen=True, eq=False)
+class ContextStatistics:
+    """mu_c and P: the mean and precision of vanilla context features, the context distance's reference.
+
+    The context distance of a chunk is the Mahalanobis distance d(c) = sqrt((c - mu_c)^T P (c - mu_c)) of its
+    pooled context c (`EBVLAPolicy.context_features`, the mean over tokens of the last block's context C_L)
+    from the contexts of vanilla rollouts. P inverts their Ledoit-Wolf shrunk covariance
+    (`ledoit_wolf_covariance`); `fit` on every chunk of the calibration rollouts.
+
+    Args:
+        mean: mu_c, (D,).
+        precision: P, (D, D), symmetric.
+        n_chunks: How many vanilla chunks the statistics come from.
+    """
+
+    mean: np.ndarray
+    precision: np.ndarray
+    n_chunks: int
+
+    def __post_init__(self):
+        mean = np.asarray(self.mean, dtype=np.float64)
+        precision = np.asarray(self.precision, dtype=np.float64)
+        if mean.ndim != 1 or mean.size == 0 or precision.shape != (mean.size, mean.size):
+            raise ValueError(
+                f"Context statistics need `mean` (D,) and `precision` (D, D); got {mean.shape} and "
+                f"{precision.shape}."
+            )
+        if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(precision))):
+            raise ValueError("Context statistics `mean` and `precision` must be finite.")
+        if self.n_chunks < 2:
+            raise ValueError(f"Context statistics need `n_chunks` >= 2, got {self.n_chunks}.")
+        object.__setattr__(self, "mean", mean)
+        object.__setattr__(self, "precision", precision)
+        object.__setattr__(self, "n_chunks", int(self.n_chunks))
+
+    @classmethod
+    def fit(cls, features: ArrayLike) -> "ContextStatistics":
+        """Fits on (N >= 2, D) vanilla context features, one row per chunk.
+
+        Raises:
+            ValueError: Not (N >= 2, D), or a non-finite feature.
+        """
+        features = _float64(features)
+        if features.ndim != 2 or features.shape[0] < 2:
+            raise ValueError(f"Context features to fit must be (N >= 2, D), got shape {features.shape}.")
+        if not np.all(np.isfinite(features)):
+            raise ValueError("Cannot fit context statistics on non-finite context features.")
+        mean = features.mean(axis=0)
+        covariance = ledoit_wolf_covariance(features - mean)
+        try:
+            # The shrunk covariance is positive definite unless the shrinkage is 0: invert it through its Cholesky
+            # factor, several times faster than the pseudo-inverse (a refit per calibration episode adds up).
+            inverse_factor = np.linalg.inv(np.linalg.cholesky(covariance))
+            precision = inverse_factor.T @ inverse_factor
+        except np.linalg.LinAlgError:
+            precision = np.linalg.pinv(covariance, hermitian=True)
+        return cls(mean, precision, features.shape[0])
+
+    @property
+    def dim(self) -> int:
+        """D, the size of the context features."""
+        return self.mean.size
+
+    def distance(self, features: ArrayLike) -> np.ndarray:
+        """d(c) of each context feature: (N,) for (N, D) features, (1,) for one (D,) feature.
+
+        Raises:
+            ValueError: The features are not D-dimensional (a calibration of another backbone).
+        """
+        features = _float64(features)
+        if features.ndim not in (1, 2) or features.shape[-1] != self.dim:
+            raise ValueError(
+                f"`context_features` must be (N, {self.dim}): the calibration's context statistics were fitted "
+                f"on {self.dim}-dimensional pooled contexts; got shape {features.shape}. Calibrate this "
+                "checkpoint again (`ebvla-ood-report --score=context_distance`)."
+            )
+        centered = np.atleast_2d(features) - self.mean
+        return np.sqrt(np.maximum(np.sum((centered @ self.precision) * centered, axis=1), 0.0))
+
+    def to_bytes(self) -> bytes:
+        """The safetensors file of `OOD_CONTEXT_FILENAME`: mu_c and P in float64."""
+        n_chunks = np.array(self.n_chunks, dtype=np.int64)
+        return safetensors.numpy.save({"mean": self.mean, "precision": self.precision, "n_chunks": n_chunks})
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> "ContextStatistics":
+        """Reads what `to_bytes` wrote.
+
+        Raises:
+            ValueError: Not a safetensors file holding `mean`, `precision` and `n_chunks`, or invalid statistics.
+        """
+        try:
+            tensors = safetensors.numpy.load(data)
+        except SafetensorError as e:
+            raise ValueError(f"not a safetensors file ({e})") from e
+        if set(tensors) != {"mean", "precision", "n_chunks"}:
+            raise ValueError(
+                f"expected the tensors `mean`, `precision` and `n_chunks`, got {sorted(tensors)}"
+            )
+        return cls(tensors["mean"], tensors["precision"], int(tensors["n_chunks"]))
+
+
+def _float64(values: ArrayLike) -> np.ndarray:
+    """Any array or tensor as a float64 array of the same shape (tensors detached, on the CPU)."""
+    if isinstance(values, Tensor):
+        values = values.detach().to("cpu", torch.float64).numpy()
+    return np.asarray(values, dtype=np.float64)
+
+
 @dataclass(frozen=True)
 class OODCalibration:
     """Vanilla-rollout statistics that define the OOD threshold T (Eq. 5, or the conformal quantile).
@@ -155,10 +300,14 @@ class OODCalibration:
         conformal_threshold: The (1 - alpha) conformal quantile of the vanilla scores (+inf when there were
             too few rollouts for alpha), None when not computed.
         rule: Which threshold the monitor applies: "mean_std" (Eq. 5, the paper's, default) or "conformal".
-        score: The chunk score the statistics are of: "final_energy" (the paper's, default) or
-            "phase_energy" (the final energy against the vanilla energy at the same chunk index).
+        score: The chunk score the statistics are of: "final_energy" (the paper's, default),
+            "phase_energy" (the final energy against the vanilla energy at the same chunk index) or
+            "context_distance" (the Mahalanobis distance of the chunk's pooled context from the vanilla
+            contexts).
         phase_mean: mu_v[t] of `PhaseStatistics`, for `score="phase_energy"`; None otherwise.
         phase_std: sigma_v[t] of `PhaseStatistics`, for `score="phase_energy"`; None otherwise.
+        context: mu_c and P of `ContextStatistics`, for `score="context_distance"`; None otherwise. Saved
+            beside the JSON in `OOD_CONTEXT_FILENAME`, not compared by `==`.
     """
 
     mu_v: float
@@ -172,6 +321,7 @@ class OODCalibration:
     score: str = "final_energy"
     phase_mean: tuple[float, ...] | None = None
     phase_std: tuple[float, ...] | None = None
+    context: ContextStatistics | None = field(default=None, compare=False)
 
     def __post_init__(self):
         if self.aggregation not in SCORE_AGGREGATIONS:
@@ -197,6 +347,10 @@ class OODCalibration:
             object.__setattr__(self, "phase_std", phase.std)
         elif self.score == "phase_energy":
             raise ValueError("`score='phase_energy'` needs `phase_mean` and `phase_std` (`PhaseStatistics`).")
+        if self.context is not None and not isinstance(self.context, ContextStatistics):
+            raise ValueError(f"`context` must be `ContextStatistics`, got {type(self.context).__name__}.")
+        if self.score == "context_distance" and self.context is None:
+            raise ValueError("`score='context_distance'` needs `context` (`ContextStatistics`).")
 
     @classmethod
     def fit(
@@ -208,6 +362,7 @@ class OODCalibration:
         rule: str = "mean_std",
         score: str = "final_energy",
         phase: PhaseStatistics | None = None,
+        context: ContextStatistics | None = None,
     ) -> "OODCalibration":
         """Estimates mu_v and sigma_v, and with `false_alarm_rate` the conformal threshold, from vanilla scores.
 
@@ -218,6 +373,8 @@ class OODCalibration:
             vanilla_scores: The vanilla rollouts' scores, each aggregated from its chunks' `score`.
             score: The chunk score `vanilla_scores` were aggregated from (`CALIBRATED_SCORES`).
             phase: The per-index statistics the phase energy was computed with, for `score="phase_energy"`.
+            context: The context statistics the context distance was computed with, for
+                `score="context_distance"`.
 
         Raises:
             ValueError: No finite score to fit on.
@@ -239,6 +396,7 @@ class OODCalibration:
             score,
             phase_mean,
             phase_std,
+            context,
         )
 
     @property
@@ -246,25 +404,40 @@ class OODCalibration:
         """The per-index statistics of the phase energy, None when the calibration has none."""
         return None if self.phase_mean is None else PhaseStatistics(self.phase_mean, self.phase_std)
 
-    def chunk_score(
-        self, final_energy: ArrayLike | float, chunk_index: ArrayLike | int | None = None
-    ) -> float | np.ndarray:
-        """The calibrated score of a chunk's final energy: what `threshold` and `rollout_score` apply to.
+    @property
+    def needs_context_features(self) -> bool:
+        """Whether `chunk_score` needs each chunk's pooled context (`EBVLAPolicy.context_features`)."""
+        return self.score == "context_distance"
 
-        For `score="final_energy"` it is the final energy itself (`chunk_index` is not needed); for
-        `score="phase_energy"` it is (E - mu_v[t]) / sigma_v[t] at the chunk's 0-based index t in its episode.
+    def chunk_score(
+        self,
+        final_energy: ArrayLike | float,
+        chunk_index: ArrayLike | int | None = None,
+        context_features: ArrayLike | None = None,
+    ) -> float | np.ndarray:
+        """The calibrated score of a chunk: what `threshold` and `rollout_score` apply to.
+
+        For `score="final_energy"` it is the final energy itself; for `score="phase_energy"` it is
+        (E - mu_v[t]) / sigma_v[t] at the chunk's 0-based index t in its episode; for `score="context_distance"`
+        it is the Mahalanobis distance d(c) of the chunk's pooled context (`ContextStatistics`).
 
         Args:
             final_energy: One final energy, or one per environment ((B,) array or tensor).
-            chunk_index: The chunk's index in its episode: an int, or one per environment.
+            chunk_index: The chunk's index in its episode: an int, or one per environment. Needed by the
+                phase energy only.
+            context_features: The chunk's pooled context, (D,), or one per environment, (B, D). Needed by
+                the context distance only.
 
         Returns:
             A float for a scalar energy, else an array with one score per entry.
 
         Raises:
-            ValueError: `score="phase_energy"` and no `chunk_index`.
+            ValueError: The score's input (`chunk_index`, `context_features`) is missing, or the context
+                features are not one D-dimensional row per final energy.
         """
         scalar = _ndim(final_energy) == 0
+        if self.score == "context_distance":
+            return self._context_distance(final_energy, context_features)
         if self.score == "final_energy":
             scores = as_array(final_energy)
         elif chunk_index is None:
@@ -272,6 +445,23 @@ class OODCalibration:
         else:
             scores = self.phase.z(final_energy, chunk_index)
         return float(scores[0]) if scalar and np.ndim(chunk_index) == 0 else scores
+
+    def _context_distance(
+        self, final_energy: ArrayLike | float, context_features: ArrayLike | None
+    ) -> float | np.ndarray:
+        if context_features is None:
+            raise ValueError(
+                "The context distance needs each chunk's pooled context (`context_features`, (B, D), from "
+                "`EBVLAPolicy.context_features`)."
+            )
+        scores = self.context.distance(context_features)
+        n_energies = as_array(final_energy).size
+        if scores.size != n_energies:
+            raise ValueError(
+                f"`context_features` has {scores.size} row(s) and `final_energy` {n_energies} entries: give one "
+                "pooled context per chunk."
+            )
+        return float(scores[0]) if _ndim(context_features) == 1 else scores
 
     @property
     def threshold(self) -> float:
@@ -286,6 +476,10 @@ class OODCalibration:
 
     def save(self, checkpoint_dir: str | Path, overwrite: bool = False) -> Path:
         """Writes `ood_calibration.json` into a policy checkpoint folder (the `pretrained_model` folder).
+
+        With context statistics, they go beside it into `OOD_CONTEXT_FILENAME`, and the JSON's
+        `context_statistics` names that file with its D and its SHA-256, so that a file of another
+        calibration is refused on loading.
 
         Raises:
             FileNotFoundError: The folder does not exist.
@@ -304,8 +498,22 @@ class OODCalibration:
         if path.exists() and not overwrite:
             raise FileExistsError(f"{path} already exists; pass overwrite=True to replace it.")
         # `threshold` is written for people reading the file; loading recomputes it. JSON has no infinity.
-        payload = {**dataclasses.asdict(self), "threshold": self.threshold}
-        payload = {key: _to_json_number(value) for key, value in payload.items()}
+        payload = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "context"}
+        payload = {
+            key: _to_json_number(value) for key, value in {**payload, "threshold": self.threshold}.items()
+        }
+        context_path = checkpoint_dir / OOD_CONTEXT_FILENAME
+        if self.context is None:
+            context_path.unlink(missing_ok=True)  # a previous calibration's statistics no longer belong here
+        else:
+            data = self.context.to_bytes()
+            payload[CONTEXT_FIELD] = {
+                "file": OOD_CONTEXT_FILENAME,
+                "dim": self.context.dim,
+                "n_chunks": self.context.n_chunks,
+                "sha256": hashlib.sha256(data).hexdigest(),
+            }
+            context_path.write_bytes(data)  # first: a reader that finds the JSON finds its statistics
         path.write_text(json.dumps(payload, indent=2, allow_nan=False) + "\n", encoding="utf-8")
         return path
 
@@ -314,7 +522,8 @@ class OODCalibration:
         """Reads a calibration from `ood_calibration.json` or from the checkpoint folder that holds it.
 
         Files written before the conformal fields existed read with `rule="mean_std"`, files written before
-        the phase energy with `score="final_energy"`.
+        the phase energy with `score="final_energy"`. Context statistics are read from the file the JSON's
+        `context_statistics` names, beside it.
         """
         path = Path(path)
         if path.is_dir():
@@ -326,9 +535,13 @@ class OODCalibration:
             payload.pop("threshold", None)
             if payload.get("conformal_threshold") == "inf":
                 payload["conformal_threshold"] = math.inf
+            if CONTEXT_FIELD in payload:
+                payload["context"] = _load_context_statistics(path, payload.pop(CONTEXT_FIELD))
             return cls(**payload)
         except (json.JSONDecodeError, TypeError, ValueError) as e:
-            fields = ", ".join(f.name for f in dataclasses.fields(cls))
+            fields = ", ".join(
+                CONTEXT_FIELD if f.name == "context" else f.name for f in dataclasses.fields(cls)
+            )
             raise ValueError(
                 f"{path} is not a valid OOD calibration ({e}). Expected a JSON object with the fields "
                 f"{fields} (mu_v, sigma_v required), as `OODCalibration.save` and `ebvla-ood-report "
@@ -342,14 +555,65 @@ class OODCalibration:
             return cls.load(pretrained_name_or_path)
         from huggingface_hub import hf_hub_download
 
+        repo_id = str(pretrained_name_or_path)
         try:
-            path = hf_hub_download(str(pretrained_name_or_path), OOD_CALIBRATION_FILENAME)
+            path = hf_hub_download(repo_id, OOD_CALIBRATION_FILENAME)
         except Exception as e:  # a mistyped local path reaches the Hub as an invalid repo id
             raise FileNotFoundError(
                 f"No {OOD_CALIBRATION_FILENAME} in a local folder or Hub repo named {pretrained_name_or_path}; "
                 "create it with `ebvla-ood-report --calibrate_to=...`."
             ) from e
+        if (context_file := _context_file_named(Path(path))) is not None:
+            try:
+                hf_hub_download(repo_id, context_file)  # into the same snapshot folder, beside the JSON
+            except Exception as e:
+                raise ValueError(
+                    f"The {OOD_CALIBRATION_FILENAME} of the Hub repo {repo_id} names its context statistics "
+                    f"`{CONTEXT_FIELD}.file` = {context_file!r}, which cannot be downloaded ({e}): upload it "
+                    "beside the JSON, or calibrate again."
+                ) from e
         return cls.load(path)
+
+
+def _context_file_named(path: Path) -> str | None:
+    """The context statistics file a calibration JSON names; None when it names none or cannot be read
+    (`OODCalibration.load` then says what is wrong)."""
+    try:
+        entry = json.loads(path.read_text(encoding="utf-8")).get(CONTEXT_FIELD)
+        return str(entry["file"])
+    except (OSError, json.JSONDecodeError, AttributeError, TypeError, KeyError):
+        return None
+
+
+def _load_context_statistics(path: Path, entry: object) -> ContextStatistics:
+    """The `ContextStatistics` of a calibration JSON's `context_statistics` entry, checked against it."""
+    keys = {"file", "dim", "n_chunks", "sha256"}
+    if not isinstance(entry, dict) or set(entry) != keys:
+        raise ValueError(f"`{CONTEXT_FIELD}` must be an object with the keys {sorted(keys)}, got {entry!r}")
+    name = entry["file"]
+    if not isinstance(name, str) or Path(name).name != name or name in ("", ".", ".."):
+        raise ValueError(f"`{CONTEXT_FIELD}.file` must be a file name beside the JSON, got {name!r}")
+    context_path = path.with_name(name)
+    if not context_path.is_file():
+        raise ValueError(
+            f"`{CONTEXT_FIELD}.file` names {context_path}, which does not exist: the context distance's "
+            "statistics are saved beside the JSON and must travel with it"
+        )
+    data = context_path.read_bytes()
+    if hashlib.sha256(data).hexdigest() != entry["sha256"]:
+        raise ValueError(
+            f"{context_path} does not match `{CONTEXT_FIELD}.sha256`: it belongs to another calibration"
+        )
+    try:
+        statistics = ContextStatistics.from_bytes(data)
+    except ValueError as e:
+        raise ValueError(f"{context_path}: {e}") from e
+    if (statistics.dim, statistics.n_chunks) != (entry["dim"], entry["n_chunks"]):
+        raise ValueError(
+            f"{context_path} holds statistics of D={statistics.dim} from {statistics.n_chunks} chunks, but "
+            f"`{CONTEXT_FIELD}` says D={entry['dim']} from {entry['n_chunks']} chunks"
+        )
+    return statistics
 
 
 @dataclass(frozen=True)
@@ -372,14 +636,15 @@ class OODDecision:
 
 
 class EnergyOODMonitor:
-    """Run-time OOD monitor: compares final energies, as the calibration's chunk score, to its threshold T.
+    """Run-time OOD monitor: compares chunk scores, as the calibration defines them, to its threshold T.
 
     Per chunk, `check` compares each chunk score to T. Per rollout, `update` accumulates each environment's
     chunk scores and compares their running rollout score (the calibration's aggregation) to T, and
-    `check_rollout` does the same for a finished rollout's energies. The chunk score is the final energy, or
-    with a phase-energy calibration the final energy against the vanilla energy at the chunk's index
+    `check_rollout` does the same for a finished rollout's chunks. The chunk score is the final energy, with
+    a phase-energy calibration the final energy against the vanilla energy at the chunk's index, with a
+    context-distance calibration the distance of the chunk's pooled context
     (`OODCalibration.chunk_score`): `update` and `check_rollout` count the chunks themselves, `check` needs
-    the index.
+    the index; the context distance needs `context_features` everywhere.
 
     Example:
         monitor = EnergyOODMonitor.from_pretrained("outputs/train/ebvla/checkpoints/last/pretrained_model")
@@ -408,28 +673,41 @@ class EnergyOODMonitor:
         return OODDecision(not bool(exceeds(energy, self.threshold)[0]), float(energy), self.threshold)
 
     def check(
-        self, final_energy: float | Tensor, chunk_index: int | None = None
+        self,
+        final_energy: float | Tensor,
+        chunk_index: int | None = None,
+        context_features: ArrayLike | None = None,
     ) -> OODDecision | list[OODDecision]:
         """Checks chunk final energies: a scalar gives one decision, a (B,) tensor or array a list of B.
 
-        `chunk_index` (the chunks' index in their episodes) is needed by a phase-energy calibration only.
+        `chunk_index` (the chunks' index in their episodes) is needed by a phase-energy calibration only,
+        `context_features` ((D,) or (B, D) pooled contexts) by a context-distance calibration only.
         """
-        scores = as_array(self.calibration.chunk_score(as_array(final_energy), chunk_index))
+        scores = as_array(self.calibration.chunk_score(as_array(final_energy), chunk_index, context_features))
         if _ndim(final_energy) == 0:
             return self._decide(float(scores[0]))
         return [self._decide(e) for e in scores]
 
-    def check_rollout(self, chunk_energies: ArrayLike) -> OODDecision:
-        """Checks a rollout from its chunks' final energies (chunks 0, 1, ...), aggregated as calibrated."""
+    def check_rollout(
+        self, chunk_energies: ArrayLike, context_features: ArrayLike | None = None
+    ) -> OODDecision:
+        """Checks a rollout from its chunks' final energies (chunks 0, 1, ...), aggregated as calibrated.
+
+        `context_features`, (N, D) one pooled context per chunk, is needed by a context-distance calibration.
+        """
         energies = as_array(chunk_energies)
-        scores = self.calibration.chunk_score(energies, np.arange(energies.size))
+        scores = self.calibration.chunk_score(energies, np.arange(energies.size), context_features)
         return self._decide(rollout_score(scores, self.calibration.aggregation))
 
-    def update(self, final_energy: float | Tensor) -> list[OODDecision]:
-        """Adds one chunk's final energy per environment and checks each environment's rollout so far.
+    def update(
+        self, final_energy: float | Tensor, context_features: ArrayLike | None = None
+    ) -> list[OODDecision]:
+        """Adds one chunk's score per environment and checks each environment's rollout so far.
 
         Args:
             final_energy: A float (one environment) or a (B,) tensor, one entry per environment.
+            context_features: The chunk's pooled context per environment, (B, D), for a context-distance
+                calibration.
 
         Returns:
             One decision per environment on its running rollout score.
@@ -441,10 +719,17 @@ class EnergyOODMonitor:
             raise ValueError(
                 f"Expected {len(self._histories)} energies (one per environment), got {len(energies)}."
             )
-        for history, energy in zip(self._histories, energies, strict=True):
-            history.append(float(energy))
-        return [self.check_rollout(history) for history in self._histories]
+        if context_features is not None and _ndim(context_features) == 1:
+            context_features = _float64(context_features)[None]  # one environment
+        # The environments step together: this is chunk len(history) of every one of them.
+        chunk_index = len(self._histories[0])
+        scores = as_array(self.calibration.chunk_score(energies, chunk_index, context_features))
+        for history, score in zip(self._histories, scores, strict=True):
+            history.append(float(score))
+        return [
+            self._decide(rollout_score(history, self.calibration.aggregation)) for history in self._histories
+        ]
 
     def reset(self) -> None:
-        """Forgets the accumulated energies; call it when the environments reset."""
+        """Forgets the accumulated scores; call it when the environments reset."""
         self._histories = []

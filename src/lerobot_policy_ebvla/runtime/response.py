@@ -1,9 +1,11 @@
 """What the policy does with a chunk its energy flags as out of distribution (beyond the paper).
 
-After each refinement, the final energy E(a^(K_inf), C) of every chunk is compared to the threshold
-T = mu_v + k * sigma_v (Eq. 5) of the checkpoint's `ood_calibration.json`, with the one rule of
-`threshold.py`: only E <= T is in distribution, so +inf (diverged refinement) and NaN are flagged.
-`EBVLAConfig.ood_response` picks what happens to a flagged chunk:
+After each refinement, the score of every chunk is compared to the threshold T = mu_v + k * sigma_v (Eq. 5)
+of the checkpoint's `ood_calibration.json`, with the one rule of `threshold.py`: only a score <= T is in
+distribution, so +inf (diverged refinement) and NaN are flagged. The score is the calibration's
+(`OODCalibration.chunk_score`): the final energy E(a^(K_inf), C) (the paper's, default), the phase energy,
+or the context distance of the chunk's pooled context, which the policy then computes from the backbone pass
+that encoded the chunk's context. `EBVLAConfig.ood_response` picks what happens to a flagged chunk:
 
 - "continue": it is executed and a warning is logged (the default).
 - "hold": each of its H actions is replaced by the hold action; the next refinement checks again.
@@ -51,8 +53,9 @@ class OODResponseDecision:
 
     Attributes:
         response: The configured `ood_response`.
-        threshold: The threshold T the final energies were compared to.
-        flagged: (B,) bool, the final energy exceeds T (or is not finite).
+        threshold: The threshold T the chunk scores were compared to.
+        flagged: (B,) bool, the chunk score (the calibration's: final energy, phase energy or context
+            distance) exceeds T (or is not finite).
         held: (B,) bool, the chunk was replaced by the hold action (flagged and `response == "hold"`).
     """
 
@@ -63,10 +66,11 @@ class OODResponseDecision:
 
 
 class EnergyOODError(RuntimeError):
-    """Raised with `ood_response="raise"` when a refined chunk's final energy exceeds the OOD threshold.
+    """Raised with `ood_response="raise"` when a refined chunk's score exceeds the OOD threshold.
 
     Attributes:
-        energy: The highest score (the calibration's `score`: final energy or phase energy) among the flagged chunks.
+        energy: The highest score (the calibration's `score`: final energy, phase energy or context distance)
+            among the flagged chunks.
         threshold: The threshold T it exceeded.
         decision: The full per-batch-element decision.
     """
@@ -172,6 +176,11 @@ class EnergyOODResponse:
         return cls(config, calibration, hold_action)
 
     @property
+    def needs_context_features(self) -> bool:
+        """Whether each chunk's pooled context must come with it (a context-distance calibration)."""
+        return self.calibration.needs_context_features
+
+    @property
     def threshold(self) -> float:
         """T of the calibration, at the config's `ood_threshold_k` when it sets one."""
         k = self.config.ood_threshold_k
@@ -187,17 +196,25 @@ class EnergyOODResponse:
             )
 
     def __call__(
-        self, actions: Tensor, final_energy: Tensor, batch: dict[str, Tensor], chunk_index: int = 0
+        self,
+        actions: Tensor,
+        final_energy: Tensor,
+        batch: dict[str, Tensor],
+        chunk_index: int = 0,
+        context_features: Tensor | None = None,
     ) -> tuple[Tensor, OODResponseDecision]:
         """Checks each chunk (B, H, action_dim) against T and continues, holds or raises.
 
-        `chunk_index` is the chunk's index in its episode, for a calibration whose score depends on it.
-        Returns the chunks to execute (held ones replaced) and the decision.
+        `chunk_index` is the chunk's index in its episode, for a calibration whose score depends on it;
+        `context_features`, (B, D), the pooled context of each chunk's observation, for a context-distance
+        calibration. Returns the chunks to execute (held ones replaced) and the decision.
         """
         response, threshold = self.config.ood_response, self.threshold
         energies = final_energy.detach().float().cpu().reshape(-1)
-        # The calibration's score: the final energy itself, or its z-score at this chunk index (phase energy).
-        energies = torch.as_tensor(self.calibration.chunk_score(energies, chunk_index), dtype=torch.float32)
+        # The calibration's score: the final energy itself, its z-score at this chunk index (phase energy), or
+        # the Mahalanobis distance of the chunk's context (context distance).
+        scores = self.calibration.chunk_score(energies, chunk_index, context_features)
+        energies = torch.as_tensor(scores, dtype=torch.float32).reshape(-1)
         flagged = torch.from_numpy(exceeds(energies, threshold))
         held = flagged if response == "hold" else torch.zeros_like(flagged)
         decision = OODResponseDecision(response, threshold, flagged, held)
@@ -208,9 +225,10 @@ class EnergyOODResponse:
         if response == "raise":
             raise EnergyOODError(energy, threshold, decision, self.calibration.score)
         logger.warning(
-            "EB-VLA: %d of %d chunks have a final energy above the OOD threshold %.4g (highest %.4g): %s.",
+            "EB-VLA: %d of %d chunks have a %s above the OOD threshold %.4g (highest %.4g): %s.",
             int(flagged.sum()),
             flagged.numel(),
+            self.calibration.score,
             threshold,
             energy,
             "holding them" if response == "hold" else "executing them anyway (`ood_response='continue'`)",
@@ -231,8 +249,11 @@ def respond_to_energy(
     final_energy: Tensor,
     batch: dict[str, Tensor],
     chunk_index: int = 0,
+    context_features: Tensor | None = None,
 ) -> tuple[Tensor, OODResponseDecision | None]:
     """The policy's entry point: applies `response`, or checks that none is needed without a calibration.
+
+    `context_features` is the chunks' pooled context, (B, D), when `response.needs_context_features`.
 
     Raises:
         ValueError: `config.ood_response` is "hold" or "raise" and the policy has no calibrated response.
@@ -245,4 +266,4 @@ def respond_to_energy(
                 "(or call `policy.configure_ood_response(<checkpoint>)`)."
             )
         return actions, None
-    return response(actions, final_energy, batch, chunk_index)
+    return response(actions, final_energy, batch, chunk_index, context_features)

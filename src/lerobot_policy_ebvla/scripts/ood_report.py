@@ -11,8 +11,9 @@ AUROC with bootstrap 95% intervals per score, the same over each episode's first
 Table III per condition in the paper's layout with every score's balanced accuracy beside it, and Table III
 over the first chunks (`--table_iii_first_chunks`)) and the figures `roc_curve.png`, `roc_baselines.png` and
 `energy_histogram.png`. `--score=phase_energy` saves the phase-energy calibration instead of the final
-energy's. `--help` lists every option; the report is built by
-`lerobot_policy_ebvla.monitoring.ood_report`.
+energy's, `--score=context_distance` the context distance's (the report's `mahalanobis` score; its context
+statistics go beside the JSON in `ood_calibration_context.safetensors`). `--help` lists every option; the
+report is built by `lerobot_policy_ebvla.monitoring.ood_report`.
 """
 
 import logging
