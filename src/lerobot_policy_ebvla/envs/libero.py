@@ -216,6 +216,9 @@ def create_libero_ebvla_envs(
         raise ValueError(f"n_envs must be a positive int; got {n_envs}.")
     gym_kwargs = dict(gym_kwargs)
     task_ids = gym_kwargs.pop("task_ids", None)
+    # LeRobot ties env i to initial state i (`episode_index`, then + n_envs at every reset): shifting the index
+    # shifts the states.
+    first_init_state = gym_kwargs.pop("first_init_state", 0)
     suite_names = [name.strip() for name in str(task).split(",") if name.strip()]
     if not suite_names:
         raise ValueError("`task` must contain at least one LIBERO suite name.")
@@ -234,7 +237,7 @@ def create_libero_ebvla_envs(
                     camera_name=parse_camera_names(camera_name),
                     init_states=init_states,
                     episode_length=episode_length,
-                    episode_index=episode_index,
+                    episode_index=first_init_state + episode_index,
                     n_envs=n_envs,
                     control_mode=control_mode,
                     camera_name_mapping=camera_name_mapping,

@@ -37,17 +37,24 @@ class LiberoEBVLAEnv(LeRobotLiberoEnvConfig):
             "rotation", "fov"; lighting "light_dim", "light_bright", "light_color", "light_direction".
         perturbation_severity: Severity level, 0 (no change) to 5. At 0 `perturbation` is set to "none", so
             `perturbation` always names the perturbation actually applied (what energy records store).
+        first_init_state: LIBERO's initial state of each task's first episode. LeRobot starts env i of a
+            task at initial state i and steps by the number of envs at each reset; this shifts that count, so
+            that episodes 10-19 of a task (say) run in a process of their own, from the same states as in one
+            20-episode run.
     """
 
     task: str = "libero_object"
     perturbation: str = "none"
     perturbation_severity: int = 0
+    first_init_state: int = 0
 
     def __post_init__(self):
         super().__post_init__()
         check_libero_perturbation(self.perturbation, self.perturbation_severity)
         if self.perturbation_severity == 0:
             self.perturbation = "none"
+        if self.first_init_state < 0:
+            raise ValueError(f"`first_init_state` must be >= 0, got {self.first_init_state}.")
 
     @property
     def gym_kwargs(self) -> dict:
@@ -55,6 +62,7 @@ class LiberoEBVLAEnv(LeRobotLiberoEnvConfig):
             **super().gym_kwargs,
             "perturbation": self.perturbation,
             "perturbation_severity": self.perturbation_severity,
+            "first_init_state": self.first_init_state,
         }
 
     def create_envs(self, n_envs: int, use_async_envs: bool = False):

@@ -5,15 +5,16 @@ the object to move and its container from the task's BDDL goal, the poses of bot
 information no policy sees), and drives LIBERO's own controller (OSC_POSE, delta end-effector actions in [-1, 1],
 gripper -1 open / +1 closed) through waypoints: above the object, down to it, close, lift, over the basket,
 down, open. Episodes run in LeRobot's LIBERO env (through `--env.type=libero_ebvla`, so perturbations are the same
-options as in evaluation), starting from LIBERO's fixed initial states (attempt i of a task uses state i).
+options as in evaluation), starting from LIBERO's fixed initial states (attempt i of a task uses state i, or
+state `env.first_init_state` + i).
 
 The dataset has the features of `HuggingFaceVLA/libero` as LeRobot's LIBERO env and docs define them, so a policy
 trained on it takes the same inputs as one trained on the real dataset, and evaluates with
 `lerobot-eval --env.type=libero` unchanged:
 
-- `observation.images.image` (agent view) and `observation.images.image2` (wrist): 256x256x3 images, rotated by
-  180 degrees from the simulator's frames, which is what LeRobot's `LiberoProcessorStep` does to the env's frames
-  (`policy_frame`);
+- `observation.images.image` (agent view) and `observation.images.image2` (wrist): 256x256x3 images (or
+  `image_size`, rendered at that size), rotated by 180 degrees from the simulator's frames, which is what
+  LeRobot's `LiberoProcessorStep` does to the env's frames (`policy_frame`);
 - `observation.state`: 8 floats, end-effector position, axis-angle orientation and the two gripper joints, computed
   by that same processor step;
 - `action`: the 7 floats sent to the env; the task string. One frame per control step.
@@ -74,9 +75,15 @@ DESCEND_MAX_STEPS = 40  # close the gripper where the hand is if the grasp heigh
 class RecordLiberoConfig(RecordingConfig):
     """The recorder's options; images are stored as PNG frames by default, as in HuggingFaceVLA/libero."""
 
-    # The env: suite (`--env.task=libero_object`), tasks (`--env.task_ids=[0,1]`), perturbation. Frames are
-    # always rendered at 256x256, the dataset's image size (`--env.observation_height/width` are ignored).
+    # The env: suite (`--env.task=libero_object`), tasks (`--env.task_ids=[0,1]`), perturbation, first initial
+    # state (`--env.first_init_state`). Frames are rendered at `image_size` (`--env.observation_height/width`
+    # are ignored).
     env: LiberoEBVLAEnv = field(default_factory=LiberoEBVLAEnv)
+    # Square frame size the cameras render and the dataset stores: HuggingFaceVLA/libero's 256 by default. A
+    # policy that resizes to 128 px trains several times faster from frames stored at 128 (fewer PNG bytes to
+    # decode per sample); evaluate it with `--env.observation_height=128 --env.observation_width=128`, so that
+    # it sees frames rendered as in its data.
+    image_size: int = IMAGE_SIZE
     # Dataset repo id (stored locally; nothing is pushed).
     repo_id: str = "local/libero_object_expert"
     # Expert episodes attempted per task; attempt i starts from LIBERO's initial state i of the task.
@@ -92,17 +99,19 @@ class RecordLiberoConfig(RecordingConfig):
                 f"got {self.env.task!r}."
             )
         check_env_records_images_and_state(self.env)
-        # Frames are rendered at HuggingFaceVLA/libero's size, whatever `--env.observation_*` says.
-        self.env.observation_height = self.env.observation_width = IMAGE_SIZE
+        if self.image_size < 16:
+            raise ValueError(f"`image_size` must be >= 16 pixels, got {self.image_size}.")
+        # Frames are rendered at the dataset's size, whatever `--env.observation_*` says.
+        self.env.observation_height = self.env.observation_width = self.image_size
         if self.max_steps is not None and self.max_steps < 1:
             raise ValueError(f"`max_steps` must be >= 1 or None, got {self.max_steps}.")
 
 
-def dataset_features(use_videos: bool) -> dict[str, dict]:
-    """The features of HuggingFaceVLA/libero (keys, dtypes, shapes, names)."""
+def dataset_features(use_videos: bool, image_size: int = IMAGE_SIZE) -> dict[str, dict]:
+    """The features of HuggingFaceVLA/libero (keys, dtypes, shapes, names), with square frames of `image_size`."""
     camera = {
         "dtype": "video" if use_videos else "image",
-        "shape": (IMAGE_SIZE, IMAGE_SIZE, 3),
+        "shape": (image_size, image_size, 3),
         "names": ["height", "width", "channel"],
     }
     return {
@@ -220,17 +229,17 @@ def record_expert_episode(env: Any, dataset: Any, max_steps: int) -> tuple[bool,
 
 
 def expert_episodes(
-    envs: dict[int, Any], episodes_per_task: int, max_steps: int, dataset: Any
+    envs: dict[int, Any], episodes_per_task: int, max_steps: int, dataset: Any, first_init_state: int = 0
 ) -> Generator[Episode, None, None]:
     """The episodes to attempt, task by task; each task's vector env is closed once its episodes are recorded."""
     for task_id, vec_env in envs.items():
         env = vec_env.envs[0]
         try:
-            for attempt in range(episodes_per_task):
+            for state in range(first_init_state, first_init_state + episodes_per_task):
                 yield Episode(
                     task=env.task,
-                    start={"task_id": task_id, "initial_state": attempt},
-                    label=f"task {task_id} ({env.task}) initial state {attempt}",
+                    start={"task_id": task_id, "initial_state": state},
+                    label=f"task {task_id} ({env.task}) initial state {state}",
                     rollout=partial(record_expert_episode, env, dataset, max_steps),
                 )
         finally:
@@ -250,13 +259,15 @@ def record_libero(cfg: RecordLiberoConfig) -> dict:
     dataset = LeRobotDataset.create(
         repo_id=cfg.repo_id,
         fps=DATASET_FPS,
-        features=dataset_features(cfg.use_videos),
+        features=dataset_features(cfg.use_videos, cfg.image_size),
         root=root,
         robot_type=ROBOT_TYPE,
         use_videos=cfg.use_videos,
     )
     episodes = record_episodes(
-        dataset, expert_episodes(envs, cfg.episodes_per_task, max_steps, dataset), cfg.keep_failed
+        dataset,
+        expert_episodes(envs, cfg.episodes_per_task, max_steps, dataset, cfg.env.first_init_state),
+        cfg.keep_failed,
     )
     report = {
         "repo_id": cfg.repo_id,
@@ -266,7 +277,9 @@ def record_libero(cfg: RecordLiberoConfig) -> dict:
             "task_ids": cfg.env.task_ids,
             "perturbation": cfg.env.perturbation,
             "perturbation_severity": cfg.env.perturbation_severity,
+            "first_init_state": cfg.env.first_init_state,
         },
+        "image_size": cfg.image_size,
         "max_steps": max_steps,
         "use_videos": cfg.use_videos,
         "keep_failed": cfg.keep_failed,
