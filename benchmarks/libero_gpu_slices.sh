@@ -11,7 +11,10 @@
 # Each call must follow the last within the 30 s the machine stays warm. The driver runs detached (its own
 # session), so it lives across calls: record, train until TRAIN_UNTIL_S after its start (or both runs done),
 # evaluate until EVAL_UNTIL_S, packing its products after each stage and every minute of training into
-# /tmp/libero_out (copied to $OUT by every call).
+# /tmp/libero_out (copied to $OUT by every call). On 2026-11-24 the transfer calls and the start took about two
+# minutes of device time and the recording almost seven: set TRAIN_UNTIL_S and EVAL_UNTIL_S (seconds from the
+# driver's start) so that the last poll returns inside the session's device time. STEPS is lerobot-train's
+# --steps (its cosine schedule scales to it); a run stopped at TRAIN_UNTIL_S is evaluated at its last checkpoint.
 set -uo pipefail
 SITE=/tmp/site
 WORK=/tmp/libero_work
@@ -53,7 +56,7 @@ case "${1:-}" in
     mkdir -p $SITE
     [ -f .carry/site.tar.xz ] && tar -C $SITE -xJf .carry/site.tar.xz
     ls .carry_av/*.whl >/dev/null 2>&1 && python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir \
-        --target $SITE .carry_av/*.whl
+        --upgrade --target $SITE .carry_av/*.whl
     du -sh $SITE
     nvidia-smi --query-gpu=name,driver_version --format=csv,noheader; nproc; python3 --version ;;
   start)
@@ -67,7 +70,8 @@ case "${1:-}" in
   driver)
     start=$(date +%s)
     cd $DRIVER
-    python3 libero_pipeline.py record --work=$WORK --episodes_per_task=20 --parts=2 --jobs=16 --image_size=128
+    # 20 recorders side by side on the 16 cores: one round instead of two (402 s for 16 + 4 on 2026-11-24).
+    python3 libero_pipeline.py record --work=$WORK --episodes_per_task=20 --parts=2 --jobs=20 --image_size=128
     echo "recorded after $(($(date +%s) - start)) s"; pack
     python3 libero_pipeline.py train --work=$WORK --runs ebvla_paper diffusion --steps=$STEPS --batch_size=32 \
         --workers=6 --device=cuda --detach

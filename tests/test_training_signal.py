@@ -84,7 +84,9 @@ def test_contrastive_candidates_follow_the_mismatched_and_noisy_counts():
         )
         kv = policy.model.encode_context(batch)
         sizes = []
-        handle = policy.model.head.register_forward_hook(lambda m, args, out: sizes.append(args[0].shape[0]))
+        handle = policy.model.head.register_forward_hook(
+            lambda m, args, out, sizes=sizes: sizes.append(args[0].shape[0])
+        )
         loss = policy.model.contrastive_energy_loss(kv, batch["action"], torch.Generator().manual_seed(0))
         handle.remove()
         seen.append((sizes, loss.item()))
