@@ -190,7 +190,7 @@ def record(
 
 
 def run_args(run: str, image_size: int) -> list[str]:
-    """`RUNS[run]` for frames of `image_size` (Diffusion Policy crops 90% of them, 116 px of 128)."""
+    """`RUNS[run]` for frames of `image_size` (Diffusion Policy crops 90% of them, 115 px of 128)."""
     if run == "diffusion":
         crop = int(0.9 * image_size)
         return [*RUNS[run], f"--policy.crop_shape=[{crop},{crop}]"]
@@ -323,6 +323,8 @@ def eval_jobs(
 def eval_command(work: Path, job: EvalJob, device: str, episode_length: int | None = None) -> list[str]:
     """`ebvla-eval` (energy records with context features) for `ebvla`, `lerobot-eval` for other policies."""
     program = "ebvla-eval" if job.run.startswith("ebvla") else "lerobot-eval"
+    # Rendered at the recorded size, so that the policy sees frames as in its data.
+    image_size = json.loads((work / "recording_summary.json").read_text())["image_size"]
     cmd = [
         bin_path(program),
         f"--policy.path={last_checkpoint(work, job.run)}",
@@ -333,8 +335,8 @@ def eval_command(work: Path, job: EvalJob, device: str, episode_length: int | No
         f"--env.first_init_state={job.first}",
         f"--env.perturbation={job.perturbation}",
         f"--env.perturbation_severity={job.severity}",
-        "--env.observation_height=128",
-        "--env.observation_width=128",
+        f"--env.observation_height={image_size}",
+        f"--env.observation_width={image_size}",
         f"--eval.n_episodes={job.n}",
         "--eval.batch_size=1",
         f"--seed={job.seed}",
@@ -413,6 +415,8 @@ def pack(work: Path, archive: Path) -> None:
             relative = path.relative_to(work)
             if relative.parts[0] == "train" or not path.is_file():
                 continue
+            if relative.parts[0] == "data" and path.name not in kept_names:
+                continue  # the frames, and the PNGs an interrupted recording leaves
             if path.suffix in (".jsonl", ".npy", ".log", ".md", ".png") or path.name in kept_names:
                 tar.add(path, arcname=str(relative))
         for run in RUNS:

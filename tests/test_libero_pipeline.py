@@ -1,0 +1,333 @@
+"""The LIBERO-Object pipeline (`benchmarks/libero_pipeline.py`) and the library options it added.
+
+Its queue, commands and packing are checked on temporary folders, without the simulator; one slow test runs
+every stage at a tiny size on CPU (it needs LIBERO set up, as the simulator tests of tests/test_libero.py).
+"""
+
+import importlib.util
+import json
+import math
+import tarfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lerobot_policy_ebvla.envs.libero_configs import LiberoEBVLAEnv
+from tests.test_libero import requires_libero
+
+
+def load_pipeline():
+    path = Path(__file__).parents[1] / "benchmarks" / "libero_pipeline.py"
+    spec = importlib.util.spec_from_file_location("libero_pipeline", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+pipeline = load_pipeline()
+
+
+def write_json(path: Path, content: dict) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(content))
+    return path
+
+
+def fake_checkpoint(work: Path, run: str) -> Path:
+    """A `last` checkpoint folder of `run`, as lerobot-train leaves it (only the files the pipeline looks at)."""
+    checkpoint = work / "train" / run / "checkpoints" / "last" / "pretrained_model"
+    write_json(checkpoint / "train_config.json", {})
+    (checkpoint / "model.safetensors").write_bytes(b"weights")
+    return checkpoint
+
+
+@pytest.fixture
+def work(tmp_path):
+    """A pipeline folder whose recording stage has run, at 64 px."""
+    write_json(tmp_path / "recording_summary.json", {"image_size": 64, "episodes_per_task": 2, "tasks": {}})
+    return tmp_path
+
+
+# The evaluation queue.
+
+
+def test_eval_queue_puts_ebvla_vanilla_then_two_camera_conditions_before_the_other_policies():
+    conditions = (("pose", 5), ("fov", 5), ("pose", 3))
+    jobs = pipeline.eval_jobs(["ebvla_paper", "diffusion"], [0, 1], 10, 3, conditions)
+    vanilla = ["vanilla_calib", "vanilla_heldout"]
+    expected = (
+        [("ebvla_paper", c, t) for t in (0, 1) for c in vanilla]
+        + [("ebvla_paper", c, t) for c in ("pose5", "fov5") for t in (0, 1)]
+        + [("diffusion", c, t) for t in (0, 1) for c in vanilla]
+        + [("ebvla_paper", "pose3", t) for t in (0, 1)]
+    )
+    assert [(job.run, job.condition, job.task) for job in jobs] == expected
+    assert len({job.name for job in jobs}) == len(jobs)
+
+
+@pytest.mark.parametrize("vanilla", [10, 5])
+def test_calibration_and_held_out_split_the_initial_states_and_perturbed_rollouts_start_at_zero(vanilla):
+    jobs = {
+        job.condition: job for job in pipeline.eval_jobs(["ebvla_paper"], [0], vanilla, 3, (("pose", 5),))
+    }
+    calibration, heldout, perturbed = jobs["vanilla_calib"], jobs["vanilla_heldout"], jobs["pose5"]
+    assert (calibration.first, calibration.n) == (0, vanilla // 2)
+    assert (heldout.first, heldout.first + heldout.n) == (vanilla // 2, vanilla)
+    assert (perturbed.first, perturbed.n) == (0, 3)
+    assert (perturbed.perturbation, perturbed.severity) == ("pose", 5)
+    assert (calibration.perturbation, calibration.severity) == ("none", 0)
+    assert len({calibration.seed, heldout.seed, perturbed.seed}) == 3
+
+
+# The commands.
+
+
+def test_ebvla_is_evaluated_by_ebvla_eval_with_context_features_from_its_initial_state(work):
+    checkpoint = fake_checkpoint(work, "ebvla_paper")
+    job = pipeline.EvalJob("ebvla_paper", "pose5", 3, 5, 4, 3000, "pose", 5)
+    cmd = pipeline.eval_command(work, job, "cpu", episode_length=16)
+    assert Path(cmd[0]).name == "ebvla-eval"
+    for arg in (
+        f"--policy.path={checkpoint}",
+        "--env.task_ids=[3]",
+        "--env.first_init_state=5",
+        "--env.perturbation=pose",
+        "--env.perturbation_severity=5",
+        "--eval.n_episodes=4",
+        "--seed=3000",
+        "--env.episode_length=16",
+        "--record_context_features=true",
+        f"--output_dir={work / 'eval' / 'ebvla_paper' / 'pose5' / 'task3'}",
+    ):
+        assert arg in cmd
+    # Rendered at the recorded size, as the policy saw its data.
+    assert {"--env.observation_height=64", "--env.observation_width=64"} <= set(cmd)
+
+
+def test_other_policies_are_evaluated_by_lerobot_eval_without_context_features(work):
+    fake_checkpoint(work, "diffusion")
+    cmd = pipeline.eval_command(
+        work, pipeline.EvalJob("diffusion", "vanilla_heldout", 0, 10, 10, 2000), "cpu"
+    )
+    assert Path(cmd[0]).name == "lerobot-eval"
+    assert "--env.first_init_state=10" in cmd and "--env.perturbation=none" in cmd
+    assert not [arg for arg in cmd if arg.startswith(("--record_context_features", "--env.episode_length"))]
+
+
+def test_diffusion_policy_crops_ninety_percent_of_the_frame_and_ebvla_runs_are_unchanged():
+    assert pipeline.run_args("diffusion", 128)[-1] == "--policy.crop_shape=[115,115]"
+    assert pipeline.run_args("diffusion", 64)[-1] == "--policy.crop_shape=[57,57]"
+    assert pipeline.run_args("diffusion", 64)[:-1] == pipeline.RUNS["diffusion"]
+    for run in ("ebvla_paper", "ebvla_variant"):
+        assert pipeline.run_args(run, 64) == pipeline.RUNS[run]
+        assert not [arg for arg in pipeline.RUNS[run] if "crop_shape" in arg]
+
+
+def test_training_starts_on_the_merged_dataset_then_resumes_from_the_last_checkpoint(work):
+    fresh = pipeline.train_command(work, "diffusion", 100, 8, "cpu", 0)
+    assert Path(fresh[0]).name == "lerobot-train"
+    for arg in (
+        f"--dataset.root={work / 'data' / 'all'}",
+        f"--output_dir={work / 'train' / 'diffusion'}",
+        "--steps=100",
+        "--batch_size=8",
+        "--policy.device=cpu",
+        "--policy.crop_shape=[57,57]",
+    ):
+        assert arg in fresh
+    assert "--resume=true" not in fresh
+
+    checkpoint = fake_checkpoint(work, "diffusion")
+    resumed = pipeline.train_command(work, "diffusion", 200, 8, "cpu", 0)
+    assert resumed[1:] == [
+        f"--config_path={checkpoint / 'train_config.json'}",
+        "--resume=true",
+        "--steps=200",
+    ]
+
+
+# Success and packing.
+
+
+def eval_info(*successes: list[bool]) -> dict:
+    """lerobot-eval's `eval_info.json`: one `per_task` entry per task id, each with its episodes' successes."""
+    return {
+        "per_task": [
+            {
+                "task_group": "libero_object",
+                "task_id": i,
+                "metrics": {"sum_rewards": [float(s) for s in ok], "successes": ok, "video_paths": []},
+            }
+            for i, ok in enumerate(successes)
+        ],
+        "overall": {"n_episodes": sum(len(ok) for ok in successes)},
+    }
+
+
+def test_success_table_counts_successes_per_run_condition_and_task(tmp_path):
+    write_json(
+        tmp_path / "eval/ebvla_paper/vanilla_calib/task0/eval_info.json", eval_info([True, False, True])
+    )
+    write_json(tmp_path / "eval/ebvla_paper/vanilla_calib/task3/eval_info.json", eval_info([False, False]))
+    write_json(tmp_path / "eval/ebvla_paper/pose5/task0/eval_info.json", eval_info([True], [False, True]))
+    write_json(tmp_path / "eval/diffusion/vanilla_heldout/task0/eval_info.json", eval_info([]))
+    (tmp_path / "eval/ebvla_paper/fov5/task0").mkdir(parents=True)  # a job cut short: no eval_info.json
+    assert pipeline.success_table(tmp_path) == {
+        "ebvla_paper": {"vanilla_calib": {"task0": [2, 3], "task3": [0, 2]}, "pose5": {"task0": [2, 3]}},
+        "diffusion": {"vanilla_heldout": {"task0": [0, 0]}},
+    }
+
+
+def test_pack_keeps_records_logs_and_ebvla_checkpoints_and_leaves_out_data_frames(work):
+    kept = [
+        "recording_summary.json",
+        "data/task0_from0/meta/recording_report.json",
+        "eval/ebvla_paper/camera_check.json",
+        "eval/ebvla_paper/vanilla_calib/task0/eval_info.json",
+        "eval/ebvla_paper/vanilla_calib/task0/energy_records.jsonl",
+        "eval/ebvla_paper/vanilla_calib/task0/energy_records.features.npy",
+        "logs/record_task0_from0.log",
+        "logs/eval/ebvla_paper_vanilla_calib_task0.log",
+        "reports/ebvla_paper/failure/failure_report.md",
+    ]
+    left_out = [
+        "data/all/data/chunk-000/file-000.parquet",
+        "data/all/meta/info.json",
+        "data/task0_from0/data/chunk-000/file-000.parquet",
+        # Frames an interrupted recording leaves before LeRobot embeds them in its parquet files.
+        "data/task1_from0/images/observation.images.image/episode-000000/frame-000000.png",
+        "train/ebvla_paper/checkpoints/000002/pretrained_model/model.safetensors",
+    ]
+    for name in kept + left_out:
+        (work / name).parent.mkdir(parents=True, exist_ok=True)
+        (work / name).write_text(name)
+    fake_checkpoint(work, "ebvla_paper")
+    fake_checkpoint(work, "diffusion")  # Diffusion Policy's checkpoint is too large to bring back
+
+    archive = work / "out" / "results.tar.gz"
+    pipeline.pack(work, archive)
+    with tarfile.open(archive) as tar:
+        names = {member.name for member in tar.getmembers() if member.isfile()}
+    checkpoint = {"train/ebvla_paper/pretrained_model/model.safetensors"}
+    checkpoint.add("train/ebvla_paper/pretrained_model/train_config.json")
+    assert names == set(kept) | checkpoint
+
+
+# The library options the pipeline uses.
+
+
+def test_first_init_state_must_not_be_negative():
+    with pytest.raises(ValueError, match="`first_init_state` must be >= 0"):
+        LiberoEBVLAEnv(first_init_state=-1)
+
+
+def test_first_init_state_reaches_the_env_factory():
+    assert LiberoEBVLAEnv().gym_kwargs["first_init_state"] == 0
+    assert LiberoEBVLAEnv(first_init_state=10).gym_kwargs["first_init_state"] == 10
+
+
+def test_recorder_renders_at_its_image_size_and_refuses_tiny_frames():
+    from lerobot_policy_ebvla.recording.libero import RecordLiberoConfig
+
+    cfg = RecordLiberoConfig(image_size=64)
+    assert (cfg.env.observation_height, cfg.env.observation_width) == (64, 64)
+    with pytest.raises(ValueError, match="`image_size` must be >= 16"):
+        RecordLiberoConfig(image_size=8)
+
+
+def test_dataset_cameras_have_the_recorded_image_size():
+    from lerobot_policy_ebvla.recording.libero import dataset_features
+
+    cameras = ("observation.images.image", "observation.images.image2")
+    features = dataset_features(False, 128)
+    assert [(features[key]["dtype"], features[key]["shape"]) for key in cameras] == [
+        ("image", (128, 128, 3))
+    ] * 2
+    assert [dataset_features(True)[key]["shape"] for key in cameras] == [(256, 256, 3)] * 2
+
+
+# Every stage, at a tiny size.
+
+
+def first_frame_features(checkpoint: Path, dataset_root: Path) -> np.ndarray:
+    """(episodes, D) the checkpoint's context features of each dataset episode's first frame."""
+    from lerobot.datasets import LeRobotDataset
+    from lerobot.policies.factory import make_pre_post_processors
+    from torch.utils.data import default_collate
+
+    from lerobot_policy_ebvla import EBVLAPolicy
+
+    policy = EBVLAPolicy.from_pretrained(checkpoint)
+    preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=str(checkpoint))
+    dataset = LeRobotDataset(pipeline.REPO_ID, root=dataset_root)
+    keys = [*policy.config.input_features, "task"]
+    starts = dataset.meta.episodes["dataset_from_index"]
+    frames = [{key: dataset[int(i)][key] for key in keys} for i in starts]
+    return policy.context_features(preprocessor(default_collate(frames))).numpy()
+
+
+@requires_libero
+@pytest.mark.slow
+def test_pipeline_records_trains_evaluates_and_packs_a_tiny_libero_object_run(tmp_path, monkeypatch):
+    from lerobot.datasets import LeRobotDataset
+
+    from lerobot_policy_ebvla.monitoring.records import read_energy_records
+
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    work = tmp_path / "work"
+    stages = {
+        "record": "--tasks 0 --episodes_per_task=2 --parts=2 --image_size=64 --max_steps=12 --keep_failed --jobs=2",
+        "train": "--runs ebvla_paper --steps=2 --batch_size=4 --workers=0 --device=cpu",
+        "eval": "--runs ebvla_paper --tasks 0 --vanilla=2 --perturbed=1 --conditions pose:5 --episode_length=16 "
+        "--jobs=2 --device=cpu --deadline_s=400",
+        "pack": "",
+    }
+    for stage, args in stages.items():
+        pipeline.main([stage, f"--work={work}", *args.split()])
+
+    # Two pieces, from initial states 0 and 1, merged into one dataset of 64 px frames.
+    reports = [
+        json.loads((work / "data" / f"task0_from{first}" / "meta" / "recording_report.json").read_text())
+        for first in (0, 1)
+    ]
+    assert [r["env"]["first_init_state"] for r in reports] == [0, 1]
+    assert [ep["initial_state"] for r in reports for ep in r["episodes"]] == [0, 1]
+    dataset = LeRobotDataset(pipeline.REPO_ID, root=work / "data" / "all")
+    assert dataset.meta.total_episodes == 2
+    assert dataset[0]["observation.images.image"].shape == dataset[0]["observation.images.image2"].shape
+    assert dataset[0]["observation.images.image"].shape == (3, 64, 64)
+
+    assert json.loads((work / "eval_status.json").read_text()) == {
+        f"ebvla_paper/{condition}/task0": "done"
+        for condition in ("vanilla_calib", "vanilla_heldout", "pose5")
+    }
+    records = {
+        condition: read_energy_records(work / "eval" / "ebvla_paper" / condition / "task0")
+        for condition in ("vanilla_calib", "vanilla_heldout", "pose5")
+    }
+    for condition, chunks in records.items():
+        assert {r.episode_index for r in chunks} == {0}  # one episode each
+        assert all(math.isfinite(r.initial_energy) and math.isfinite(r.final_energy) for r in chunks)
+        assert all(r.context_feature is not None for r in chunks)
+        info = json.loads(
+            (work / "eval" / "ebvla_paper" / condition / "task0" / "eval_info.json").read_text()
+        )
+        assert info["overall"]["n_episodes"] == 1
+    assert {(r.perturbation, r.severity) for r in records["pose5"]} == {("pose", 5.0)}
+    assert len({chunks[0].seed for chunks in records.values()}) == 3
+    # No record names its initial state: the first observation of each job is the recorded first frame of
+    # the state it starts from (same simulator state, same 64 px rendering), so its context is nearest that.
+    checkpoint = work / "train" / "ebvla_paper" / "checkpoints" / "last" / "pretrained_model"
+    recorded = first_frame_features(checkpoint, work / "data" / "all")
+    for condition, state in (("vanilla_calib", 0), ("vanilla_heldout", 1)):
+        distances = np.linalg.norm(recorded - records[condition][0].context_feature, axis=1)
+        assert distances.argmin() == state, (condition, distances)
+
+    assert (work / "eval" / "ebvla_paper" / "camera_check.json").exists()
+    with tarfile.open(work / "libero_results.tar.gz") as tar:
+        names = set(tar.getnames())
+    for condition in records:
+        assert f"eval/ebvla_paper/{condition}/task0/energy_records.jsonl" in names
+    assert "train/ebvla_paper/pretrained_model/model.safetensors" in names
+    assert not [name for name in names if name.endswith(".parquet")]
