@@ -4,7 +4,8 @@ One evaluation folder per condition (`pipelines.eval_energy`, what `ebvla-eval` 
 perturbations: docs/metaworld.md), then one held-out `ebvla-ood-report` over all of them. The vanilla
 rollouts of two seed ranges are evaluated too: the first (`--calibration_seed`) calibrates, the second
 (`--seed`) is the report's negatives. A condition whose folder already holds its records is not evaluated
-again, so an interrupted sweep resumes.
+again, so an interrupted sweep resumes. `--record_context_features` also records each chunk's pooled backbone
+context, so that the report adds the context-distance (`mahalanobis`) score beside the energies.
 
     MUJOCO_GL=egl python benchmarks/metaworld_perturbation_sweep.py --checkpoint=<pretrained_model folder> \\
         --output_dir=outputs/metaworld_sweep --tasks=button-press-v3 --episodes=5
@@ -39,6 +40,7 @@ def evaluate(args: argparse.Namespace, folder: str, seed: int, perturbation: str
         seed=seed,
         perturbation=perturbation,
         severity=severity,
+        record_context_features=args.record_context_features,
     )
 
 
@@ -56,6 +58,12 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1000, help="First seed of the reported episodes.")
     parser.add_argument("--calibration_seed", type=int, default=2000, help="First seed of the calibration.")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument(
+        "--record_context_features",
+        action="store_true",
+        help="Also record each chunk's pooled backbone context (`ebvla-eval --record_context_features=true`): "
+        "the OOD report then adds the context-distance (mahalanobis) score. Off by default.",
+    )
     args = parser.parse_args()
 
     args.output_dir.mkdir(parents=True, exist_ok=True)

@@ -314,3 +314,27 @@ def test_expert_recording_of_one_task_keeps_its_successful_episode_with_hf_liber
     assert frame["observation.images.image"].shape == (3, 256, 256)
     with pytest.raises(FileExistsError, match="--overwrite=true"):
         record_libero(RecordLiberoConfig(**args))
+
+
+@requires_libero
+@pytest.mark.parametrize(("task_id", "slides"), [(1, True), (0, False)])
+def test_expert_grasps_a_long_box_clear_of_a_tall_neighbour_and_a_can_at_its_centre(task_id, slides):
+    """The cream cheese box (task 1) lies 8 cm long beside a tomato-sauce bottle that stopped the hand above it:
+    the grasp slides along the box, inside it; the alphabet soup can (task 0) is grasped at its centre."""
+    from lerobot_policy_ebvla.envs.libero_configs import LiberoEBVLAEnv
+    from lerobot_policy_ebvla.recording.libero import LiberoObjectExpert
+
+    env_cfg = LiberoEBVLAEnv(
+        task="libero_object", task_ids=[task_id], observation_height=32, observation_width=32
+    )
+    vec_env = env_cfg.create_envs(n_envs=1)["libero_object"][task_id]
+    try:
+        vec_env.reset(seed=0)
+        expert = LiberoObjectExpert(vec_env.envs[0])
+        low, high = expert._world_extent(expert.object_name)
+        grasp = expert._grasp_position(expert.object_name)
+        centre = expert._position(expert.object_name)
+    finally:
+        vec_env.close()
+    assert bool(abs(grasp[0] - centre[0]) > 0.01) == slides
+    assert low[0] < grasp[0] < high[0] and grasp[1] == pytest.approx(centre[1])

@@ -69,6 +69,12 @@ GRIP_STEPS = 12  # steps with the gripper closing (or opening) before moving on
 # grasped at their centre or this far below their top, whichever is higher.
 FINGER_DEPTH = 0.035
 DESCEND_MAX_STEPS = 40  # close the gripper where the hand is if the grasp height is not reached by then
+HAND_HALF_WIDTH = 0.12  # the open hand's reach either side of its centre along world y, metres
+# A neighbour this far in x from the grasp point (the hand's half depth and a bottle's radius) is clear of it.
+HAND_CLEARANCE_X = 0.08
+GRASP_END_MARGIN = 0.015  # a grasp slid towards an end of a long object stays this far inside it
+GRASP_SLIDE_GAIN = 0.01  # slide only when it gains at least this much clearance
+GRASP_SLIDE_ELONGATION = 1.5  # and only along an object at least this much longer in x than wide in y
 
 
 @dataclass
@@ -140,18 +146,63 @@ class LiberoObjectExpert:
         self.container_name = goal[0][2].removesuffix("_contain_region")
         self.phase = "approach"
         self.phase_steps = 0
+        self._slide: float | None = None
 
     def _position(self, name: str) -> np.ndarray:
         return np.array(self.scene.sim.data.body_xpos[self.scene.obj_body_id[name]])
 
-    def _grasp_position(self, name: str) -> np.ndarray:
-        """The object's centre, raised to `FINGER_DEPTH` below its top for objects taller than the fingers."""
+    def _world_extent(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """(lowest, highest) corner of the world-axis box around the object's geoms."""
         model, data = self.scene.sim.model._model, self.scene.sim.data._data
         body = self.scene.obj_body_id[name]
         geoms = np.flatnonzero(model.body_rootid[model.geom_bodyid] == body)
-        top = max(data.geom_xpos[g][2] + model.geom_aabb[g][5] for g in geoms)
+        # Each geom's bounding box is in its own frame: its world half extents are |R| times the local ones.
+        centres = np.array(
+            [data.geom_xpos[g] + data.geom_xmat[g].reshape(3, 3) @ model.geom_aabb[g][:3] for g in geoms]
+        )
+        halves = np.array([np.abs(data.geom_xmat[g].reshape(3, 3)) @ model.geom_aabb[g][3:] for g in geoms])
+        return (centres - halves).min(axis=0), (centres + halves).max(axis=0)
+
+    def _grasp_slide(self, name: str) -> float:
+        """How far along world x to grasp from the object's centre, so that the hand clears its neighbours.
+
+        The fingers close along world y and the hand is wide along y (`HAND_HALF_WIDTH`): next to a long flat
+        object (the cream cheese box lies 8 cm long in x, 4 cm wide) a tall neighbour within that width stops the
+        hand above the object. For objects elongated along x with a neighbour closer than `HAND_CLEARANCE_X` in x,
+        of the centre and the two ends
+        (`GRASP_END_MARGIN` inside) the grasp takes the point farthest in x from every other object within the
+        hand's width in y: the centre unless an end is `GRASP_SLIDE_GAIN` farther.
+        """
+        low, high = self._world_extent(name)
+        length, width = high[:2] - low[:2]
+        reach = length / 2 - GRASP_END_MARGIN
+        if length < GRASP_SLIDE_ELONGATION * width or reach <= 0:
+            return 0.0  # a round or square object is grasped at its centre
+        centre = self._position(name)
+        others = [
+            self._position(other)
+            for other in self.scene.obj_body_id
+            if other not in (name, self.container_name)
+        ]
+        near = [o for o in others if abs(o[1] - centre[1]) < HAND_HALF_WIDTH]
+
+        def clearance(slide: float) -> float:
+            return min((abs(o[0] - centre[0] - slide) for o in near), default=np.inf)
+
+        if clearance(0.0) >= HAND_CLEARANCE_X:
+            return 0.0
+        best = max((-reach, reach), key=clearance)
+        return best if clearance(best) > clearance(0.0) + GRASP_SLIDE_GAIN else 0.0
+
+    def _grasp_position(self, name: str) -> np.ndarray:
+        """The object's centre, slid along x to clear its neighbours (`_grasp_slide`, chosen once per
+        episode), raised to `FINGER_DEPTH` below its top for objects taller than the fingers."""
+        if self._slide is None:
+            self._slide = self._grasp_slide(name)
+        _, high = self._world_extent(name)
         position = self._position(name)
-        position[2] = max(position[2], top - FINGER_DEPTH)
+        position[0] += self._slide
+        position[2] = max(position[2], high[2] - FINGER_DEPTH)
         return position
 
     def _waypoint(self, eef: np.ndarray) -> tuple[np.ndarray, float, str | None]:
