@@ -103,3 +103,58 @@ def test_the_published_table_iii_of_the_paper_recipe_at_k_train_8_15_comes_out_o
     assert (row.fp, row.fn) == (7, 22)
     assert f"{row.balanced_accuracy:.1%}" == "71.0%"
     assert f"{auroc(vanilla, pose):.3f}" == "0.717"
+
+
+SWEEP = Path(__file__).parents[1] / "benchmarks" / "results" / "metaworld_sweep_context_distance" / "records"
+
+
+def sweep_report(tmp_path: Path, **options) -> str:
+    conditions = sorted(p for p in SWEEP.iterdir() if p.name not in ("calibration", "vanilla"))
+    cfg = OODReportConfig(
+        calibration=[str(SWEEP / "calibration")],
+        vanilla=[str(SWEEP / "vanilla")],
+        ood=[str(p) for p in conditions],
+        output_dir=tmp_path,
+        n_bootstrap=10,
+        first_chunks=[3],
+        table_iii_first_chunks=0,
+        **options,
+    )
+    return write_ood_report(cfg)
+
+
+def mahalanobis_balanced_accuracy_at_k1(report: str) -> str:
+    """The context distance's balanced accuracy at k = 1.0 over all perturbations (Table III's side table)."""
+    section = report.split("## Table III: all perturbations")[1].split("\n## ")[0]
+    side = section.split("Balanced accuracy of every score")[1]
+    header = next(line for line in side.splitlines() if line.startswith("| Rule"))
+    column = [c.strip() for c in header.split("|")].index("Bal. Acc. mahalanobis")
+    row = next(line for line in side.splitlines() if line.startswith("| 1.0σ"))
+    return [c.strip() for c in row.split("|")][column]
+
+
+def test_a_failed_calibration_rollout_silences_the_context_distance_unless_only_successes_calibrate(tmp_path):
+    """BENCHMARKS.md section 6, the sweep: with its 5 calibration rollouts the failed one (seed 2003) inflates
+    sigma_v and the context distance flags nothing (50.0%); calibrated on the 4 successful ones it reaches 71.5%."""
+    assert mahalanobis_balanced_accuracy_at_k1(sweep_report(tmp_path / "all")) == "50.0%"
+    successes_only = sweep_report(tmp_path / "ok", calibration_successes_only=True)
+    assert "(successful only: 1 failed left out)" in successes_only
+    assert mahalanobis_balanced_accuracy_at_k1(successes_only) == "71.5%"
+
+
+def test_calibrating_on_successes_only_needs_two_successful_rollouts(tmp_path):
+    from lerobot_policy_ebvla.monitoring.records import read_energy_records, write_energy_records
+
+    records = read_energy_records(SWEEP / "calibration")
+    failed = [r for r in records if not r.success]
+    one_success = [r for r in records if r.success and r.seed == min(x.seed for x in records if x.success)]
+    write_energy_records(tmp_path / "calibration" / "energy_records.jsonl", failed + one_success)
+    cfg = OODReportConfig(
+        calibration=[str(tmp_path / "calibration")],
+        vanilla=[str(SWEEP / "vanilla")],
+        ood=[str(SWEEP / "pose_s5")],
+        output_dir=tmp_path / "report",
+        calibration_successes_only=True,
+    )
+    with pytest.raises(ValueError, match="leaves 1 successful calibration rollout"):
+        write_ood_report(cfg)

@@ -59,6 +59,10 @@ class OODReportConfig:
 
     # Vanilla rollouts that set mu_v, sigma_v, the conformal threshold and the feature baselines.
     calibration: list[str] = field(default_factory=list)
+    # Fit on the calibration rollouts that succeeded only. A failed vanilla rollout can drift far from the
+    # others (the arm astray): with few calibration rollouts it inflates sigma_v, and the context distance's
+    # threshold then flags nothing (BENCHMARKS.md section 6, the sweep).
+    calibration_successes_only: bool = False
     # Held-out vanilla rollouts (other seeds than the calibration's): the negatives.
     vanilla: list[str] = field(default_factory=list)
     # Perturbed rollouts: the positives, reported per (perturbation, severity) and all together.
@@ -188,6 +192,16 @@ def write_ood_report(cfg: OODReportConfig) -> str:
     in_sample = check_held_out(calibration_set, {**vanilla, **ood}, cfg.in_sample)
     if calibration_set is None:
         calibration_set = vanilla
+    n_failed_left_out = 0
+    if cfg.calibration_successes_only:
+        successful = {key: chunks for key, chunks in calibration_set.items() if chunks[0].success}
+        n_failed_left_out = len(calibration_set) - len(successful)
+        if len(successful) < 2:
+            raise ValueError(
+                f"`--calibration_successes_only=true` leaves {len(successful)} successful calibration rollout(s) "
+                f"of {len(calibration_set)}: at least 2 are needed for mu_v and sigma_v."
+            )
+        calibration_set = successful
     n_calibration_files = len(resolve_record_files(cfg.calibration or cfg.vanilla))
     _check_vanilla_only("--calibration", calibration_set)
     _check_vanilla_only("--vanilla", vanilla)
@@ -236,8 +250,13 @@ def write_ood_report(cfg: OODReportConfig) -> str:
     label = "IN-SAMPLE (calibration and report sets overlap: optimistic)" if in_sample else "held-out"
     sections = [
         f"# Energy-based OOD detection ({label})",
-        f"Calibration: {len(calibration_set)} vanilla rollouts from {n_calibration_files} record file(s). "
-        f"Report: {len(vanilla)} held-out vanilla rollouts (negatives), {len(ood)} perturbed rollouts "
+        f"Calibration: {len(calibration_set)} vanilla rollouts from {n_calibration_files} record file(s)"
+        + (
+            f" (successful only: {n_failed_left_out} failed left out). "
+            if cfg.calibration_successes_only
+            else ". "
+        )
+        + f"Report: {len(vanilla)} held-out vanilla rollouts (negatives), {len(ood)} perturbed rollouts "
         f"(positives). Rollout score: {cfg.aggregation} of the chunk scores. Thresholds: T = mu + k sigma "
         f"(Eq. 5) and the conformal threshold at false-alarm rate alpha = {percent(cfg.false_alarm_rate)}. "
         f"Scores: {', '.join(names)}. Held out changes only what is fitted on the calibration rollouts: the "
