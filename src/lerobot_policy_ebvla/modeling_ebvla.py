@@ -414,23 +414,18 @@ class EBVLA(nn.Module):
             generator=generator,
         )
 
-    def _inference_context(self, batch: dict[str, Tensor]) -> ContextKV:
+    def _inference_context(
+        self, batch: dict[str, Tensor], return_features: bool = False
+    ) -> ContextKV | tuple[ContextKV, Tensor]:
         """`encode_context` for the inference chain: eager, or compiled in `compile_mode` and copied out."""
         if self.config.compile_mode == "off":
-            return self.encode_context(batch)
+            return self.encode_context(batch, return_features)
         mode = effective_compile_mode(self.config.compile_mode, self.head.energy_out.weight.device.type)
-        kv = compiled_context_encoder(mode)(self, batch)
-        # A CUDA-graph replay reuses its output buffers: the next chunk would overwrite this chunk's context.
-        return [(k.clone(), v.clone()) for k, v in kv]
-
-    def _inference_context_and_features(self, batch: dict[str, Tensor]) -> tuple[ContextKV, Tensor]:
-        """`_inference_context` and the pooled last-block context (`pooled_context`) of the same backbone pass."""
-        if self.config.compile_mode == "off":
-            return self.encode_context(batch, return_features=True)
-        mode = effective_compile_mode(self.config.compile_mode, self.head.energy_out.weight.device.type)
-        kv, features = compiled_context_encoder(mode)(self, batch, True)
-        # As in `_inference_context`: a CUDA-graph replay would overwrite this chunk's outputs at the next one.
-        return [(k.clone(), v.clone()) for k, v in kv], features.clone()
+        encoded = compiled_context_encoder(mode)(self, batch, return_features)
+        kv, features = encoded if return_features else (encoded, None)
+        # A CUDA-graph replay reuses its output buffers: the next chunk would overwrite this chunk's outputs.
+        kv = [(k.clone(), v.clone()) for k, v in kv]
+        return (kv, features.clone()) if return_features else kv
 
     def _inference_energy_fn(self, kv: ContextKV) -> EnergyFn:
         """The energy of the inference MCMC steps: the head itself, or its compiled graph (`compile_mode`)."""
@@ -466,10 +461,8 @@ class EBVLA(nn.Module):
         """
         cfg = self.config
         with torch.no_grad():
-            if return_context_features:
-                kv, features = self._inference_context_and_features(batch)
-            else:
-                kv = self._inference_context(batch)
+            encoded = self._inference_context(batch, return_context_features)
+            kv, features = encoded if return_context_features else (encoded, None)
         batch_size, restarts = kv[0][0].shape[0], cfg.num_restarts
         kv = repeat_context_kv(kv, restarts)
         initial = self._initial_actions(batch_size * restarts, kv[0][0], generator)
