@@ -41,6 +41,7 @@ def evaluate(args: argparse.Namespace, folder: str, seed: int, perturbation: str
         perturbation=perturbation,
         severity=severity,
         record_context_features=args.record_context_features,
+        observation_size=args.observation_size,
     )
 
 
@@ -58,6 +59,12 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1000, help="First seed of the reported episodes.")
     parser.add_argument("--calibration_seed", type=int, default=2000, help="First seed of the calibration.")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument(
+        "--observation_size",
+        type=int,
+        default=None,
+        help="Side of the rendered frames: that of the checkpoint's data (the quickstart's: 128); default 480.",
+    )
     parser.add_argument(
         "--record_context_features",
         action="store_true",

@@ -20,7 +20,7 @@ difference moved further into the chunk instead.
 
     MUJOCO_GL=egl python benchmarks/rtc_metaworld.py \\
         --checkpoint=outputs/ebvla_quickstart/train/checkpoints/last/pretrained_model \\
-        --task=button-press-v3 --episodes=10 --max_episode_steps=100 --latencies 1 2 3 \\
+        --task=button-press-v3 --episodes=10 --max_episode_steps=100 --latencies 1 2 3 --observation_size=128 \\
         --output=outputs/rtc_metaworld.json
 """
 
@@ -138,6 +138,7 @@ def run(
     max_guidance_weight: float = 10.0,
     seed: int = 1000,
     device: str = "cpu",
+    observation_size: int | None = None,
 ) -> list[dict]:
     """One row per latency and arm: success rate, mean jump at the switches and mean final energy.
 
@@ -148,6 +149,8 @@ def run(
             the length of the leftover.
         schedule: LeRobot's `RTCAttentionSchedule` name of the guidance weights (LINEAR, EXP, ONES, ZEROS).
         max_guidance_weight: RTC's lambda.
+        observation_size: Side of the rendered frames (`--env.observation_size`): the size the checkpoint's data
+            was recorded at (the quickstart's: 128); None: MetaWorld's 480.
     """
     policy = EBVLAPolicy.from_pretrained(checkpoint)
     policy.config.device = device
@@ -170,7 +173,7 @@ def run(
         pretrained_path=str(checkpoint),
         preprocessor_overrides={"device_processor": {"device": device}},
     )
-    env_cfg = metaworld_eval_env(task, max_episode_steps)
+    env_cfg = metaworld_eval_env(task, max_episode_steps, observation_size=observation_size)
     envs = make_env(env_cfg, n_envs=1)
     env = next(iter(next(iter(envs.values())).values()))
     processors = (*make_env_pre_post_processors(env_cfg, policy.config), preprocessor, postprocessor)
@@ -205,6 +208,12 @@ def main() -> None:
     parser.add_argument("--max_guidance_weight", type=float, default=10.0)
     parser.add_argument("--seed", type=int, default=1000, help="Seed of the first episode.")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument(
+        "--observation_size",
+        type=int,
+        default=None,
+        help="Rendered frame side; that of the checkpoint's data.",
+    )
     parser.add_argument("--output", type=Path, default=None, help="Also write the rows to this JSON file.")
     args = parser.parse_args()
     options = {k: v for k, v in vars(args).items() if k not in ("checkpoint", "output")}

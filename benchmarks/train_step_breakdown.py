@@ -21,6 +21,8 @@ Rows (`--policies`):
     ebvla-no-contrastive   the same without the contrastive term (energy_contrastive_weight=0)
     ebvla-fewer-negatives  the same with 7 mismatched chunks and 4 noisy copies as contrastive candidates instead of
                            all B - 1 and 8 (`energy_contrastive_mismatched=7`, `energy_contrastive_negatives=4`)
+    ebvla-4-anchors        the same with 4 of the batch's observations ranking all of their candidates
+                           (`energy_contrastive_anchors=4`)
     diffusion              LeRobot's Diffusion Policy at its defaults (U-Net 512/1024/2048, 100 train timesteps),
                            with the light policy's encoder (ResNet-18 cut to the same stages, same image size, group
                            norm, 32 keypoints) and its chunk (1 observation, horizon 8)
@@ -51,7 +53,14 @@ import torch
 from lerobot_policy_ebvla.presets import LIGHT_POLICY, light_policy_config
 
 PARTS = ("data", "preprocess", "forward", "backward", "optimizer")
-ROWS = ("ebvla", "ebvla-no-contrastive", "ebvla-fewer-negatives", "diffusion", "diffusion-cpu")
+ROWS = (
+    "ebvla",
+    "ebvla-no-contrastive",
+    "ebvla-fewer-negatives",
+    "ebvla-4-anchors",
+    "diffusion",
+    "diffusion-cpu",
+)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -114,6 +123,8 @@ def policy_config(row: str):
         return light_policy_config(energy_contrastive_weight=0.0)
     if row == "ebvla-fewer-negatives":
         return light_policy_config(energy_contrastive_mismatched=7, energy_contrastive_negatives=4)
+    if row == "ebvla-4-anchors":
+        return light_policy_config(energy_contrastive_anchors=4)
     from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 
     light = light_policy_config()

@@ -212,3 +212,57 @@ def test_vector_envs_follow_lerobots_task_groups():
     for tasks in envs.values():
         for env in tasks.values():
             env.close()
+
+
+def test_observation_size_is_checked_and_changes_only_the_declared_frame_shape():
+    for size in (8, 481):
+        with pytest.raises(
+            ValueError, match=f"`observation_size` must be between 16 and 480 pixels.*got {size}"
+        ):
+            MetaworldEBVLAEnv(observation_size=size)
+    small = MetaworldEBVLAEnv(task="push-v3", observation_size=96)
+    assert small.features["pixels/top"].shape == (96, 96, 3)
+    assert small.gym_kwargs["observation_size"] == 96
+    default = MetaworldEBVLAEnv(task="push-v3")
+    assert {k: f for k, f in small.features.items() if k != "pixels/top"} == {
+        k: f for k, f in default.features.items() if k != "pixels/top"
+    }
+
+
+def test_small_frames_are_rendered_at_their_size_and_show_the_same_scene(vanilla):
+    """A 120 px frame is rendered at 120 px (not resized from 480): it matches the 480 px frame shrunk 4x."""
+    import cv2
+
+    from lerobot_policy_ebvla.envs.metaworld import MetaworldEBVLAGymEnv
+
+    env = MetaworldEBVLAGymEnv(task=TASK, fast_render=True, observation_size=120, obs_type="pixels_agent_pos")
+    try:
+        observation, _ = env.reset(seed=0)
+        assert observation["pixels"].shape == (120, 120, 3)
+        assert env.observation_space["pixels"].shape == (120, 120, 3)
+        assert env._env.mujoco_renderer.viewer.viewport.width == 120  # the renderer's own buffer
+        np.testing.assert_array_equal(observation["agent_pos"], vanilla[0]["agent_pos"])
+        shrunk = cv2.resize(vanilla[0]["pixels"], (120, 120), interpolation=cv2.INTER_AREA).astype(int)
+        shifted = np.roll(shrunk, 3, axis=1)  # the same frame, 3 px to the side
+        error = np.abs(observation["pixels"].astype(int) - shrunk).mean()
+        assert error < 0.3 * np.abs(shifted - shrunk).mean(), error
+    finally:
+        env.close()
+
+
+def test_blur_is_the_same_fraction_of_a_smaller_frame():
+    pytest.importorskip("metaworld")
+    from lerobot_policy_ebvla.envs.metaworld import perturb_image
+
+    rng = np.random.default_rng(0)
+    edge = np.zeros((480, 480, 3), np.uint8)
+    edge[:, 240:] = 255
+    small = edge[::4, ::4].copy()
+    row_large = perturb_image(edge, "blur", 5, rng)[240, :, 0].astype(float)
+    row_small = perturb_image(small, "blur", 5, rng)[60, :, 0].astype(float)
+    # Width of the ramp from 10% to 90%: 4x fewer pixels in the 4x smaller frame.
+
+    def ramp(row):
+        return np.count_nonzero((row > 25.5) & (row < 229.5))
+
+    assert ramp(row_large) == pytest.approx(4 * ramp(row_small), rel=0.4)

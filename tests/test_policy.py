@@ -16,6 +16,36 @@ def seeded(seed: int = 0) -> torch.Generator:
     return torch.Generator().manual_seed(seed)
 
 
+def test_head_scores_n_candidates_per_context_as_against_copies_of_it(tiny_policy):
+    """The contrastive candidates and the restarts share their context's keys and values (one attention call
+    for the N * H queries) instead of copying them: energies and gradients must be those of the copies."""
+    head = tiny_policy.model.head
+    batch = tiny_batch(tiny_policy.config, batch_size=3)
+    kv = tiny_policy.model.encode_context(batch)
+    candidates = 5
+    actions = torch.randn(3 * candidates, tiny_policy.config.chunk_size, tiny_policy.config.action_dim)
+    copies = [(k.repeat_interleave(candidates, dim=0), v.repeat_interleave(candidates, dim=0)) for k, v in kv]
+    shared = head(actions, kv)
+    copied = head(actions, copies)
+    torch.testing.assert_close(shared, copied, rtol=1e-5, atol=1e-5)
+    key = kv[0][0]
+    (grad_shared,) = torch.autograd.grad(shared.square().sum(), key, retain_graph=True)
+    (grad_copied,) = torch.autograd.grad(copied.square().sum(), key)
+    torch.testing.assert_close(grad_shared, grad_copied, rtol=1e-4, atol=1e-5)
+    # Candidate i * N + j belongs to context i: moving context 0 changes only its own N candidates.
+    moved = [(k.clone(), v.clone()) for k, v in kv]
+    moved[0][1][0] += 1.0
+    changed = (head(actions, moved) - shared).abs().amax(dim=1) > 1e-6
+    assert changed.tolist() == [True] * candidates + [False] * (2 * candidates)
+
+
+def test_head_rejects_a_candidate_count_that_does_not_divide_by_the_contexts(tiny_policy):
+    kv = tiny_policy.model.encode_context(tiny_batch(tiny_policy.config, batch_size=2))
+    actions = torch.zeros(3, tiny_policy.config.chunk_size, tiny_policy.config.action_dim)
+    with pytest.raises(ValueError, match="3 chunks for 2 contexts"):
+        tiny_policy.model.head(actions, kv)
+
+
 def test_forward_returns_l1_loss_and_energy_metrics(tiny_policy):
     loss, info = tiny_policy.forward(tiny_batch(tiny_policy.config))
     assert loss.ndim == 0 and torch.isfinite(loss)

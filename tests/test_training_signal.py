@@ -97,6 +97,34 @@ def test_contrastive_candidates_follow_the_mismatched_and_noisy_counts():
     assert seen[2][0] == [6] and seen[2][1] == pytest.approx(0.0, abs=1e-6)
 
 
+def test_contrastive_anchors_rank_their_candidates_against_the_whole_batch():
+    """With A anchors, only the first A observations rank candidates, each against every other chunk of the
+    batch; the loss is the mean of the full loss's first A rows."""
+    batch = tiny_batch(tiny_config(), batch_size=6)
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(tiny_config(energy_contrastive_weight=1.0, energy_contrastive_negatives=0))
+    kv = policy.model.encode_context(batch)
+    energies = []
+    handle = policy.model.head.register_forward_hook(lambda m, args, out: energies.append(out.mean(dim=-1)))
+    full = policy.model.contrastive_energy_loss(kv, batch["action"], torch.Generator().manual_seed(0))
+    policy.config.energy_contrastive_anchors = 2
+    two = policy.model.contrastive_energy_loss(kv, batch["action"], torch.Generator().manual_seed(0))
+    handle.remove()
+    assert [e.shape[0] for e in energies] == [6 * 6, 2 * 6]
+    # Without noisy copies both calls score the same (context, chunk) pairs for the first two anchors.
+    logits = -energies[0].view(6, 6) / policy.config.energy_contrastive_temperature
+    per_row = torch.nn.functional.cross_entropy(logits, torch.zeros(6, dtype=torch.long), reduction="none")
+    torch.testing.assert_close(full, per_row.mean(), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(two, per_row[:2].mean(), rtol=1e-5, atol=1e-6)
+    # More anchors than the batch holds: every observation.
+    policy.config.energy_contrastive_anchors = 50
+    torch.testing.assert_close(
+        policy.model.contrastive_energy_loss(kv, batch["action"], torch.Generator().manual_seed(0)), full
+    )
+    with pytest.raises(ValueError, match="energy_contrastive_anchors"):
+        tiny_config(energy_contrastive_anchors=0)
+
+
 def test_contrastive_mismatched_must_not_be_negative():
     with pytest.raises(ValueError, match="energy_contrastive_mismatched"):
         tiny_config(energy_contrastive_mismatched=-1)

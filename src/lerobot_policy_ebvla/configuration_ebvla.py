@@ -130,6 +130,10 @@ class EBVLAConfig(PreTrainedConfig):
             None takes all B - 1 of the batch. The term costs one head forward and backward per (context,
             candidate) pair, B x (1 + mismatched + noisy) chunks a step, the largest share of a light training
             step (BENCHMARKS.md, section 7); fewer candidates make it proportionally cheaper.
+        energy_contrastive_anchors: How many of the batch's observations rank their candidates (the first ones:
+            the batch is shuffled); None takes all B. Each anchor keeps every mismatched candidate of the batch,
+            so fewer anchors cut the term's cost in proportion while each ranking still sees the whole batch:
+            an unbiased estimate of the same InfoNCE loss with more variance.
         energy_contrastive_noise_std: Std of the noise of those copies (normalized action units).
         energy_contrastive_temperature: Temperature of the InfoNCE logits -E / T. The energy level also sets
             the MCMC step length exp(e_t / tau) (Eq. 3); a small T asks for small energy gaps only, so the
@@ -283,6 +287,7 @@ class EBVLAConfig(PreTrainedConfig):
     energy_contrastive_weight: float = 0.0
     energy_contrastive_negatives: int = 8
     energy_contrastive_mismatched: int | None = None
+    energy_contrastive_anchors: int | None = None
     energy_contrastive_noise_std: float = 0.5
     energy_contrastive_temperature: float = 0.1
 
@@ -391,6 +396,11 @@ class EBVLAConfig(PreTrainedConfig):
             raise ValueError(
                 "`energy_contrastive_mismatched` must be >= 0 or None (all of the batch's other chunks). Got "
                 f"{self.energy_contrastive_mismatched}."
+            )
+        if self.energy_contrastive_anchors is not None and self.energy_contrastive_anchors < 1:
+            raise ValueError(
+                "`energy_contrastive_anchors` must be >= 1 or None (every observation of the batch). Got "
+                f"{self.energy_contrastive_anchors}."
             )
         if not self.energy_contrastive_temperature > 0:
             raise ValueError(

@@ -19,13 +19,6 @@ from .configuration_ebvla import EBVLAConfig
 ContextKV = list[tuple[Tensor, Tensor]]
 
 
-def repeat_context_kv(kv: ContextKV, repeats: int) -> ContextKV:
-    """Repeats each observation's keys and values for `repeats` consecutive candidate chunks."""
-    if repeats == 1:
-        return kv
-    return [(k.repeat_interleave(repeats, dim=0), v.repeat_interleave(repeats, dim=0)) for k, v in kv]
-
-
 class EBVLARotaryEmbedding(nn.Module):
     """Rotary position embedding over the H action timesteps (RoFormer); frequencies always in fp32."""
 
@@ -98,10 +91,15 @@ class EBVLACrossAttention(nn.Module):
         return k, v
 
     def forward(self, x: Tensor, kv: tuple[Tensor, Tensor]) -> Tensor:
-        q = rearrange(self.q(x), "b t (nh hd) -> b nh t hd", nh=self.n_heads)
+        """x (B * N, H, D): N consecutive candidate chunks per context of `kv` (batch B)."""
         k, v = kv
+        candidates = x.shape[0] // k.shape[0]
+        # Queries attend to the context independently of each other, so the N candidates of one context can
+        # share one attention call as N * H queries: no copy of the keys and values per candidate (nor its
+        # summed gradient), and larger matrix products.
+        q = rearrange(self.q(x), "(b n) t (nh hd) -> b nh (n t) hd", n=candidates, nh=self.n_heads)
         y = F.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
-        return self.out(rearrange(y, "b nh t hd -> b t (nh hd)"))
+        return self.out(rearrange(y, "b nh (n t) hd -> (b n) t (nh hd)", n=candidates))
 
 
 class EBVLASwiGLU(nn.Module):
@@ -172,13 +170,20 @@ class EBVLAEnergyHead(nn.Module):
         return [block.cross_attn.context_kv(c) for block, c in zip(self.blocks, contexts, strict=True)]
 
     def forward(self, actions: Tensor, kv: ContextKV) -> Tensor:
-        """Returns the per-timestep energies e_t (B, H) of action chunks (B, H, d_a) under `kv` of batch B.
+        """Returns the per-timestep energies e_t (B * N, H) of action chunks (B * N, H, d_a) under `kv` of batch
+        B: N >= 1 consecutive candidate chunks per context (the contrastive candidates, the restarts).
 
         Actions come in and energies go out in fp32 whatever the head's dtype: the MCMC iterate, its Langevin
         noise (sigma_L = 0.001 is below bf16's spacing near 1) and the energy readout stay fp32 in a bf16
         policy. The input projection runs in fp32 too (under autocast as well), so a + eps reaches z before
         any rounding.
         """
+        contexts = kv[0][0].shape[0]
+        if actions.shape[0] % contexts:
+            raise ValueError(
+                f"`actions` hold {actions.shape[0]} chunks for {contexts} contexts: expected a whole number of "
+                f"candidate chunks per context (consecutive rows)."
+            )
         weight, bias = self.action_in.weight, self.action_in.bias
         with torch.autocast(actions.device.type, enabled=False):
             z = F.linear(actions.float(), weight.float(), bias.float()).to(weight.dtype)  # (B, H, D)

@@ -32,7 +32,7 @@ from torch.utils.hooks import RemovableHandle
 
 from .backbone_resnet import EBVLAResNetBackbone
 from .configuration_ebvla import EBVLAConfig
-from .energy_head import ContextKV, EBVLAEnergyHead, repeat_context_kv
+from .energy_head import ContextKV, EBVLAEnergyHead
 from .mcmc import EnergyFn, RefinementResult, refine_actions, sample_initial_actions
 from .runtime.response import EnergyOODResponse, OODResponseDecision, respond_to_energy
 
@@ -270,7 +270,7 @@ class EBVLAPolicy(PreTrainedPolicy):
         with torch.inference_mode(False), torch.no_grad():
             batch = _without_inference_tensors(batch)
             b, n = candidates.shape[:2]
-            kv = repeat_context_kv(self.model.encode_context(batch), n)
+            kv = self.model.encode_context(batch)  # the head scores the n candidates of a context together
             energies = self.model.head(candidates.clone().flatten(0, 1), kv).mean(dim=-1)
         return energies.view(b, n)
 
@@ -464,7 +464,6 @@ class EBVLA(nn.Module):
             encoded = self._inference_context(batch, return_context_features)
             kv, features = encoded if return_context_features else (encoded, None)
         batch_size, restarts = kv[0][0].shape[0], cfg.num_restarts
-        kv = repeat_context_kv(kv, restarts)
         initial = self._initial_actions(batch_size * restarts, kv[0][0], generator)
         if prefix is not None:
             actions = prefix.actions.to(initial.device).repeat_interleave(restarts, dim=0)
@@ -568,23 +567,29 @@ class EBVLA(nn.Module):
         mismatched = batch_size - 1
         if cfg.energy_contrastive_mismatched is not None:
             mismatched = min(mismatched, cfg.energy_contrastive_mismatched)
+        anchors = batch_size
+        if cfg.energy_contrastive_anchors is not None:
+            anchors = min(anchors, cfg.energy_contrastive_anchors)
         noise = torch.randn(
-            (batch_size, cfg.energy_contrastive_negatives, *target.shape[1:]),
+            (anchors, cfg.energy_contrastive_negatives, *target.shape[1:]),
             generator=generator,
             device=target.device,
             dtype=target.dtype,
         )
-        noisy = target.unsqueeze(1) + cfg.energy_contrastive_noise_std * noise  # (B, N_noisy, H, d_a)
+        noisy = (
+            target[:anchors].unsqueeze(1) + cfg.energy_contrastive_noise_std * noise
+        )  # (A, N_noisy, H, d_a)
         # Row i: a*_i first (the positive), then a*_{i+1}, ..., a*_{i+M} (mismatched; the batch is shuffled, so
         # these are random other observations), then the noisy copies.
         rows = torch.arange(batch_size, device=target.device)
-        order = (rows[:, None] + rows[None, : 1 + mismatched]) % batch_size  # (B, 1 + M)
-        candidates = torch.cat([target[order], noisy], dim=1)  # (B, 1 + M + N_noisy, H, d_a)
+        order = (rows[:anchors, None] + rows[None, : 1 + mismatched]) % batch_size  # (A, 1 + M)
+        candidates = torch.cat([target[order], noisy], dim=1)  # (A, 1 + M + N_noisy, H, d_a)
         num_candidates = candidates.shape[1]
-        energies = self.head(candidates.flatten(0, 1), repeat_context_kv(kv, num_candidates)).mean(dim=-1)
-        logits = -energies.view(batch_size, num_candidates).float() / cfg.energy_contrastive_temperature
+        anchor_kv = kv if anchors == batch_size else [(k[:anchors], v[:anchors]) for k, v in kv]
+        energies = self.head(candidates.flatten(0, 1), anchor_kv).mean(dim=-1)
+        logits = -energies.view(anchors, num_candidates).float() / cfg.energy_contrastive_temperature
         return nn.functional.cross_entropy(
-            logits, torch.zeros(batch_size, dtype=torch.long, device=target.device)
+            logits, torch.zeros(anchors, dtype=torch.long, device=target.device)
         )
 
 

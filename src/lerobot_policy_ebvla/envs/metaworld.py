@@ -12,7 +12,8 @@ observation, `distractor_markers` (extra objects drawn into every rendered frame
 per-level magnitudes are the constants below, tabulated in docs/metaworld.md.
 
 Observations are LeRobot's (`pixels` 480x480 from `corner2`, `agent_pos`), so observation keys and shapes
-do not change.
+do not change, unless `observation_size` renders smaller frames (a policy that sees 64 px needs no 480 px
+frame, and the renderer's time falls with the pixels it fills).
 """
 
 from collections.abc import Callable, Sequence
@@ -42,9 +43,10 @@ TABLE_HEIGHT = 0.0
 LIGHT_GRAZING_DIR = (1.0, 0.0, -0.25)
 
 # Sensor: standard deviation of the Gaussian pixel noise (uint8 levels) and of the Gaussian blur (pixels of
-# the 480x480 frame) per level.
+# the 480x480 frame, scaled with a smaller `observation_size`) per level.
 NOISE_STD_PER_LEVEL = 8.0
 BLUR_SIGMA_PX_PER_LEVEL = 1.5
+BLUR_REFERENCE_SIZE = 480
 
 # Table/background appearance. "table_color": the colour multiplying the table's wood texture and the
 # floor/wall materials moves linearly towards these tints (reached at severity 5); the sky behind the scene
@@ -240,7 +242,9 @@ def perturb_image(
     if perturbation == "blank":
         return np.zeros_like(image)
     if perturbation == "blur":
-        return cv2.GaussianBlur(image, (0, 0), sigmaX=BLUR_SIGMA_PX_PER_LEVEL * severity)
+        # The same blur relative to the frame whatever size it was rendered at.
+        sigma = BLUR_SIGMA_PX_PER_LEVEL * severity * image.shape[1] / BLUR_REFERENCE_SIZE
+        return cv2.GaussianBlur(image, (0, 0), sigmaX=sigma)
     noisy = image + rng.normal(0.0, NOISE_STD_PER_LEVEL * severity, image.shape)
     return np.clip(np.round(noisy), 0, 255).astype(np.uint8)
 
@@ -286,10 +290,14 @@ class MetaworldEBVLAGymEnv(MetaworldEnv):
         perturbation: str = "none",
         perturbation_severity: int = 0,
         max_episode_steps: int | None = None,
+        observation_size: int | None = None,
         **kwargs: Any,
     ):
         check_perturbation(perturbation, perturbation_severity)
+        if observation_size is not None:
+            kwargs.update(observation_width=observation_size, observation_height=observation_size)
         super().__init__(task, **kwargs)
+        self.observation_size = observation_size
         self.fast_render = fast_render
         self.perturbation = perturbation
         self.perturbation_severity = perturbation_severity
@@ -305,6 +313,10 @@ class MetaworldEBVLAGymEnv(MetaworldEnv):
             return
         super()._ensure_env()
         model = self._env.model
+        if self.observation_size is not None:
+            # MetaWorld renders 480x480 frames; its renderer makes its viewer, at this size, on the first frame.
+            renderer = self._env.mujoco_renderer
+            renderer.width = renderer.height = self.observation_size
         if self.fast_render:
             disable_shadows_and_reflections(model)
         perturb_model(model, self.camera_name, self.perturbation, self.perturbation_severity)

@@ -21,6 +21,14 @@ final energy's does (`scores.episode_scores`), so all of them go through the sam
   computed by the same code. k-NN is the Euclidean distance to the k-th nearest calibration feature,
   features standardized per dimension by the calibration mean and std.
 
+Two more scores combine the final energy and the context distance per rollout, so they have no chunk score
+(`scores.combined_rollout_scores`): the rollout's final energy and its Mahalanobis distance, each aggregated
+over its chunks as every score is, are each standardized by the calibration rollouts' mean and std of that
+score, z = (s - mu_v) / sigma_v (`runtime.calibration.CombinedStatistics`), and
+
+- "energy_and_context": max(z_E, z_d), the run-time `score="energy_and_context"`: high when either is;
+- "energy_and_context_sum": z_E + z_d, for comparison: a score that sees nothing adds its noise to the other's.
+
 The reference scores ("phase_energy", "mahalanobis", "knn") are fitted on the calibration rollouts
 (`fit_score_reference`). A calibration rollout is scored leave-one-episode-out, against a reference fitted
 without it: in-sample, its own chunks would pull its score down and with it the threshold fitted on these
@@ -45,6 +53,11 @@ SCORE_NAMES = (
     "knn",
 )
 FEATURE_SCORES = ("mahalanobis", "knn")
+# Rollout scores combining the final energy's and the context distance's, standardized on the calibration
+# rollouts: their max (the run-time "energy_and_context") and their sum.
+COMBINED_SCORES = ("energy_and_context", "energy_and_context_sum")
+# The scores they combine, in `CombinedStatistics` order.
+COMBINED_FROM = ("final_energy", "mahalanobis")
 # Scores fitted on the calibration rollouts (`ScoreReference`).
 REFERENCE_SCORES = ("phase_energy", *FEATURE_SCORES)
 

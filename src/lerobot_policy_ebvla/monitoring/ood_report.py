@@ -4,8 +4,13 @@
 record files and writes `ood_report.md`, the figures `roc_curve.png`, `roc_baselines.png` and
 `energy_histogram.png`, and on request the checkpoint's `ood_calibration.json`. Its sections: the protocol and
 calibration, energy vs success drop per condition, AUROC with bootstrap 95% intervals per score, the same
-AUROCs over each episode's first k chunks beside the whole episode's, Table III per condition in the paper's
-layout with every score's balanced accuracy beside it, and Table III again over the first k chunks.
+AUROCs over each episode's first k chunks beside the whole episode's, each score's AUROC of failed against
+successful rollouts, Table III per condition in the paper's layout with every score's balanced accuracy beside
+it, and Table III again over the first k chunks.
+
+With context features, the scores include the combinations of the final energy and the context distance
+(`baselines.COMBINED_SCORES`), rollout scores standardized on the calibration rollouts aggregated the same way
+(over the whole episode, or over the same first k chunks).
 """
 
 import dataclasses
@@ -21,9 +26,10 @@ from ..runtime.calibration import (
     OOD_CALIBRATION_FILENAME,
     SCORE_AGGREGATIONS,
     THRESHOLD_RULES,
+    CombinedStatistics,
     OODCalibration,
 )
-from .baselines import ScoreReference, available_scores, fit_score_reference
+from .baselines import COMBINED_FROM, COMBINED_SCORES, ScoreReference, available_scores, fit_score_reference
 from .metrics import BinaryRates, auroc, format_auroc, markdown_table, percent, roc_curve
 from .ood import (
     TABLE_III_MULTIPLIERS,
@@ -34,7 +40,7 @@ from .ood import (
 from .plots import plot_roc, plot_score_histograms
 from .protocol import check_held_out
 from .records import load_episodes, resolve_record_files
-from .scores import aggregate_episodes, episode_chunk_scores
+from .scores import aggregate_episodes, combined_rollout_scores, episode_chunk_scores
 
 logger = logging.getLogger(__name__)
 
@@ -44,6 +50,7 @@ REPORTED_AS = {
     "final_energy": "final_energy",
     "phase_energy": "phase_energy",
     "context_distance": "mahalanobis",
+    "energy_and_context": "energy_and_context",
 }
 
 
@@ -93,9 +100,10 @@ class OODReportConfig:
     # Write ood_calibration.json (`score`, fitted on `calibration`) into this pretrained_model folder.
     calibrate_to: Path | None = None
     # The chunk score the saved calibration is of: final_energy (the paper's), phase_energy (the final
-    # energy against the calibration rollouts' final energy at the same chunk index) or context_distance (the
+    # energy against the calibration rollouts' final energy at the same chunk index), context_distance (the
     # report's mahalanobis score: the chunk's pooled context against the calibration contexts; needs records
-    # with context features).
+    # with context features) or energy_and_context (the report's energy_and_context score: the larger of the
+    # final energy and the context distance, each standardized on the calibration rollouts; needs them too).
     score: str = "final_energy"
     # k saved in the calibration.
     k: float = 1.0
@@ -207,7 +215,9 @@ def write_ood_report(cfg: OODReportConfig) -> str:
     _check_vanilla_only("--vanilla", vanilla)
     conditions = _conditions(ood)
 
-    names = available_scores([*calibration_set.values(), *vanilla.values(), *ood.values()])
+    chunk_names = available_scores([*calibration_set.values(), *vanilla.values(), *ood.values()])
+    can_combine = all(name in chunk_names for name in COMBINED_FROM)
+    names = [*chunk_names, *(COMBINED_SCORES if can_combine else ())]
     if REPORTED_AS[cfg.score] not in names:
         raise ValueError(
             f"`--score={cfg.score}` needs the context feature of every chunk of every set: record them with "
@@ -217,19 +227,27 @@ def write_ood_report(cfg: OODReportConfig) -> str:
 
     # Each chunk is scored once; the whole-episode and first-chunk scores aggregate the same chunk scores.
     calibration_chunks, vanilla_chunks, ood_chunks = (
-        {name: episode_chunk_scores(episodes, name, reference) for name in names}
+        {name: episode_chunk_scores(episodes, name, reference) for name in chunk_names}
         for episodes in (calibration_set, vanilla, ood)
     )
     condition_chunks = {
-        c: {name: {key: ood_chunks[name][key] for key in episodes} for name in names}
+        c: {name: {key: ood_chunks[name][key] for key in episodes} for name in chunk_names}
         for c, episodes in conditions.items()
     }
 
-    def scores(chunks: dict, first_chunks: int | None = None) -> np.ndarray:
-        return aggregate_episodes(chunks, cfg.aggregation, first_chunks)
+    def scores(chunks: dict, name: str, first_chunks: int | None = None) -> np.ndarray:
+        """The rollout scores of one set (its chunk scores by name), over whole episodes or first chunks."""
+        if name in COMBINED_SCORES:
+            # Standardized on the calibration rollouts aggregated over the same chunks.
+            return combined_rollout_scores(
+                name,
+                {n: scores(chunks, n, first_chunks) for n in COMBINED_FROM},
+                {n: scores(calibration_chunks, n, first_chunks) for n in COMBINED_FROM},
+            )
+        return aggregate_episodes(chunks[name], cfg.aggregation, first_chunks)
 
     def fit(name: str, first_chunks: int | None = None) -> OODCalibration:
-        calibration_scores = scores(calibration_chunks[name], first_chunks)
+        calibration_scores = scores(calibration_chunks, name, first_chunks)
         return OODCalibration.fit(
             calibration_scores, cfg.k, cfg.aggregation, cfg.false_alarm_rate, cfg.threshold_rule
         )
@@ -238,9 +256,9 @@ def write_ood_report(cfg: OODReportConfig) -> str:
     for first_chunks in [None, *cfg.first_chunks, cfg.table_iii_first_chunks or None]:
         if first_chunks not in scored:
             scored[first_chunks] = _Scored(
-                {name: scores(vanilla_chunks[name], first_chunks) for name in names},
+                {name: scores(vanilla_chunks, name, first_chunks) for name in names},
                 {
-                    c: {name: scores(chunks[name], first_chunks) for name in names}
+                    c: {name: scores(chunks, name, first_chunks) for name in names}
                     for c, chunks in condition_chunks.items()
                 },
             )
@@ -273,6 +291,7 @@ def write_ood_report(cfg: OODReportConfig) -> str:
         "## AUROC [bootstrap 95% interval] by score\n\n"
         + _auroc_table(conditions, names, negatives, positives, cfg),
         _first_chunks_section(scored, vanilla, conditions, names, cfg),
+        _outcome_section(scored, vanilla, ood, names, cfg),
         *_table_iii_sections("Table III", fits, scored[None], vanilla, conditions, names, cfg),
     ]
     if cfg.table_iii_first_chunks:
@@ -290,9 +309,12 @@ def write_ood_report(cfg: OODReportConfig) -> str:
 
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
     (cfg.output_dir / "ood_report.md").write_text(report, encoding="utf-8")
-    _figures(cfg, fits, scores(calibration_chunks["final_energy"]), negatives, positives, names)
+    _figures(cfg, fits, scores(calibration_chunks, "final_energy"), negatives, positives, names)
     if cfg.calibrate_to is not None:
-        path = _calibration_to_save(fits, reference, cfg).save(
+        standardization = None
+        if cfg.score == "energy_and_context":
+            standardization = CombinedStatistics.fit(*(scores(calibration_chunks, n) for n in COMBINED_FROM))
+        path = _calibration_to_save(fits, reference, standardization, cfg).save(
             cfg.calibrate_to, overwrite=cfg.overwrite_calibration
         )
         threshold = fits[REPORTED_AS[cfg.score]].threshold
@@ -300,7 +322,9 @@ def write_ood_report(cfg: OODReportConfig) -> str:
     return report
 
 
-def _calibration_to_save(fits: dict, reference: ScoreReference, cfg: OODReportConfig) -> OODCalibration:
+def _calibration_to_save(
+    fits: dict, reference: ScoreReference, combined: CombinedStatistics | None, cfg: OODReportConfig
+) -> OODCalibration:
     fit = fits[REPORTED_AS[cfg.score]]
     # The run-time monitor scores chunks against the statistics of every calibration rollout; mu_v and
     # sigma_v come from the calibration rollouts' leave-one-episode-out scores, as a new rollout's would.
@@ -309,17 +333,33 @@ def _calibration_to_save(fits: dict, reference: ScoreReference, cfg: OODReportCo
         return dataclasses.replace(fit, score=cfg.score, phase_mean=phase.mean, phase_std=phase.std)
     if cfg.score == "context_distance":
         return dataclasses.replace(fit, score=cfg.score, context=reference.features.statistics)
+    if cfg.score == "energy_and_context":
+        # The same standardization as the report's energy_and_context rows: the calibration rollouts' final
+        # energies and leave-one-episode-out context distances.
+        return dataclasses.replace(
+            fit,
+            score=cfg.score,
+            context=reference.features.statistics,
+            combined_mean=combined.mean,
+            combined_std=combined.std,
+        )
     return fit
 
 
 def _saved_score_note(cfg: OODReportConfig) -> str:
-    if cfg.score != "context_distance":
-        return ""
-    return (
-        "\n\n`--score=context_distance`, the score a calibration saved by this report has `ood_response` act "
-        "on, is the `mahalanobis` score of every table: the same features, fit and leave-one-episode-out "
-        "calibration scores."
-    )
+    if cfg.score == "context_distance":
+        return (
+            "\n\n`--score=context_distance`, the score a calibration saved by this report has `ood_response` "
+            "act on, is the `mahalanobis` score of every table: the same features, fit and leave-one-episode-out "
+            "calibration scores."
+        )
+    if cfg.score == "energy_and_context":
+        return (
+            "\n\n`--score=energy_and_context`, the score a calibration saved by this report has `ood_response` "
+            "act on, is the `energy_and_context` score of the whole-episode tables: the final energy and the "
+            "`mahalanobis` score, standardized by the calibration rollouts' mean and std of each, and their max."
+        )
+    return ""
 
 
 def _first_chunks_section(scored, vanilla, conditions, names, cfg) -> str:
@@ -346,6 +386,48 @@ def _first_chunks_section(scored, vanilla, conditions, names, cfg) -> str:
         lines.append(
             f"### {condition}: {len(episodes)} perturbed rollouts, success {_successes(episodes)}\n\n"
             + markdown_table(headers, rows)
+        )
+    return "\n\n".join(lines)
+
+
+def _outcome_section(scored, vanilla, ood, names, cfg) -> str:
+    """Every score's AUROC of failed (positives) against successful rollouts, per set that has both."""
+    lengths = [k for k in scored if k is not None and k in cfg.first_chunks]
+    vanilla_failed = np.array([not e[0].success for e in vanilla.values()], dtype=bool)
+    ood_failed = np.array([not e[0].success for e in ood.values()], dtype=bool)
+    sets = {
+        "held-out vanilla rollouts": (vanilla_failed, lambda s, name: s.negatives[name]),
+        "perturbed rollouts, all conditions": (ood_failed, lambda s, name: s.positives[ALL_CONDITIONS][name]),
+        "held-out vanilla and perturbed rollouts together": (
+            np.concatenate([vanilla_failed, ood_failed]),
+            lambda s, name: np.concatenate([s.negatives[name], s.positives[ALL_CONDITIONS][name]]),
+        ),
+    }
+    lines = [
+        "## Failed vs successful rollouts: AUROC [bootstrap 95% interval]\n\n"
+        "Every score as a failure detector: positives are the failed rollouts, negatives the successful ones "
+        "of the same set, over each episode's first k chunks and the whole episode (a failed episode runs "
+        "longer, so its whole-episode score also sees its late, stalled chunks). Among perturbed rollouts a "
+        "score that flags the perturbations with the most failures ranks failures high even if it knows "
+        "nothing of failure within a condition: the vanilla set alone is the cleaner test."
+    ]
+    headers = ["Score", *(_chunks_label(k) for k in lengths), _chunks_label(None)]
+    for title, (failed, of) in sets.items():
+        if failed.all() or not failed.any():
+            lines.append(f"### {title}: {int(failed.sum())} of {failed.size} failed, no AUROC")
+            continue
+        rows = [
+            [
+                name,
+                *(
+                    _interval(of(scored[k], name)[~failed], of(scored[k], name)[failed], cfg)
+                    for k in [*lengths, None]
+                ),
+            ]
+            for name in names
+        ]
+        lines.append(
+            f"### {title}: {int(failed.sum())} of {failed.size} failed\n\n" + markdown_table(headers, rows)
         )
     return "\n\n".join(lines)
 

@@ -4,14 +4,24 @@ Each chunk of an episode has a score (its final energy, the paper's; or another 
 an episode's score aggregates its chunks in order as the run-time monitor does
 (`runtime.calibration.rollout_score`), over all its chunks or over its first k only (what a monitor has seen
 k chunks into the episode).
+
+The combined scores (`baselines.COMBINED_SCORES`) are rollout scores only: `combined_rollout_scores` forms them
+from the rollout scores of the final energy and the context distance.
 """
 
 from collections.abc import Hashable, Mapping
 
 import numpy as np
 
-from ..runtime.calibration import rollout_score
-from .baselines import FEATURE_SCORES, REFERENCE_SCORES, SCORE_NAMES, ScoreReference
+from ..runtime.calibration import CombinedStatistics, rollout_score
+from .baselines import (
+    COMBINED_FROM,
+    COMBINED_SCORES,
+    FEATURE_SCORES,
+    REFERENCE_SCORES,
+    SCORE_NAMES,
+    ScoreReference,
+)
 from .records import Episode
 
 
@@ -29,6 +39,10 @@ def chunk_scores(
         reference: The calibration episodes' fit, needed by the reference scores (`REFERENCE_SCORES`).
         episode_id: The episode's key; a calibration episode is then scored leave-one-episode-out.
     """
+    if score in COMBINED_SCORES:
+        raise ValueError(
+            f"{score!r} combines rollout scores and has no chunk score: use `combined_rollout_scores`."
+        )
     if score not in SCORE_NAMES:
         raise ValueError(f"`score` must be one of {SCORE_NAMES}, got {score!r}.")
     if score in REFERENCE_SCORES and (
@@ -91,3 +105,34 @@ def episode_scores(
             its chunks. None scores whole episodes.
     """
     return aggregate_episodes(episode_chunk_scores(episodes, score, reference), aggregation, first_chunks)
+
+
+def combined_rollout_scores(
+    score: str, rollout_scores: Mapping[str, np.ndarray], calibration_scores: Mapping[str, np.ndarray]
+) -> np.ndarray:
+    """The rollout scores of a combined score (`baselines.COMBINED_SCORES`), one per rollout.
+
+    Each of the final energy's and the context distance's rollout scores is standardized by the mean and std
+    of the calibration rollouts' (`CombinedStatistics`, as the run-time `score="energy_and_context"` is); the
+    z's are then combined: their max ("energy_and_context") or their sum ("energy_and_context_sum").
+
+    Args:
+        score: One of `baselines.COMBINED_SCORES`.
+        rollout_scores: The rollouts' "final_energy" and "mahalanobis" scores, aggregated alike (e.g. over
+            the same first chunks), one entry per rollout.
+        calibration_scores: The calibration rollouts' scores of the same two names, aggregated the same way.
+
+    Raises:
+        ValueError: An unknown score, or a score to combine missing.
+    """
+    if score not in COMBINED_SCORES:
+        raise ValueError(f"`score` must be one of {COMBINED_SCORES}, got {score!r}.")
+    for name, scores in (("rollout_scores", rollout_scores), ("calibration_scores", calibration_scores)):
+        missing = [n for n in COMBINED_FROM if n not in scores]
+        if missing:
+            raise ValueError(
+                f"`{name}` needs the scores {list(COMBINED_FROM)} to combine; missing {missing}."
+            )
+    statistics = CombinedStatistics.fit(*(calibration_scores[n] for n in COMBINED_FROM))
+    z = statistics.z(*(rollout_scores[n] for n in COMBINED_FROM))
+    return z.max(axis=1) if score == "energy_and_context" else z.sum(axis=1)

@@ -139,15 +139,24 @@ def eval_energy(cfg: EnergyEvalPipelineConfig) -> dict:
 
 
 def metaworld_eval_env(
-    task: str, max_episode_steps: int, perturbation: str = "none", severity: int = 0
+    task: str,
+    max_episode_steps: int,
+    perturbation: str = "none",
+    severity: int = 0,
+    observation_size: int | None = None,
 ) -> MetaworldEBVLAEnv:
-    """The fast-render MetaWorld env of an evaluation; raises a ValueError naming an invalid perturbation."""
+    """The fast-render MetaWorld env of an evaluation; raises a ValueError naming an invalid perturbation.
+
+    `observation_size` renders smaller frames than MetaWorld's 480 px: evaluate at the size the training data
+    was recorded at.
+    """
     return MetaworldEBVLAEnv(
         task=task,
         fast_render=True,
         max_episode_steps=max_episode_steps,
         perturbation=perturbation,
         perturbation_severity=severity if perturbation != "none" else 0,
+        observation_size=observation_size,
     )
 
 
@@ -162,6 +171,7 @@ def metaworld_eval_config(
     perturbation: str = "none",
     severity: int = 0,
     device: str | None = None,
+    observation_size: int | None = None,
     **options: Any,
 ) -> EnergyEvalPipelineConfig:
     """The `eval_energy` config of a fast-render MetaWorld evaluation of a checkpoint, one env at a time.
@@ -177,6 +187,7 @@ def metaworld_eval_config(
         perturbation: One of `metaworld_ebvla`'s perturbations (docs/metaworld.md); "none": the vanilla scene.
         severity: Its severity, 1 to 5 (ignored for "none").
         device: The policy's torch device; None keeps the checkpoint's.
+        observation_size: Side of the rendered frames (`--env.observation_size`); None: MetaWorld's 480 px.
         **options: Other `EnergyEvalPipelineConfig` fields, e.g. `normalized_energy_samples=16` or
             `restart_spread_chains=4`.
     """
@@ -191,7 +202,7 @@ def metaworld_eval_config(
     eval_logger.setLevel(logging.ERROR)
     try:
         return EnergyEvalPipelineConfig(
-            env=metaworld_eval_env(task, max_episode_steps, perturbation, severity),
+            env=metaworld_eval_env(task, max_episode_steps, perturbation, severity, observation_size),
             eval=EvalConfig(n_episodes=n_episodes, batch_size=1, use_async_envs=False),
             policy=policy,
             output_dir=Path(output_dir),

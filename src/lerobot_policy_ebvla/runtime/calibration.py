@@ -28,6 +28,17 @@ c = mean over tokens of C_L (`EBVLAPolicy.context_features`) from the vanilla ca
 `ContextStatistics`, fitted on every chunk of the calibration rollouts; mu_v and sigma_v are then those of the
 vanilla rollout scores, as for the energy. mu_c and P (D and D x D numbers, D = 896 for the VLM) are saved
 beside the JSON in `ood_calibration_context.safetensors`.
+
+The two see different failures (the energy how well the action chain converged, the context distance what the
+policy sees), so a calibration may watch both: the *energy and context* score (`score="energy_and_context"`,
+opt-in) standardizes a rollout's final energy E and context distance d, each by the mean and std of the vanilla
+calibration rollouts' scores (`CombinedStatistics`), and takes the larger,
+
+    s = max((E - mu_E) / sigma_E, (d - mu_d) / sigma_d),
+
+which is then calibrated like the energy (mu_v, sigma_v of the vanilla rollouts' s; T = mu_v + k sigma_v). E and
+d are each aggregated over the rollout's chunks first (`OODCalibration.score_rollout`); a single chunk's score
+is the same formula on that chunk alone (`OODCalibration.chunk_score`).
 """
 
 import dataclasses
@@ -54,9 +65,11 @@ CONTEXT_FIELD = "context_statistics"
 SCORE_AGGREGATIONS = ("mean", "max", "last", "median")
 THRESHOLD_RULES = ("mean_std", "conformal")
 # The chunk scores a run-time calibration can compute from what the policy reports: the final energy, the
-# final energy against the vanilla energy at the same chunk index, and the distance of the chunk's pooled
-# context from the vanilla contexts.
-CALIBRATED_SCORES = ("final_energy", "phase_energy", "context_distance")
+# final energy against the vanilla energy at the same chunk index, the distance of the chunk's pooled context
+# from the vanilla contexts, and the larger of the first and the third, each standardized.
+CALIBRATED_SCORES = ("final_energy", "phase_energy", "context_distance", "energy_and_context")
+# The scores a calibration computes from each chunk's pooled context.
+CONTEXT_SCORES = ("context_distance", "energy_and_context")
 # sigma_v[t] is at least this fraction of the pooled sigma of all vanilla chunk energies.
 PHASE_SIGMA_FLOOR = 0.1
 # And at least this, so that a calibration of identical energies still divides by a positive number.
@@ -278,6 +291,69 @@ class ContextStatistics:
         return cls(tensors["mean"], tensors["precision"], int(tensors["n_chunks"]))
 
 
+@dataclass(frozen=True)
+class CombinedStatistics:
+    """(mu_v, sigma_v) of the final energy's and of the context distance's vanilla rollout scores, in that order.
+
+    They standardize the two scores that `score="energy_and_context"` combines: a rollout with final energy E
+    and context distance d (each aggregated over its chunks) scores max(z_E, z_d), z_E = (E - mu_E) / sigma_E
+    and z_d = (d - mu_d) / sigma_d. In units of its own vanilla spread neither score dominates by its scale, and
+    the max is high when either is: a failure one score misses the other can still flag. Fit with `fit` on the
+    calibration rollouts' scores.
+
+    Args:
+        mean: (mu_E, mu_d).
+        std: (sigma_E, sigma_d), population stds, each > 0.
+    """
+
+    mean: tuple[float, float]
+    std: tuple[float, float]
+
+    def __post_init__(self):
+        object.__setattr__(self, "mean", tuple(float(m) for m in self.mean))
+        object.__setattr__(self, "std", tuple(float(s) for s in self.std))
+        if len(self.mean) != 2 or len(self.std) != 2:
+            raise ValueError(
+                "Combined statistics need `mean` and `std` with one entry per score (final energy, context "
+                f"distance); got {len(self.mean)} and {len(self.std)}."
+            )
+        if not np.all(np.isfinite([*self.mean, *self.std])) or min(self.std) <= 0:
+            raise ValueError(
+                f"Combined statistics must be finite, with every std > 0; got mean {self.mean}, std {self.std}."
+            )
+
+    @classmethod
+    def fit(cls, energy_scores: ArrayLike, context_scores: ArrayLike) -> "CombinedStatistics":
+        """Fits on the vanilla calibration rollouts' final-energy and context-distance scores.
+
+        Non-finite scores are left out with a warning, as in `OODCalibration.fit`; a std of 0 (identical
+        scores) is raised to 1e-12, so that a calibration of identical scores still divides by a positive
+        number.
+
+        Raises:
+            ValueError: No finite score of one of the two.
+        """
+        energy = MeanStd.fit(energy_scores, "vanilla final-energy")
+        context = MeanStd.fit(context_scores, "vanilla context-distance")
+        return cls((energy.mean, context.mean), (max(energy.std, _MIN_SIGMA), max(context.std, _MIN_SIGMA)))
+
+    def z(self, energy: ArrayLike | float, context_distance: ArrayLike | float) -> np.ndarray:
+        """(N, 2): z_E and z_d of each (final energy, context distance) pair."""
+        energy, context_distance = as_array(energy), as_array(context_distance)
+        if energy.shape != context_distance.shape:
+            raise ValueError(
+                f"Give one context distance per final energy; got {energy.size} energies and "
+                f"{context_distance.size} distances."
+            )
+        return (np.stack([energy, context_distance], axis=1) - np.asarray(self.mean)) / np.asarray(self.std)
+
+    def combine(self, energy: ArrayLike | float, context_distance: ArrayLike | float) -> np.ndarray:
+        """(N,): max(z_E, z_d) of each (final energy, context distance) pair. NaN in either gives NaN."""
+        z = self.z(energy, context_distance)
+        # np.max propagates NaN, so the rule `score <= T` flags it, as it flags a NaN energy.
+        return np.max(z, axis=1)
+
+
 def _float64(values: ArrayLike) -> np.ndarray:
     """Any array or tensor as a float64 array of the same shape (tensors detached, on the CPU)."""
     if isinstance(values, Tensor):
@@ -301,13 +377,17 @@ class OODCalibration:
             too few rollouts for alpha), None when not computed.
         rule: Which threshold the monitor applies: "mean_std" (Eq. 5, the paper's, default) or "conformal".
         score: The chunk score the statistics are of: "final_energy" (the paper's, default),
-            "phase_energy" (the final energy against the vanilla energy at the same chunk index) or
+            "phase_energy" (the final energy against the vanilla energy at the same chunk index),
             "context_distance" (the Mahalanobis distance of the chunk's pooled context from the vanilla
-            contexts).
+            contexts) or "energy_and_context" (the larger of the two standardized, `CombinedStatistics`).
         phase_mean: mu_v[t] of `PhaseStatistics`, for `score="phase_energy"`; None otherwise.
         phase_std: sigma_v[t] of `PhaseStatistics`, for `score="phase_energy"`; None otherwise.
-        context: mu_c and P of `ContextStatistics`, for `score="context_distance"`; None otherwise. Saved
-            beside the JSON in `OOD_CONTEXT_FILENAME`, not compared by `==`.
+        context: mu_c and P of `ContextStatistics`, for `score="context_distance"` and
+            `score="energy_and_context"`; None otherwise. Saved beside the JSON in `OOD_CONTEXT_FILENAME`, not
+            compared by `==`.
+        combined_mean: (mu_E, mu_d) of `CombinedStatistics`, for `score="energy_and_context"`; None otherwise.
+        combined_std: (sigma_E, sigma_d) of `CombinedStatistics`, for `score="energy_and_context"`; None
+            otherwise.
     """
 
     mu_v: float
@@ -322,6 +402,8 @@ class OODCalibration:
     phase_mean: tuple[float, ...] | None = None
     phase_std: tuple[float, ...] | None = None
     context: ContextStatistics | None = field(default=None, compare=False)
+    combined_mean: tuple[float, float] | None = None
+    combined_std: tuple[float, float] | None = None
 
     def __post_init__(self):
         if self.aggregation not in SCORE_AGGREGATIONS:
@@ -349,8 +431,18 @@ class OODCalibration:
             raise ValueError("`score='phase_energy'` needs `phase_mean` and `phase_std` (`PhaseStatistics`).")
         if self.context is not None and not isinstance(self.context, ContextStatistics):
             raise ValueError(f"`context` must be `ContextStatistics`, got {type(self.context).__name__}.")
-        if self.score == "context_distance" and self.context is None:
-            raise ValueError("`score='context_distance'` needs `context` (`ContextStatistics`).")
+        if self.score in CONTEXT_SCORES and self.context is None:
+            raise ValueError(f"`score={self.score!r}` needs `context` (`ContextStatistics`).")
+        if (self.combined_mean is None) != (self.combined_std is None):
+            raise ValueError("`combined_mean` and `combined_std` come together: give both or neither.")
+        if self.combined_mean is not None:
+            combined = CombinedStatistics(self.combined_mean, self.combined_std)
+            object.__setattr__(self, "combined_mean", combined.mean)
+            object.__setattr__(self, "combined_std", combined.std)
+        elif self.score == "energy_and_context":
+            raise ValueError(
+                "`score='energy_and_context'` needs `combined_mean` and `combined_std` (`CombinedStatistics`)."
+            )
 
     @classmethod
     def fit(
@@ -363,6 +455,7 @@ class OODCalibration:
         score: str = "final_energy",
         phase: PhaseStatistics | None = None,
         context: ContextStatistics | None = None,
+        combined: CombinedStatistics | None = None,
     ) -> "OODCalibration":
         """Estimates mu_v and sigma_v, and with `false_alarm_rate` the conformal threshold, from vanilla scores.
 
@@ -374,7 +467,9 @@ class OODCalibration:
             score: The chunk score `vanilla_scores` were aggregated from (`CALIBRATED_SCORES`).
             phase: The per-index statistics the phase energy was computed with, for `score="phase_energy"`.
             context: The context statistics the context distance was computed with, for
-                `score="context_distance"`.
+                `score="context_distance"` and `score="energy_and_context"`.
+            combined: The statistics the final energy and the context distance were standardized with, for
+                `score="energy_and_context"`.
 
         Raises:
             ValueError: No finite score to fit on.
@@ -384,6 +479,7 @@ class OODCalibration:
         if false_alarm_rate is not None:
             conformal = conformal_threshold(vanilla_scores, false_alarm_rate, "vanilla")
         phase_mean, phase_std = (None, None) if phase is None else (phase.mean, phase.std)
+        combined_mean, combined_std = (None, None) if combined is None else (combined.mean, combined.std)
         return cls(
             stats.mean,
             stats.std,
@@ -397,6 +493,8 @@ class OODCalibration:
             phase_mean,
             phase_std,
             context,
+            combined_mean,
+            combined_std,
         )
 
     @property
@@ -405,9 +503,16 @@ class OODCalibration:
         return None if self.phase_mean is None else PhaseStatistics(self.phase_mean, self.phase_std)
 
     @property
+    def combined(self) -> CombinedStatistics | None:
+        """The standardization of the energy-and-context score, None when the calibration has none."""
+        return (
+            None if self.combined_mean is None else CombinedStatistics(self.combined_mean, self.combined_std)
+        )
+
+    @property
     def needs_context_features(self) -> bool:
         """Whether `chunk_score` needs each chunk's pooled context (`EBVLAPolicy.context_features`)."""
-        return self.score == "context_distance"
+        return self.score in CONTEXT_SCORES
 
     def chunk_score(
         self,
@@ -419,14 +524,16 @@ class OODCalibration:
 
         For `score="final_energy"` it is the final energy itself; for `score="phase_energy"` it is
         (E - mu_v[t]) / sigma_v[t] at the chunk's 0-based index t in its episode; for `score="context_distance"`
-        it is the Mahalanobis distance d(c) of the chunk's pooled context (`ContextStatistics`).
+        it is the Mahalanobis distance d(c) of the chunk's pooled context (`ContextStatistics`); for
+        `score="energy_and_context"` it is max(z_E, z_d) of the chunk's E and d(c) (`CombinedStatistics`), the
+        score of a rollout of that one chunk.
 
         Args:
             final_energy: One final energy, or one per environment ((B,) array or tensor).
             chunk_index: The chunk's index in its episode: an int, or one per environment. Needed by the
                 phase energy only.
             context_features: The chunk's pooled context, (D,), or one per environment, (B, D). Needed by
-                the context distance only.
+                the context distance and the energy-and-context score only.
 
         Returns:
             A float for a scalar energy, else an array with one score per entry.
@@ -438,6 +545,10 @@ class OODCalibration:
         scalar = _ndim(final_energy) == 0
         if self.score == "context_distance":
             return self._context_distance(final_energy, context_features)
+        if self.score == "energy_and_context":
+            distances = self._context_distance(final_energy, context_features)
+            scores = self.combined.combine(final_energy, distances)
+            return float(scores[0]) if _ndim(context_features) == 1 else scores
         if self.score == "final_energy":
             scores = as_array(final_energy)
         elif chunk_index is None:
@@ -462,6 +573,44 @@ class OODCalibration:
                 "pooled context per chunk."
             )
         return float(scores[0]) if _ndim(context_features) == 1 else scores
+
+    def chunk_components(
+        self,
+        final_energy: ArrayLike | float,
+        chunk_index: ArrayLike | int | None = None,
+        context_features: ArrayLike | None = None,
+    ) -> np.ndarray:
+        """What a rollout's score is aggregated from, one row per chunk: (B, 1), the chunk score, or for
+        `score="energy_and_context"` (B, 2), the chunk's final energy and context distance, which are each
+        aggregated over the rollout before they are combined (`score_rollout`).
+
+        Arguments and errors as in `chunk_score`.
+        """
+        if self.score != "energy_and_context":
+            return as_array(self.chunk_score(final_energy, chunk_index, context_features))[:, None]
+        distances = as_array(self._context_distance(final_energy, context_features))
+        return np.stack([as_array(final_energy), distances], axis=1)
+
+    def score_rollout(self, components: ArrayLike) -> float:
+        """The rollout score the threshold applies to, from its chunks' `chunk_components` in chunk order.
+
+        Each column is aggregated over the chunks (`rollout_score`, the calibration's aggregation); a
+        single-column score is that aggregate, the energy-and-context score max(z_E, z_d) of the two aggregates.
+
+        Raises:
+            ValueError: `components` is not (N >= 1, n) with the calibration's n columns.
+        """
+        components = _float64(components)
+        n = 2 if self.score == "energy_and_context" else 1
+        if components.ndim != 2 or components.shape[1] != n:
+            raise ValueError(
+                f"`components` of a {self.score} rollout must be (N, {n}), one row of "
+                f"`chunk_components` per chunk; got shape {components.shape}."
+            )
+        aggregates = [rollout_score(column, self.aggregation) for column in components.T]
+        if self.score != "energy_and_context":
+            return aggregates[0]
+        return float(self.combined.combine(*aggregates)[0])
 
     @property
     def threshold(self) -> float:
@@ -644,7 +793,9 @@ class EnergyOODMonitor:
     a phase-energy calibration the final energy against the vanilla energy at the chunk's index, with a
     context-distance calibration the distance of the chunk's pooled context
     (`OODCalibration.chunk_score`): `update` and `check_rollout` count the chunks themselves, `check` needs
-    the index; the context distance needs `context_features` everywhere.
+    the index; the context distance and the energy-and-context score need `context_features` everywhere. With
+    the energy-and-context score a rollout's final energies and context distances are aggregated apart and
+    combined after (`OODCalibration.score_rollout`).
 
     Example:
         monitor = EnergyOODMonitor.from_pretrained("outputs/train/ebvla/checkpoints/last/pretrained_model")
@@ -655,7 +806,8 @@ class EnergyOODMonitor:
 
     def __init__(self, calibration: OODCalibration):
         self.calibration = calibration
-        self._histories: list[list[float]] = []
+        # Per environment, the `OODCalibration.chunk_components` row of each chunk so far.
+        self._histories: list[list[np.ndarray]] = []
 
     @classmethod
     def from_pretrained(
@@ -693,11 +845,12 @@ class EnergyOODMonitor:
     ) -> OODDecision:
         """Checks a rollout from its chunks' final energies (chunks 0, 1, ...), aggregated as calibrated.
 
-        `context_features`, (N, D) one pooled context per chunk, is needed by a context-distance calibration.
+        `context_features`, (N, D) one pooled context per chunk, is needed by a context-distance or an
+        energy-and-context calibration.
         """
         energies = as_array(chunk_energies)
-        scores = self.calibration.chunk_score(energies, np.arange(energies.size), context_features)
-        return self._decide(rollout_score(scores, self.calibration.aggregation))
+        components = self.calibration.chunk_components(energies, np.arange(energies.size), context_features)
+        return self._decide(self.calibration.score_rollout(components))
 
     def update(
         self, final_energy: float | Tensor, context_features: ArrayLike | None = None
@@ -706,8 +859,8 @@ class EnergyOODMonitor:
 
         Args:
             final_energy: A float (one environment) or a (B,) tensor, one entry per environment.
-            context_features: The chunk's pooled context per environment, (B, D), for a context-distance
-                calibration.
+            context_features: The chunk's pooled context per environment, (B, D), for a context-distance or an
+                energy-and-context calibration.
 
         Returns:
             One decision per environment on its running rollout score.
@@ -723,11 +876,11 @@ class EnergyOODMonitor:
             context_features = _float64(context_features)[None]  # one environment
         # The environments step together: this is chunk len(history) of every one of them.
         chunk_index = len(self._histories[0])
-        scores = as_array(self.calibration.chunk_score(energies, chunk_index, context_features))
-        for history, score in zip(self._histories, scores, strict=True):
-            history.append(float(score))
+        components = self.calibration.chunk_components(energies, chunk_index, context_features)
+        for history, row in zip(self._histories, components, strict=True):
+            history.append(row)
         return [
-            self._decide(rollout_score(history, self.calibration.aggregation)) for history in self._histories
+            self._decide(self.calibration.score_rollout(np.stack(history))) for history in self._histories
         ]
 
     def reset(self) -> None:

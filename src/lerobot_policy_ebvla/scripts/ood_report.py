@@ -8,12 +8,13 @@ Calibrate on one set of vanilla rollouts, report on others:
 
 Prints and writes `ood_report.md` (the protocol, the calibration, energy vs success drop per condition,
 AUROC with bootstrap 95% intervals per score, the same over each episode's first k chunks (`--first_chunks`),
-Table III per condition in the paper's layout with every score's balanced accuracy beside it, and Table III
+each score's AUROC of failed against successful rollouts, Table III per condition in the paper's layout with every score's balanced accuracy beside it, and Table III
 over the first chunks (`--table_iii_first_chunks`)) and the figures `roc_curve.png`, `roc_baselines.png` and
 `energy_histogram.png`. `--score=phase_energy` saves the phase-energy calibration instead of the final
 energy's, `--score=context_distance` the context distance's (the report's `mahalanobis` score; its context
-statistics go beside the JSON in `ood_calibration_context.safetensors`). `--help` lists every option; the
-report is built by `lerobot_policy_ebvla.monitoring.ood_report`.
+statistics go beside the JSON in `ood_calibration_context.safetensors`), `--score=energy_and_context` the
+larger of the two standardized on the calibration rollouts (the report's `energy_and_context` score).
+`--help` lists every option; the report is built by `lerobot_policy_ebvla.monitoring.ood_report`.
 """
 
 import logging

@@ -1,0 +1,439 @@
+"""The energy-and-context score: the final energy and the context distance, each standardized on the calibration
+rollouts (z = (s - mu_v) / sigma_v), combined as the larger z (`CombinedStatistics`, `score="energy_and_context"`)
+or, in the report only, as their sum.
+"""
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from lerobot_policy_ebvla import EBVLAPolicy
+from lerobot_policy_ebvla.monitoring.baselines import fit_score_reference
+from lerobot_policy_ebvla.monitoring.metrics import auroc, format_auroc
+from lerobot_policy_ebvla.monitoring.ood import ood_detection_table
+from lerobot_policy_ebvla.monitoring.ood_report import OODReportConfig, write_ood_report
+from lerobot_policy_ebvla.monitoring.records import (
+    ENERGY_RECORDS_FILENAME,
+    EnergyRecord,
+    load_episodes,
+    write_energy_records,
+)
+from lerobot_policy_ebvla.monitoring.scores import chunk_scores, combined_rollout_scores, episode_scores
+from lerobot_policy_ebvla.runtime import EnergyOODError
+from lerobot_policy_ebvla.runtime.calibration import (
+    CONTEXT_FIELD,
+    OOD_CALIBRATION_FILENAME,
+    OOD_CONTEXT_FILENAME,
+    CombinedStatistics,
+    ContextStatistics,
+    EnergyOODMonitor,
+    OODCalibration,
+)
+
+from .conftest import tiny_batch, tiny_config
+
+D = 4
+# mu = (1, 2), sigma = (0.5, 4): z_E = (E - 1) / 0.5, z_d = (d - 2) / 4.
+STATISTICS = CombinedStatistics((1.0, 2.0), (0.5, 4.0))
+
+
+def context_statistics() -> ContextStatistics:
+    return ContextStatistics.fit(np.random.default_rng(0).normal(size=(40, D)))
+
+
+def combined_calibration(**kwargs) -> OODCalibration:
+    fields = {"mu_v": 0.0, "sigma_v": 1.0, "score": "energy_and_context", "context": context_statistics()}
+    fields |= {"combined_mean": STATISTICS.mean, "combined_std": STATISTICS.std, **kwargs}
+    return OODCalibration(**fields)
+
+
+# The combination.
+
+
+def test_each_score_is_standardized_by_its_own_calibration_mean_and_std():
+    np.testing.assert_allclose(STATISTICS.z([2.0, 1.0], [2.0, 14.0]), [[2.0, 0.0], [0.0, 3.0]])
+
+
+def test_the_combined_score_is_the_larger_z_so_either_score_alone_can_raise_it():
+    # The first rollout is unusual in energy only, the second in context only, the third in neither.
+    np.testing.assert_allclose(STATISTICS.combine([2.0, 1.0, 1.0], [2.0, 14.0, 2.0]), [2.0, 3.0, 0.0])
+
+
+def test_a_nan_in_either_score_makes_the_combined_score_nan():
+    assert np.isnan(STATISTICS.combine([np.nan, 1.0], [2.0, np.nan])).all()
+
+
+def test_combined_statistics_fit_the_population_mean_and_std_of_each_score():
+    statistics = CombinedStatistics.fit([1.0, 3.0], [10.0, 30.0])
+    assert statistics.mean == (2.0, 20.0) and statistics.std == (1.0, 10.0)
+
+
+def test_combined_statistics_of_identical_scores_still_divide_by_a_positive_std():
+    statistics = CombinedStatistics.fit([1.0, 1.0], [2.0, 2.0])
+    assert min(statistics.std) > 0
+    np.testing.assert_array_equal(statistics.combine(1.0, 2.0), [0.0])
+
+
+@pytest.mark.parametrize(
+    ("mean", "std", "match"),
+    [
+        ((1.0,), (1.0,), "one entry per score"),
+        ((1.0, 2.0), (1.0, 0.0), "std > 0"),
+        ((np.nan, 2.0), (1.0, 1.0), "finite"),
+    ],
+)
+def test_invalid_combined_statistics_are_refused(mean, std, match):
+    with pytest.raises(ValueError, match=match):
+        CombinedStatistics(mean, std)
+
+
+def test_the_scores_to_combine_come_one_per_rollout():
+    with pytest.raises(ValueError, match="one context distance per final energy"):
+        STATISTICS.z([1.0, 2.0], [1.0])
+
+
+def test_the_report_combines_rollout_scores_standardized_on_the_calibration_rollouts_by_max_or_sum():
+    # Calibration: final energy mu 1, sigma 1; context distance mu 2, sigma 1.
+    calibration = {"final_energy": np.array([0.0, 2.0]), "mahalanobis": np.array([1.0, 3.0])}
+    rollouts = {
+        "final_energy": np.array([3.0, 0.0]),
+        "mahalanobis": np.array([3.0, 2.0]),
+    }  # z: (2, 1), (-1, 0)
+    np.testing.assert_allclose(
+        combined_rollout_scores("energy_and_context", rollouts, calibration), [2.0, 0.0]
+    )
+    np.testing.assert_allclose(
+        combined_rollout_scores("energy_and_context_sum", rollouts, calibration), [3.0, -1.0]
+    )
+
+
+def test_the_report_needs_both_scores_to_combine():
+    scores = {"final_energy": np.array([0.0, 2.0])}
+    with pytest.raises(ValueError, match=r"`rollout_scores` needs .*missing \['mahalanobis'\]"):
+        combined_rollout_scores("energy_and_context", scores, {**scores, "mahalanobis": np.array([1.0, 2.0])})
+
+
+def test_a_combined_score_has_no_chunk_score():
+    with pytest.raises(ValueError, match="combined_rollout_scores"):
+        chunk_scores([], "energy_and_context")
+
+
+# The run-time calibration.
+
+
+def test_an_energy_and_context_calibration_needs_its_statistics():
+    with pytest.raises(ValueError, match="needs `context`"):
+        combined_calibration(context=None)
+    with pytest.raises(ValueError, match="needs `combined_mean` and `combined_std`"):
+        combined_calibration(combined_mean=None, combined_std=None)
+    with pytest.raises(ValueError, match="come together"):
+        combined_calibration(combined_std=None)
+
+
+def test_fitting_an_energy_and_context_calibration_keeps_its_standardization():
+    calibration = OODCalibration.fit(
+        [0.0, 2.0], score="energy_and_context", context=context_statistics(), combined=STATISTICS
+    )
+    assert (calibration.mu_v, calibration.sigma_v) == (1.0, 1.0) and calibration.combined == STATISTICS
+
+
+def test_an_energy_and_context_calibration_scores_a_chunk_by_the_larger_z_of_its_energy_and_context():
+    calibration = combined_calibration()
+    features = np.array([[0.0, 0.0, 0.0, 0.0], [6.0, 6.0, 6.0, 6.0]])
+    distances = calibration.context.distance(features)
+    expected = np.maximum((np.array([3.0, 1.0]) - 1.0) / 0.5, (distances - 2.0) / 4.0)
+    np.testing.assert_allclose(calibration.chunk_score(np.array([3.0, 1.0]), 0, features), expected)
+    assert calibration.needs_context_features
+
+
+def test_an_energy_and_context_calibration_needs_the_context_features():
+    with pytest.raises(ValueError, match="pooled context"):
+        combined_calibration().chunk_score(np.array([1.0]))
+
+
+def test_a_rollout_aggregates_each_score_over_its_chunks_before_combining_them():
+    # Chunk 0 is high in energy, chunk 1 in context: the mean of each chunk's larger z would be 2.5, while the
+    # larger z of the rollout's mean energy and mean distance is 1.0 (z_E of mean energy 1.5; z_d of mean 4).
+    calibration = combined_calibration()
+    components = np.array([[3.0, 2.0], [0.0, 6.0]])  # (final energy, context distance) per chunk
+    assert calibration.score_rollout(components) == pytest.approx(max((1.5 - 1.0) / 0.5, (4.0 - 2.0) / 4.0))
+
+
+def test_a_rollout_of_the_wrong_number_of_components_is_refused():
+    with pytest.raises(ValueError, match=r"must be \(N, 2\)"):
+        combined_calibration().score_rollout(np.array([[1.0], [2.0]]))
+
+
+def test_the_monitor_scores_a_running_rollout_as_it_scores_the_finished_one():
+    calibration = combined_calibration(aggregation="mean")
+    features = np.random.default_rng(3).normal(2.0, 1.0, size=(3, 2, D))  # (chunks, environments, D)
+    energies = np.array([[1.2, 0.8], [3.0, 1.0], [1.1, 0.9]])
+    monitor = EnergyOODMonitor(calibration)
+    for chunk in range(3):
+        decisions = monitor.update(torch.tensor(energies[chunk]), context_features=features[chunk])
+    for env in range(2):
+        finished = EnergyOODMonitor(calibration).check_rollout(
+            energies[:, env], context_features=features[:, env]
+        )
+        mean_distance = calibration.context.distance(features[:, env]).mean()
+        expected = STATISTICS.combine(energies[:, env].mean(), mean_distance)[0]
+        assert decisions[env].energy == pytest.approx(finished.energy) == pytest.approx(expected)
+
+
+def test_an_energy_and_context_calibration_round_trips_through_json_and_safetensors(tmp_path):
+    calibration = combined_calibration(k=0.5)
+    calibration.save(tmp_path)
+    payload = json.loads((tmp_path / OOD_CALIBRATION_FILENAME).read_text())
+    assert payload["combined_mean"] == [1.0, 2.0] and payload["combined_std"] == [0.5, 4.0]
+    assert payload[CONTEXT_FIELD]["file"] == OOD_CONTEXT_FILENAME
+    loaded = OODCalibration.load(tmp_path)
+    assert loaded == calibration and loaded.combined == STATISTICS
+    features = np.full((1, D), 3.0)
+    assert loaded.chunk_score(np.array([2.0]), 0, features) == pytest.approx(
+        calibration.chunk_score(np.array([2.0]), 0, features)
+    )
+
+
+def test_a_calibration_json_with_a_broken_combined_field_names_it(tmp_path):
+    combined_calibration().save(tmp_path)
+    path = tmp_path / OOD_CALIBRATION_FILENAME
+    payload = json.loads(path.read_text())
+    payload["combined_std"] = [0.5]
+    path.write_text(json.dumps(payload))
+    with pytest.raises(ValueError, match="combined_std"):
+        OODCalibration.load(tmp_path)
+
+
+def test_the_policy_responds_to_the_larger_z_of_each_chunks_energy_and_context(tmp_path):
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(tiny_config()).eval()
+    contexts = [tiny_batch(policy.config, batch_size=4, seed=s, with_action=False) for s in range(3)]
+    statistics = ContextStatistics.fit(torch.cat([policy.context_features(b) for b in contexts]))
+    # A threshold below every score: every chunk is flagged and raises with its highest score.
+    combined_calibration(mu_v=-1e6, sigma_v=0.0, context=statistics).save(tmp_path)
+    policy.configure_ood_response(tmp_path, ood_response="raise")
+    batch = tiny_batch(policy.config, batch_size=2, seed=7, with_action=False)
+    with pytest.raises(EnergyOODError, match="energy_and_context") as raised:
+        policy.predict_action_chunk(batch)
+    distances = statistics.distance(policy.context_features(batch))
+    expected = STATISTICS.combine(policy.last_energy.final_energy, distances).max()
+    assert raised.value.energy == pytest.approx(expected, rel=1e-4)
+
+
+# The report.
+
+
+def rollouts(n, seed, perturbation="none", energy=5.0, context=0.0, fail_every=3, n_chunks=5):
+    """n episodes with final energies around `energy` and 4-d context features around `context`; every
+    `fail_every`-th one fails. Episode i is seeded 1000 * seed + i, so runs of other `seed`s are held out."""
+    rng = np.random.default_rng(seed)
+    records = []
+    for episode in range(n):
+        for chunk in range(n_chunks):
+            record = EnergyRecord(
+                episode_index=episode,
+                chunk_index=chunk,
+                env_step=8 * chunk,
+                initial_energy=float(energy + 2 + rng.normal(0, 0.2)),
+                final_energy=float(energy + rng.normal(0, 0.2)),
+                success=episode % fail_every != 0,
+                task="reach",
+                seed=1000 * seed + episode,
+                perturbation=perturbation,
+                severity=0.0 if perturbation == "none" else 1.0,
+            )
+            records.append(
+                dataclasses.replace(record, context_feature=rng.normal(context, 1.0, D).astype(np.float32))
+            )
+    return records
+
+
+def write(folder: Path, records) -> str:
+    return str(write_energy_records(folder / ENERGY_RECORDS_FILENAME, records).parent)
+
+
+@pytest.fixture(scope="module")
+def record_dirs(tmp_path_factory):
+    """Calibration and held-out vanilla rollouts; "energy" shifts only the final energy, "light" only the
+    context."""
+    root = tmp_path_factory.mktemp("records")
+    return (
+        write(root / "calibration", rollouts(12, seed=10)),
+        write(root / "vanilla", rollouts(12, seed=11)),
+        write(root / "ood", rollouts(10, 1, "energy", energy=6.0) + rollouts(10, 2, "light", context=1.5)),
+    )
+
+
+def report(record_dirs, out: Path, **options) -> str:
+    calibration, vanilla, ood = record_dirs
+    cfg = OODReportConfig(
+        calibration=[calibration], vanilla=[vanilla], ood=[ood], output_dir=out, n_bootstrap=50, **options
+    )
+    return write_ood_report(cfg)
+
+
+@pytest.fixture(scope="module")
+def report_text(record_dirs, tmp_path_factory) -> str:
+    return report(record_dirs, tmp_path_factory.mktemp("report"), first_chunks=[2])
+
+
+def cell(table: str, row: str, column: str) -> str:
+    lines = [line for line in table.splitlines() if line.startswith("|")]
+    header = [c.strip() for c in lines[0].split("|")]
+    (line,) = [line for line in lines if line.startswith(f"| {row} |")]
+    return [c.strip() for c in line.split("|")][header.index(column)]
+
+
+def section(text: str, title: str) -> str:
+    return text.split(f"## {title}")[1].split("\n## ")[0]
+
+
+def expected_combined_scores(record_dirs, first_chunks=None) -> dict[str, np.ndarray]:
+    """The combined score of every held-out rollout, recomputed from the package's per-score rollout scores."""
+    calibration, vanilla, ood = (load_episodes([d]) for d in record_dirs)
+    reference = fit_score_reference(calibration)
+
+    def scores(episodes):
+        return {
+            n: episode_scores(episodes, n, reference=reference, first_chunks=first_chunks)
+            for n in ("final_energy", "mahalanobis")
+        }
+
+    statistics = CombinedStatistics.fit(*scores(calibration).values())
+    by_condition = {"vanilla": vanilla}
+    for perturbation in ("energy", "light"):
+        by_condition[perturbation] = {k: e for k, e in ood.items() if k[1].perturbation == perturbation}
+    return {c: statistics.combine(*scores(episodes).values()) for c, episodes in by_condition.items()}
+
+
+def test_the_report_puts_the_combined_scores_beside_every_other(report_text):
+    auroc_table = section(report_text, "AUROC [bootstrap 95% interval] by score")
+    assert "| mahalanobis | knn | energy_and_context | energy_and_context_sum |" in auroc_table
+    assert section(report_text, "Detection on the first chunks").count("| energy_and_context | ") == 3
+    assert section(report_text, "Table III: light 1").count("Bal. Acc. energy_and_context") == 2
+    assert "| energy_and_context | 12 |" in section(report_text, "Calibration")
+
+
+def test_the_combined_score_catches_a_condition_only_the_energy_sees_and_one_only_the_context_sees(
+    report_text,
+):
+    table = section(report_text, "AUROC [bootstrap 95% interval] by score")
+    value = {
+        (c, s): float(cell(table, c, s).split()[0])
+        for c in ("energy 1", "light 1")
+        for s in ("final_energy", "mahalanobis", "energy_and_context")
+    }
+    assert value["energy 1", "final_energy"] > 0.95 and value["energy 1", "mahalanobis"] < 0.8
+    assert value["light 1", "mahalanobis"] > 0.95 and value["light 1", "final_energy"] < 0.8
+    assert value["energy 1", "energy_and_context"] > 0.95 and value["light 1", "energy_and_context"] > 0.95
+
+
+@pytest.mark.parametrize("condition", ["energy", "light"])
+def test_the_reported_combined_auroc_is_that_of_the_combined_rollout_scores(
+    record_dirs, report_text, condition
+):
+    expected = expected_combined_scores(record_dirs)
+    table = section(report_text, "AUROC [bootstrap 95% interval] by score")
+    assert cell(table, f"{condition} 1", "energy_and_context") == format_auroc(
+        expected["vanilla"], expected[condition], 50
+    )
+
+
+def test_over_the_first_chunks_the_combined_score_is_standardized_on_the_calibrations_first_chunks(
+    record_dirs, report_text
+):
+    expected = expected_combined_scores(record_dirs, first_chunks=2)
+    table = section(report_text, "Detection on the first chunks").split("### light 1")[1]
+    assert cell(table, "energy_and_context", "first 2 chunks") == format_auroc(
+        expected["vanilla"], expected["light"], 50
+    )
+
+
+def test_the_report_has_no_combined_score_without_context_features(record_dirs, tmp_path):
+    dirs = []
+    for name, folder in zip(("calibration", "vanilla", "ood"), record_dirs, strict=True):
+        records = [
+            dataclasses.replace(r, context_feature=None) for e in load_episodes([folder]).values() for r in e
+        ]
+        dirs.append(write(tmp_path / name, records))
+    assert "energy_and_context" not in report(dirs, tmp_path / "out")
+
+
+@pytest.mark.parametrize(
+    ("folder", "title"),
+    [
+        (1, "held-out vanilla rollouts: 4 of 12 failed"),
+        (2, "perturbed rollouts, all conditions: 8 of 20 failed"),
+    ],
+)
+def test_the_report_measures_every_score_on_failed_against_successful_rollouts(
+    record_dirs, report_text, folder, title
+):
+    episodes = load_episodes([record_dirs[folder]])
+    failed = np.array([not e[0].success for e in episodes.values()])
+    table = section(report_text, "Failed vs successful rollouts").split(f"### {title}")[1].split("###")[0]
+    energies = episode_scores(episodes, "final_energy")
+    assert cell(table, "final_energy", "whole episode") == format_auroc(
+        energies[~failed], energies[failed], 50
+    )
+    combined = expected_combined_scores(record_dirs)
+    scores = combined["vanilla"] if folder == 1 else np.concatenate([combined["energy"], combined["light"]])
+    assert cell(table, "energy_and_context", "first 2 chunks").count("[") == 1
+    assert cell(table, "energy_and_context", "whole episode") == format_auroc(
+        scores[~failed], scores[failed], 50
+    )
+
+
+def test_the_report_saves_the_energy_and_context_calibration_its_tables_score(record_dirs, tmp_path):
+    checkpoint = tmp_path / "pretrained_model"
+    checkpoint.mkdir()
+    text = report(record_dirs, tmp_path / "out", calibrate_to=checkpoint, score="energy_and_context")
+    assert "`--score=energy_and_context`" in text
+    calibration = OODCalibration.load(checkpoint)
+    assert calibration.score == "energy_and_context" and calibration.n_rollouts == 12
+    # The run-time score of each held-out rollout is the report's: same statistics, same combination.
+    expected = expected_combined_scores(record_dirs)["vanilla"]
+    vanilla = load_episodes([record_dirs[1]])
+    scored = [
+        calibration.score_rollout(
+            calibration.chunk_components(
+                np.array([r.final_energy for r in e]),
+                context_features=np.stack([r.context_feature for r in e]),
+            )
+        )
+        for e in vanilla.values()
+    ]
+    np.testing.assert_allclose(scored, expected)
+    assert f"| energy_and_context | 12 | {calibration.mu_v:.4g} | {calibration.sigma_v:.4g} |" in text
+
+
+# The committed records (benchmarks/results/metaworld_sweep_context_distance/combined_score.md).
+
+SWEEP = Path(__file__).parents[1] / "benchmarks" / "results" / "metaworld_sweep_context_distance" / "records"
+
+
+def test_the_combined_score_of_the_committed_sweep_catches_pose_3_which_neither_score_alone_does():
+    """combined_score.md, pose 3 (success 100% -> 60%): whole-episode AUROC final energy 0.800, mahalanobis
+    0.720, energy_and_context 0.960; Table III balanced accuracy at k = 1.0: 70.0%."""
+    calibration, vanilla, pose = (
+        load_episodes([SWEEP / name]) for name in ("calibration", "vanilla", "pose_s3")
+    )
+    reference = fit_score_reference(calibration)
+
+    def scores(episodes):
+        return [episode_scores(episodes, n, reference=reference) for n in ("final_energy", "mahalanobis")]
+
+    statistics = CombinedStatistics.fit(*scores(calibration))
+    negatives, positives = statistics.combine(*scores(vanilla)), statistics.combine(*scores(pose))
+    assert [f"{auroc(a, b):.3f}" for a, b in zip(scores(vanilla), scores(pose), strict=True)] == [
+        "0.800",
+        "0.720",
+    ]
+    assert f"{auroc(negatives, positives):.3f}" == "0.960"
+    fit = OODCalibration.fit(statistics.combine(*scores(calibration)))
+    row = {r.multiplier: r for r in ood_detection_table(negatives, positives, calibration=fit)}[1.0]
+    assert f"{row.balanced_accuracy:.1%}" == "70.0%"
