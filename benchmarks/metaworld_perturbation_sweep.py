@@ -24,7 +24,14 @@ from lerobot_policy_ebvla.pipelines.eval_energy import eval_metaworld_checkpoint
 SWEPT = [p for p in PERTURBATIONS if p not in ("none", "pose_fov")]
 
 
-def evaluate(args: argparse.Namespace, folder: str, seed: int, perturbation: str = "none", severity: int = 0):
+def evaluate(
+    args: argparse.Namespace,
+    folder: str,
+    seed: int,
+    perturbation: str = "none",
+    severity: int = 0,
+    episodes: int | None = None,
+):
     out = args.output_dir / folder
     if (out / "energy_records.jsonl").is_file():
         return
@@ -36,7 +43,7 @@ def evaluate(args: argparse.Namespace, folder: str, seed: int, perturbation: str
         task=args.tasks,
         device=args.device,
         max_episode_steps=args.max_episode_steps,
-        n_episodes=args.episodes,
+        n_episodes=episodes or args.episodes,
         seed=seed,
         perturbation=perturbation,
         severity=severity,
@@ -53,6 +60,12 @@ def main() -> None:
     parser.add_argument("--output_dir", type=Path, default=Path("outputs/metaworld_sweep"))
     parser.add_argument("--tasks", default="button-press-v3", help="One task or a comma-separated list.")
     parser.add_argument("--episodes", type=int, default=5, help="Episodes per condition.")
+    parser.add_argument(
+        "--calibration_episodes",
+        type=int,
+        default=None,
+        help="Vanilla calibration episodes (default: --episodes). With few, one astray rollout sets the threshold.",
+    )
     parser.add_argument("--max_episode_steps", type=int, default=150)
     parser.add_argument("--severities", type=int, nargs="+", default=[3, 5])
     parser.add_argument("--perturbations", nargs="+", default=SWEPT, choices=SWEPT)
@@ -74,7 +87,7 @@ def main() -> None:
     args = parser.parse_args()
 
     args.output_dir.mkdir(parents=True, exist_ok=True)
-    evaluate(args, "calibration", args.calibration_seed)
+    evaluate(args, "calibration", args.calibration_seed, episodes=args.calibration_episodes)
     evaluate(args, "vanilla", args.seed)
     conditions = {f"{p}_s{s}": (p, s) for p in args.perturbations for s in args.severities}
     for folder, (perturbation, severity) in conditions.items():
