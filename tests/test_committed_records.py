@@ -158,3 +158,39 @@ def test_calibrating_on_successes_only_needs_two_successful_rollouts(tmp_path):
     )
     with pytest.raises(ValueError, match="leaves 1 successful calibration rollout"):
         write_ood_report(cfg)
+
+
+SWEEP_CAL20 = Path(__file__).parents[1] / "benchmarks" / "results" / "metaworld_sweep_render128_cal20" / "records"
+SUCCESS_CUTTING = ("blank 3", "distractor 3", "distractor 5", "fov 3", "fov 5", "light_dim 5", "pose 5")
+SUCCESS_CUTTING += ("robot_init 3", "robot_init 5", "table_texture 5")
+
+
+def first_chunk_auroc(report: str, condition: str, score: str) -> float:
+    """A score's AUROC over each episode's first chunk, from the report's first-chunks section."""
+    section = report.split("## Detection on the first chunks")[1].split("\n## ")[0]
+    block = section.split(f"\n### {condition}:")[1].split("\n### ")[0]
+    row = next(line for line in block.splitlines() if line.startswith(f"| {score} |"))
+    return float(row.split("|")[2].split()[0])
+
+
+def test_the_context_knn_flags_every_success_cutting_perturbation_on_the_first_chunk(tmp_path):
+    """BENCHMARKS.md section 6, the sweep with 20 calibration rollouts: k-NN >= 0.85 on the first chunk under all
+    ten conditions that cut success by 20+ points, 0.821 pooled; the final energy 0.598 pooled."""
+    conditions = sorted(p for p in SWEEP_CAL20.iterdir() if p.name not in ("calibration", "vanilla"))
+    report = write_ood_report(
+        OODReportConfig(
+            calibration=[str(SWEEP_CAL20 / "calibration")],
+            vanilla=[str(SWEEP_CAL20 / "vanilla")],
+            ood=[str(p) for p in conditions],
+            output_dir=tmp_path,
+            n_bootstrap=10,
+            first_chunks=[1, 3],
+            table_iii_first_chunks=0,
+        )
+    )
+    assert "Calibration: 20 vanilla rollouts" in report
+    assert {c: first_chunk_auroc(report, c, "knn") >= 0.85 for c in SUCCESS_CUTTING} == dict.fromkeys(
+        SUCCESS_CUTTING, True
+    )
+    assert first_chunk_auroc(report, "all perturbations", "knn") == pytest.approx(0.821, abs=5e-4)
+    assert first_chunk_auroc(report, "all perturbations", "final_energy") == pytest.approx(0.598, abs=5e-4)
