@@ -160,7 +160,9 @@ def test_calibrating_on_successes_only_needs_two_successful_rollouts(tmp_path):
         write_ood_report(cfg)
 
 
-SWEEP_CAL20 = Path(__file__).parents[1] / "benchmarks" / "results" / "metaworld_sweep_render128_cal20" / "records"
+SWEEP_CAL20 = (
+    Path(__file__).parents[1] / "benchmarks" / "results" / "metaworld_sweep_render128_cal20" / "records"
+)
 SUCCESS_CUTTING = ("blank 3", "distractor 3", "distractor 5", "fov 3", "fov 5", "light_dim 5", "pose 5")
 SUCCESS_CUTTING += ("robot_init 3", "robot_init 5", "table_texture 5")
 

@@ -19,7 +19,9 @@ final energy's does (`scores.episode_scores`), so all of them go through the sam
   features' mean and their Ledoit-Wolf shrunk covariance (D can exceed the number of chunks): it is the
   run-time context distance (`runtime.calibration.ContextStatistics`, `score="context_distance"`), fitted and
   computed by the same code. k-NN is the Euclidean distance to the k-th nearest calibration feature,
-  features standardized per dimension by the calibration mean and std.
+  features standardized per dimension by the calibration mean and std: for a held-out chunk it is the
+  run-time context k-NN distance (`runtime.calibration.ContextNeighbours`, `score="context_knn"`), computed by
+  the same function (`runtime.calibration.kth_nearest_distance`).
 
 Two more scores combine the final energy and the context distance per rollout, so they have no chunk score
 (`scores.combined_rollout_scores`): the rollout's final energy and its Mahalanobis distance, each aggregated
@@ -40,7 +42,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..runtime.calibration import ContextStatistics, PhaseStatistics
+from ..runtime.calibration import ContextNeighbours, ContextStatistics, PhaseStatistics, kth_nearest_distance
 from .records import Episode
 
 SCORE_NAMES = (
@@ -69,13 +71,16 @@ class ContextFeatureModel:
     Build it with `fit`; `reference_ids` names the episode of each reference feature. Both distances of an
     episode named by `episode_id` leave that episode's features out of the reference (leave-one-episode-out).
     The Mahalanobis distance is the run-time context distance (`runtime.calibration.ContextStatistics`):
-    `statistics` is what `--score=context_distance` saves with the calibration.
+    `statistics` is what `--score=context_distance` saves with the calibration. The k-NN distance of a held-out
+    feature is the run-time context k-NN distance (`runtime.calibration.ContextNeighbours`): `neighbours` is
+    what `--score=context_knn` saves with the calibration.
     """
 
     statistics: ContextStatistics
     scale: np.ndarray
     reference: np.ndarray
     reference_ids: list
+    neighbours: ContextNeighbours
     k: int = 5
     # Mahalanobis's statistics without one episode, by episode id, fitted when first needed.
     _left_out: dict = field(default_factory=dict, init=False, repr=False, compare=False)
@@ -92,8 +97,12 @@ class ContextFeatureModel:
         if k < 1:
             raise ValueError(f"`k` (nearest neighbours) must be >= 1, got {k}.")
         statistics = ContextStatistics.fit(features)
-        scale = np.maximum(features.std(axis=0), 1e-12)  # constant dimensions carry no distance
-        return cls(statistics, scale, (features - statistics.mean) / scale, list(episode_ids), k)
+        neighbours = ContextNeighbours.fit(
+            features, k
+        )  # the std is floored: constant dimensions carry no distance
+        scale = neighbours.std
+        reference = (features - statistics.mean) / scale
+        return cls(statistics, scale, reference, list(episode_ids), neighbours, k)
 
     def _same_episode(self, episode_id: Hashable) -> np.ndarray:
         return np.array([i == episode_id for i in self.reference_ids])
@@ -116,14 +125,7 @@ class ContextFeatureModel:
     def knn(self, features: np.ndarray, episode_id: Hashable = None) -> np.ndarray:
         """Distance of each feature to its k-th nearest reference feature outside episode `episode_id`."""
         queries = (np.asarray(features, dtype=np.float64) - self.statistics.mean) / self.scale
-        squared = (queries**2).sum(axis=1)[:, None] - 2 * queries @ self.reference.T
-        distances = np.sqrt(np.maximum(squared + (self.reference**2).sum(axis=1)[None, :], 0.0))
-        same_episode = self._same_episode(episode_id)
-        distances[:, same_episode] = np.inf
-        k = min(self.k, int(np.sum(~same_episode)))
-        if k == 0:
-            return np.full(len(queries), np.inf)
-        return np.partition(distances, k - 1, axis=1)[:, k - 1]
+        return kth_nearest_distance(queries, self.reference, self.k, self._same_episode(episode_id))
 
 
 class PhaseEnergyModel:

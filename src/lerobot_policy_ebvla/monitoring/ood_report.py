@@ -51,6 +51,7 @@ REPORTED_AS = {
     "phase_energy": "phase_energy",
     "context_distance": "mahalanobis",
     "energy_and_context": "energy_and_context",
+    "context_knn": "knn",
 }
 
 
@@ -89,7 +90,7 @@ class OODReportConfig:
     n_bootstrap: int = 1000
     # Seed of the bootstrap generator.
     seed: int = 0
-    # Neighbours of the k-NN feature baseline.
+    # Neighbours of the k-NN feature baseline (and the k a `--score=context_knn` calibration saves).
     knn_k: int = 5
     # Detection on the first chunks: every score's AUROC over each episode's first k chunks, for each k,
     # beside the whole episode's (an episode shorter than k uses all its chunks).
@@ -103,7 +104,9 @@ class OODReportConfig:
     # energy against the calibration rollouts' final energy at the same chunk index), context_distance (the
     # report's mahalanobis score: the chunk's pooled context against the calibration contexts; needs records
     # with context features) or energy_and_context (the report's energy_and_context score: the larger of the
-    # final energy and the context distance, each standardized on the calibration rollouts; needs them too).
+    # final energy and the context distance, each standardized on the calibration rollouts; needs them too)
+    # or context_knn (the report's knn score: the chunk's standardized pooled context against its knn_k-th
+    # nearest calibration context; needs them too, and saves every calibration context beside the JSON).
     score: str = "final_energy"
     # k saved in the calibration.
     k: float = 1.0
@@ -333,6 +336,8 @@ def _calibration_to_save(
         return dataclasses.replace(fit, score=cfg.score, phase_mean=phase.mean, phase_std=phase.std)
     if cfg.score == "context_distance":
         return dataclasses.replace(fit, score=cfg.score, context=reference.features.statistics)
+    if cfg.score == "context_knn":
+        return dataclasses.replace(fit, score=cfg.score, neighbours=reference.features.neighbours)
     if cfg.score == "energy_and_context":
         # The same standardization as the report's energy_and_context rows: the calibration rollouts' final
         # energies and leave-one-episode-out context distances.
@@ -352,6 +357,12 @@ def _saved_score_note(cfg: OODReportConfig) -> str:
             "\n\n`--score=context_distance`, the score a calibration saved by this report has `ood_response` "
             "act on, is the `mahalanobis` score of every table: the same features, fit and leave-one-episode-out "
             "calibration scores."
+        )
+    if cfg.score == "context_knn":
+        return (
+            "\n\n`--score=context_knn`, the score a calibration saved by this report has `ood_response` act on, "
+            f"is the `knn` score of every table (k = {cfg.knn_k}): the same features, standardization and "
+            "leave-one-episode-out calibration scores; the saved calibration keeps every calibration context."
         )
     if cfg.score == "energy_and_context":
         return (

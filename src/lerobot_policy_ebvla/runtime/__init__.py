@@ -3,8 +3,10 @@
 - `threshold`: the one decision rule, "flag when score > T", with T = mu + k sigma (Eq. 5) or the conformal
   quantile of a stated false-alarm rate.
 - `calibration`: `OODCalibration` (mu_v, sigma_v, k, the rule, and the chunk score it applies to: the final
-  energy, or the phase energy of `PhaseStatistics`; `ood_calibration.json` beside the weights), the rollout
-  score it is defined on, and `EnergyOODMonitor`, which applies it to energies as they come.
+  energy, the phase energy of `PhaseStatistics`, the context distance of `ContextStatistics`, the energy and
+  context score of `CombinedStatistics`, or the context k-NN distance of `ContextNeighbours`;
+  `ood_calibration.json` beside the weights, context statistics and neighbours in safetensors files beside it),
+  the rollout score it is defined on, and `EnergyOODMonitor`, which applies it to energies as they come.
 - `response`: what the policy does with a flagged chunk (`EBVLAConfig.ood_response`: continue, hold, or raise
   `EnergyOODError`).
 

@@ -39,13 +39,24 @@ calibration rollouts' scores (`CombinedStatistics`), and takes the larger,
 which is then calibrated like the energy (mu_v, sigma_v of the vanilla rollouts' s; T = mu_v + k sigma_v). E and
 d are each aggregated over the rollout's chunks first (`OODCalibration.score_rollout`); a single chunk's score
 is the same formula on that chunk alone (`OODCalibration.chunk_score`).
+
+The Mahalanobis distance assumes the vanilla contexts form one Gaussian cloud; the *context k-NN distance*
+(`score="context_knn"`, opt-in) assumes nothing: the Euclidean distance of the chunk's pooled context,
+standardized per dimension by the vanilla mean and std, to its k-th nearest standardized vanilla context,
+
+    d_k(c) = || z(c) - z(c_(k)) ||,    z(c) = (c - mean) / std,    c_(k) the k-th nearest calibration context,
+
+`ContextNeighbours`, the report's `knn` baseline for a held-out chunk. mu_v and sigma_v are those of the vanilla
+rollout scores, each calibration rollout scored without its own chunks (leave-one-episode-out), as the report
+does. It keeps every calibration context, N x D float32 numbers (D = 128 for the light policy: a few MB for a
+few thousand chunks), with their mean, std and k, beside the JSON in `ood_calibration_neighbours.safetensors`.
 """
 
 import dataclasses
 import hashlib
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -62,14 +73,20 @@ OOD_CALIBRATION_FILENAME = "ood_calibration.json"
 OOD_CONTEXT_FILENAME = "ood_calibration_context.safetensors"
 # The JSON field that names that file, with its D and SHA-256 (`OODCalibration.save`).
 CONTEXT_FIELD = "context_statistics"
+# The context k-NN distance's calibration features (N x D), beside the JSON, and the JSON field naming them.
+OOD_NEIGHBOURS_FILENAME = "ood_calibration_neighbours.safetensors"
+NEIGHBOURS_FIELD = "context_neighbours"
 SCORE_AGGREGATIONS = ("mean", "max", "last", "median")
 THRESHOLD_RULES = ("mean_std", "conformal")
 # The chunk scores a run-time calibration can compute from what the policy reports: the final energy, the
 # final energy against the vanilla energy at the same chunk index, the distance of the chunk's pooled context
-# from the vanilla contexts, and the larger of the first and the third, each standardized.
-CALIBRATED_SCORES = ("final_energy", "phase_energy", "context_distance", "energy_and_context")
+# from the vanilla contexts, the larger of the first and the third, each standardized, and the distance of the
+# chunk's pooled context to its k-th nearest vanilla context.
+CALIBRATED_SCORES = ("final_energy", "phase_energy", "context_distance", "energy_and_context", "context_knn")
 # The scores a calibration computes from each chunk's pooled context.
-CONTEXT_SCORES = ("context_distance", "energy_and_context")
+CONTEXT_SCORES = ("context_distance", "energy_and_context", "context_knn")
+# Of those, the ones computed with `ContextStatistics` (the others with `ContextNeighbours`).
+STATISTICS_SCORES = ("context_distance", "energy_and_context")
 # sigma_v[t] is at least this fraction of the pooled sigma of all vanilla chunk energies.
 PHASE_SIGMA_FLOOR = 0.1
 # And at least this, so that a calibration of identical energies still divides by a positive number.
@@ -291,6 +308,149 @@ class ContextStatistics:
         return cls(tensors["mean"], tensors["precision"], int(tensors["n_chunks"]))
 
 
+def kth_nearest_distance(
+    queries: np.ndarray, reference: np.ndarray, k: int, excluded: np.ndarray | None = None
+) -> np.ndarray:
+    """Euclidean distance of each (N, D) query to its k-th nearest row of the (M, D) reference.
+
+    `excluded`, (M,) bool, leaves reference rows out (a calibration episode's own chunks). With fewer than k rows
+    left, the farthest one counts; with none, the distance is +inf. The report's `knn` baseline and the run-time
+    `ContextNeighbours` both compute it here, so they give the same number.
+    """
+    squared = (queries**2).sum(axis=1)[:, None] - 2 * queries @ reference.T
+    distances = np.sqrt(np.maximum(squared + (reference**2).sum(axis=1)[None, :], 0.0))
+    n_left = reference.shape[0]
+    if excluded is not None:
+        distances[:, excluded] = np.inf
+        n_left -= int(np.sum(excluded))
+    k = min(k, n_left)
+    if k == 0:
+        return np.full(len(queries), np.inf)
+    return np.partition(distances, k - 1, axis=1)[:, k - 1]
+
+
+@dataclass(frozen=True, eq=False)
+class ContextNeighbours:
+    """The vanilla context features themselves, the context k-NN distance's reference.
+
+    The context k-NN distance of a chunk is the Euclidean distance of its pooled context c
+    (`EBVLAPolicy.context_features`), standardized per dimension as z = (c - mean) / std, to its k-th nearest
+    standardized vanilla context: the report's `knn` baseline for a held-out chunk. Unlike the Mahalanobis
+    distance it assumes no Gaussian shape, so a context between two vanilla modes is still far from both.
+    `fit` on every chunk of the calibration rollouts.
+
+    It keeps every calibration feature, N x D float32 numbers: for the light policy (D = 128) a few thousand
+    chunks are a few MB (4,000 chunks: 2 MB), for the VLM (D = 896) about 7 times more.
+
+    Args:
+        features: The vanilla pooled contexts, (N, D), stored as float32.
+        mean: Their per-dimension mean, (D,).
+        std: Their per-dimension population std, (D,), floored at 1e-12 (a constant dimension carries no
+            distance).
+        k: Which nearest neighbour's distance is the score (`ebvla-ood-report --knn_k`); with fewer than k
+            features, the farthest.
+    """
+
+    features: np.ndarray
+    mean: np.ndarray
+    std: np.ndarray
+    k: int
+
+    def __post_init__(self):
+        features = np.asarray(self.features, dtype=np.float32)
+        mean = np.asarray(self.mean, dtype=np.float64)
+        std = np.asarray(self.std, dtype=np.float64)
+        if features.ndim != 2 or features.shape[0] < 1 or features.shape[1] == 0:
+            raise ValueError(f"Context neighbours need `features` (N >= 1, D), got shape {features.shape}.")
+        d = features.shape[1]
+        if mean.shape != (d,) or std.shape != (d,):
+            raise ValueError(
+                f"Context neighbours need `mean` and `std` of shape ({d},), one per feature dimension; got "
+                f"{mean.shape} and {std.shape}."
+            )
+        if not (np.all(np.isfinite(features)) and np.all(np.isfinite(mean)) and np.all(np.isfinite(std))):
+            raise ValueError("Context neighbours `features`, `mean` and `std` must be finite.")
+        if np.any(std <= 0):
+            raise ValueError("Context neighbours `std` must be > 0 in every dimension.")
+        if int(self.k) != self.k or self.k < 1:
+            raise ValueError(f"Context neighbours need `k` (nearest neighbours) >= 1, got {self.k}.")
+        object.__setattr__(self, "features", features)
+        object.__setattr__(self, "mean", mean)
+        object.__setattr__(self, "std", std)
+        object.__setattr__(self, "k", int(self.k))
+        # The standardized reference, computed once: every chunk is compared with all of it.
+        object.__setattr__(self, "_reference", (features.astype(np.float64) - mean) / std)
+
+    @classmethod
+    def fit(cls, features: ArrayLike, k: int = 5) -> "ContextNeighbours":
+        """Keeps (N >= 2, D) vanilla context features, one row per chunk, with their mean and std.
+
+        Raises:
+            ValueError: Not (N >= 2, D), or a non-finite feature.
+        """
+        features = _float64(features)
+        if features.ndim != 2 or features.shape[0] < 2:
+            raise ValueError(f"Context features to fit must be (N >= 2, D), got shape {features.shape}.")
+        if not np.all(np.isfinite(features)):
+            raise ValueError("Cannot fit context neighbours on non-finite context features.")
+        return cls(features, features.mean(axis=0), np.maximum(features.std(axis=0), _MIN_SIGMA), k)
+
+    @property
+    def dim(self) -> int:
+        """D, the size of the context features."""
+        return self.mean.size
+
+    @property
+    def n_chunks(self) -> int:
+        """N, how many vanilla chunks the features come from."""
+        return self.features.shape[0]
+
+    def distance(self, features: ArrayLike, excluded: np.ndarray | None = None) -> np.ndarray:
+        """The k-NN distance of each context feature: (N,) for (N, D) features, (1,) for one (D,) feature.
+
+        `excluded`, (n_chunks,) bool, leaves calibration features out (the report's leave-one-episode-out
+        scores of the calibration rollouts); a run-time chunk is compared with all of them.
+
+        Raises:
+            ValueError: The features are not D-dimensional (a calibration of another backbone).
+        """
+        features = _float64(features)
+        if features.ndim not in (1, 2) or features.shape[-1] != self.dim:
+            raise ValueError(
+                f"`context_features` must be (N, {self.dim}): the calibration's context neighbours are "
+                f"{self.dim}-dimensional pooled contexts; got shape {features.shape}. Calibrate this checkpoint "
+                "again (`ebvla-ood-report --score=context_knn`)."
+            )
+        queries = (np.atleast_2d(features) - self.mean) / self.std
+        return kth_nearest_distance(queries, self._reference, self.k, excluded)
+
+    def to_bytes(self) -> bytes:
+        """The safetensors file of `OOD_NEIGHBOURS_FILENAME`: the features in float32, mean and std in float64."""
+        return safetensors.numpy.save(
+            {
+                "features": self.features,
+                "mean": self.mean,
+                "std": self.std,
+                "k": np.array(self.k, dtype=np.int64),
+            }
+        )
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> "ContextNeighbours":
+        """Reads what `to_bytes` wrote.
+
+        Raises:
+            ValueError: Not a safetensors file holding `features`, `mean`, `std` and `k`, or invalid ones.
+        """
+        try:
+            tensors = safetensors.numpy.load(data)
+        except SafetensorError as e:
+            raise ValueError(f"not a safetensors file ({e})") from e
+        if set(tensors) != {"features", "mean", "std", "k"}:
+            raise ValueError(f"expected the tensors `features`, `mean`, `std` and `k`, got {sorted(tensors)}")
+        return cls(tensors["features"], tensors["mean"], tensors["std"], int(tensors["k"]))
+
+
 @dataclass(frozen=True)
 class CombinedStatistics:
     """(mu_v, sigma_v) of the final energy's and of the context distance's vanilla rollout scores, in that order.
@@ -379,7 +539,9 @@ class OODCalibration:
         score: The chunk score the statistics are of: "final_energy" (the paper's, default),
             "phase_energy" (the final energy against the vanilla energy at the same chunk index),
             "context_distance" (the Mahalanobis distance of the chunk's pooled context from the vanilla
-            contexts) or "energy_and_context" (the larger of the two standardized, `CombinedStatistics`).
+            contexts), "energy_and_context" (the larger of the two standardized, `CombinedStatistics`) or
+            "context_knn" (the distance of the chunk's standardized pooled context to its k-th nearest vanilla
+            one, `ContextNeighbours`).
         phase_mean: mu_v[t] of `PhaseStatistics`, for `score="phase_energy"`; None otherwise.
         phase_std: sigma_v[t] of `PhaseStatistics`, for `score="phase_energy"`; None otherwise.
         context: mu_c and P of `ContextStatistics`, for `score="context_distance"` and
@@ -388,6 +550,8 @@ class OODCalibration:
         combined_mean: (mu_E, mu_d) of `CombinedStatistics`, for `score="energy_and_context"`; None otherwise.
         combined_std: (sigma_E, sigma_d) of `CombinedStatistics`, for `score="energy_and_context"`; None
             otherwise.
+        neighbours: The vanilla context features of `ContextNeighbours`, for `score="context_knn"`; None
+            otherwise. Saved beside the JSON in `OOD_NEIGHBOURS_FILENAME`, not compared by `==`.
     """
 
     mu_v: float
@@ -404,6 +568,7 @@ class OODCalibration:
     context: ContextStatistics | None = field(default=None, compare=False)
     combined_mean: tuple[float, float] | None = None
     combined_std: tuple[float, float] | None = None
+    neighbours: ContextNeighbours | None = field(default=None, compare=False)
 
     def __post_init__(self):
         if self.aggregation not in SCORE_AGGREGATIONS:
@@ -431,8 +596,14 @@ class OODCalibration:
             raise ValueError("`score='phase_energy'` needs `phase_mean` and `phase_std` (`PhaseStatistics`).")
         if self.context is not None and not isinstance(self.context, ContextStatistics):
             raise ValueError(f"`context` must be `ContextStatistics`, got {type(self.context).__name__}.")
-        if self.score in CONTEXT_SCORES and self.context is None:
+        if self.score in STATISTICS_SCORES and self.context is None:
             raise ValueError(f"`score={self.score!r}` needs `context` (`ContextStatistics`).")
+        if self.neighbours is not None and not isinstance(self.neighbours, ContextNeighbours):
+            raise ValueError(
+                f"`neighbours` must be `ContextNeighbours`, got {type(self.neighbours).__name__}."
+            )
+        if self.score == "context_knn" and self.neighbours is None:
+            raise ValueError("`score='context_knn'` needs `neighbours` (`ContextNeighbours`).")
         if (self.combined_mean is None) != (self.combined_std is None):
             raise ValueError("`combined_mean` and `combined_std` come together: give both or neither.")
         if self.combined_mean is not None:
@@ -456,6 +627,7 @@ class OODCalibration:
         phase: PhaseStatistics | None = None,
         context: ContextStatistics | None = None,
         combined: CombinedStatistics | None = None,
+        neighbours: ContextNeighbours | None = None,
     ) -> "OODCalibration":
         """Estimates mu_v and sigma_v, and with `false_alarm_rate` the conformal threshold, from vanilla scores.
 
@@ -470,6 +642,8 @@ class OODCalibration:
                 `score="context_distance"` and `score="energy_and_context"`.
             combined: The statistics the final energy and the context distance were standardized with, for
                 `score="energy_and_context"`.
+            neighbours: The vanilla context features the k-NN distance was computed with, for
+                `score="context_knn"`.
 
         Raises:
             ValueError: No finite score to fit on.
@@ -495,6 +669,7 @@ class OODCalibration:
             context,
             combined_mean,
             combined_std,
+            neighbours,
         )
 
     @property
@@ -526,14 +701,15 @@ class OODCalibration:
         (E - mu_v[t]) / sigma_v[t] at the chunk's 0-based index t in its episode; for `score="context_distance"`
         it is the Mahalanobis distance d(c) of the chunk's pooled context (`ContextStatistics`); for
         `score="energy_and_context"` it is max(z_E, z_d) of the chunk's E and d(c) (`CombinedStatistics`), the
-        score of a rollout of that one chunk.
+        score of a rollout of that one chunk; for `score="context_knn"` it is the distance of the chunk's
+        standardized pooled context to its k-th nearest vanilla one (`ContextNeighbours`).
 
         Args:
             final_energy: One final energy, or one per environment ((B,) array or tensor).
             chunk_index: The chunk's index in its episode: an int, or one per environment. Needed by the
                 phase energy only.
             context_features: The chunk's pooled context, (D,), or one per environment, (B, D). Needed by
-                the context distance and the energy-and-context score only.
+                the context scores (`CONTEXT_SCORES`) only.
 
         Returns:
             A float for a scalar energy, else an array with one score per entry.
@@ -543,7 +719,7 @@ class OODCalibration:
                 features are not one D-dimensional row per final energy.
         """
         scalar = _ndim(final_energy) == 0
-        if self.score == "context_distance":
+        if self.score in ("context_distance", "context_knn"):
             return self._context_distance(final_energy, context_features)
         if self.score == "energy_and_context":
             distances = self._context_distance(final_energy, context_features)
@@ -562,10 +738,11 @@ class OODCalibration:
     ) -> float | np.ndarray:
         if context_features is None:
             raise ValueError(
-                "The context distance needs each chunk's pooled context (`context_features`, (B, D), from "
+                f"The {self.score} score needs each chunk's pooled context (`context_features`, (B, D), from "
                 "`EBVLAPolicy.context_features`)."
             )
-        scores = self.context.distance(context_features)
+        reference = self.neighbours if self.score == "context_knn" else self.context
+        scores = reference.distance(context_features)
         n_energies = as_array(final_energy).size
         if scores.size != n_energies:
             raise ValueError(
@@ -628,7 +805,8 @@ class OODCalibration:
 
         With context statistics, they go beside it into `OOD_CONTEXT_FILENAME`, and the JSON's
         `context_statistics` names that file with its D and its SHA-256, so that a file of another
-        calibration is refused on loading.
+        calibration is refused on loading. Context neighbours go the same way into `OOD_NEIGHBOURS_FILENAME`,
+        named by the JSON's `context_neighbours` with their D, N, k and SHA-256.
 
         Raises:
             FileNotFoundError: The folder does not exist.
@@ -647,22 +825,27 @@ class OODCalibration:
         if path.exists() and not overwrite:
             raise FileExistsError(f"{path} already exists; pass overwrite=True to replace it.")
         # `threshold` is written for people reading the file; loading recomputes it. JSON has no infinity.
-        payload = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "context"}
+        payload = {
+            f.name: getattr(self, f.name)
+            for f in dataclasses.fields(self)
+            if f.name not in (a.attribute for a in _BESIDE_THE_JSON)
+        }
         payload = {
             key: _to_json_number(value) for key, value in {**payload, "threshold": self.threshold}.items()
         }
-        context_path = checkpoint_dir / OOD_CONTEXT_FILENAME
-        if self.context is None:
-            context_path.unlink(missing_ok=True)  # a previous calibration's statistics no longer belong here
-        else:
-            data = self.context.to_bytes()
-            payload[CONTEXT_FIELD] = {
-                "file": OOD_CONTEXT_FILENAME,
-                "dim": self.context.dim,
-                "n_chunks": self.context.n_chunks,
+        for beside in _BESIDE_THE_JSON:
+            statistics = getattr(self, beside.attribute)
+            beside_path = checkpoint_dir / beside.filename
+            if statistics is None:
+                beside_path.unlink(missing_ok=True)  # a previous calibration's file no longer belongs here
+                continue
+            data = statistics.to_bytes()
+            payload[beside.field] = {
+                "file": beside.filename,
+                **beside.description(statistics),
                 "sha256": hashlib.sha256(data).hexdigest(),
             }
-            context_path.write_bytes(data)  # first: a reader that finds the JSON finds its statistics
+            beside_path.write_bytes(data)  # first: a reader that finds the JSON finds its statistics
         path.write_text(json.dumps(payload, indent=2, allow_nan=False) + "\n", encoding="utf-8")
         return path
 
@@ -671,8 +854,8 @@ class OODCalibration:
         """Reads a calibration from `ood_calibration.json` or from the checkpoint folder that holds it.
 
         Files written before the conformal fields existed read with `rule="mean_std"`, files written before
-        the phase energy with `score="final_energy"`. Context statistics are read from the file the JSON's
-        `context_statistics` names, beside it.
+        the phase energy with `score="final_energy"`. Context statistics and neighbours are read from the files
+        the JSON's `context_statistics` and `context_neighbours` name, beside it.
         """
         path = Path(path)
         if path.is_dir():
@@ -684,13 +867,13 @@ class OODCalibration:
             payload.pop("threshold", None)
             if payload.get("conformal_threshold") == "inf":
                 payload["conformal_threshold"] = math.inf
-            if CONTEXT_FIELD in payload:
-                payload["context"] = _load_context_statistics(path, payload.pop(CONTEXT_FIELD))
+            for beside in _BESIDE_THE_JSON:
+                if beside.field in payload:
+                    payload[beside.attribute] = _load_beside_the_json(path, beside, payload.pop(beside.field))
             return cls(**payload)
         except (json.JSONDecodeError, TypeError, ValueError) as e:
-            fields = ", ".join(
-                CONTEXT_FIELD if f.name == "context" else f.name for f in dataclasses.fields(cls)
-            )
+            json_names = {beside.attribute: beside.field for beside in _BESIDE_THE_JSON}
+            fields = ", ".join(json_names.get(f.name, f.name) for f in dataclasses.fields(cls))
             raise ValueError(
                 f"{path} is not a valid OOD calibration ({e}). Expected a JSON object with the fields "
                 f"{fields} (mu_v, sigma_v required), as `OODCalibration.save` and `ebvla-ood-report "
@@ -712,57 +895,107 @@ class OODCalibration:
                 f"No {OOD_CALIBRATION_FILENAME} in a local folder or Hub repo named {pretrained_name_or_path}; "
                 "create it with `ebvla-ood-report --calibrate_to=...`."
             ) from e
-        if (context_file := _context_file_named(Path(path))) is not None:
+        for beside in _BESIDE_THE_JSON:
+            if (name := _file_named(Path(path), beside.field)) is None:
+                continue
             try:
-                hf_hub_download(repo_id, context_file)  # into the same snapshot folder, beside the JSON
+                hf_hub_download(repo_id, name)  # into the same snapshot folder, beside the JSON
             except Exception as e:
                 raise ValueError(
-                    f"The {OOD_CALIBRATION_FILENAME} of the Hub repo {repo_id} names its context statistics "
-                    f"`{CONTEXT_FIELD}.file` = {context_file!r}, which cannot be downloaded ({e}): upload it "
-                    "beside the JSON, or calibrate again."
+                    f"The {OOD_CALIBRATION_FILENAME} of the Hub repo {repo_id} names its {beside.what} "
+                    f"`{beside.field}.file` = {name!r}, which cannot be downloaded ({e}): upload it beside the "
+                    "JSON, or calibrate again."
                 ) from e
         return cls.load(path)
 
 
-def _context_file_named(path: Path) -> str | None:
-    """The context statistics file a calibration JSON names; None when it names none or cannot be read
+@dataclass(frozen=True)
+class _BesideTheJSON:
+    """A calibration attribute saved beside `ood_calibration.json` in a safetensors file the JSON names.
+
+    Args:
+        attribute: The `OODCalibration` field.
+        field: The JSON field that names the file, with `description` and its SHA-256.
+        filename: The file, beside the JSON.
+        what: What it holds, for error messages.
+        reader: Builds the attribute from the file's bytes (`from_bytes`).
+        description: The numbers the JSON records about it, checked against the file on loading.
+    """
+
+    attribute: str
+    field: str
+    filename: str
+    what: str
+    reader: Callable[[bytes], "ContextStatistics | ContextNeighbours"]
+    description: Callable[["ContextStatistics | ContextNeighbours"], dict[str, int]]
+
+
+_BESIDE_THE_JSON = (
+    _BesideTheJSON(
+        "context",
+        CONTEXT_FIELD,
+        OOD_CONTEXT_FILENAME,
+        "context statistics",
+        ContextStatistics.from_bytes,
+        lambda s: {"dim": s.dim, "n_chunks": s.n_chunks},
+    ),
+    _BesideTheJSON(
+        "neighbours",
+        NEIGHBOURS_FIELD,
+        OOD_NEIGHBOURS_FILENAME,
+        "context neighbours",
+        ContextNeighbours.from_bytes,
+        lambda s: {"dim": s.dim, "n_chunks": s.n_chunks, "k": s.k},
+    ),
+)
+
+
+def _file_named(path: Path, json_field: str) -> str | None:
+    """The file a calibration JSON's `json_field` names; None when it names none or cannot be read
     (`OODCalibration.load` then says what is wrong)."""
     try:
-        entry = json.loads(path.read_text(encoding="utf-8")).get(CONTEXT_FIELD)
+        entry = json.loads(path.read_text(encoding="utf-8")).get(json_field)
         return str(entry["file"])
     except (OSError, json.JSONDecodeError, AttributeError, TypeError, KeyError):
         return None
 
 
-def _load_context_statistics(path: Path, entry: object) -> ContextStatistics:
-    """The `ContextStatistics` of a calibration JSON's `context_statistics` entry, checked against it."""
-    keys = {"file", "dim", "n_chunks", "sha256"}
-    if not isinstance(entry, dict) or set(entry) != keys:
-        raise ValueError(f"`{CONTEXT_FIELD}` must be an object with the keys {sorted(keys)}, got {entry!r}")
+def _load_beside_the_json(
+    path: Path, beside: _BesideTheJSON, entry: object
+) -> "ContextStatistics | ContextNeighbours":
+    """The attribute of a calibration JSON's entry (`context_statistics`, `context_neighbours`), checked
+    against it: the file exists beside the JSON, has the recorded SHA-256, and holds what the entry says."""
+    name_of = beside.field
+    if not isinstance(entry, dict) or "file" not in entry or "sha256" not in entry:
+        raise ValueError(f"`{name_of}` must be an object with the keys `file` and `sha256`, got {entry!r}")
     name = entry["file"]
     if not isinstance(name, str) or Path(name).name != name or name in ("", ".", ".."):
-        raise ValueError(f"`{CONTEXT_FIELD}.file` must be a file name beside the JSON, got {name!r}")
-    context_path = path.with_name(name)
-    if not context_path.is_file():
+        raise ValueError(f"`{name_of}.file` must be a file name beside the JSON, got {name!r}")
+    beside_path = path.with_name(name)
+    if not beside_path.is_file():
         raise ValueError(
-            f"`{CONTEXT_FIELD}.file` names {context_path}, which does not exist: the context distance's "
-            "statistics are saved beside the JSON and must travel with it"
+            f"`{name_of}.file` names {beside_path}, which does not exist: the {beside.what} are saved beside "
+            "the JSON and must travel with it"
         )
-    data = context_path.read_bytes()
+    data = beside_path.read_bytes()
     if hashlib.sha256(data).hexdigest() != entry["sha256"]:
         raise ValueError(
-            f"{context_path} does not match `{CONTEXT_FIELD}.sha256`: it belongs to another calibration"
+            f"{beside_path} does not match `{name_of}.sha256`: it belongs to another calibration"
         )
     try:
-        statistics = ContextStatistics.from_bytes(data)
+        value = beside.reader(data)
     except ValueError as e:
-        raise ValueError(f"{context_path}: {e}") from e
-    if (statistics.dim, statistics.n_chunks) != (entry["dim"], entry["n_chunks"]):
+        raise ValueError(f"{beside_path}: {e}") from e
+    described = beside.description(value)
+    keys = {"file", *described, "sha256"}
+    if set(entry) != keys:
+        raise ValueError(f"`{name_of}` must be an object with the keys {sorted(keys)}, got {entry!r}")
+    recorded = {key: entry[key] for key in described}
+    if described != recorded:
         raise ValueError(
-            f"{context_path} holds statistics of D={statistics.dim} from {statistics.n_chunks} chunks, but "
-            f"`{CONTEXT_FIELD}` says D={entry['dim']} from {entry['n_chunks']} chunks"
+            f"{beside_path} holds {beside.what} with {described}, but `{name_of}` says {recorded}"
         )
-    return statistics
+    return value
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,8 @@ of the checkpoint's `ood_calibration.json`, with the one rule of `threshold.py`:
 distribution, so +inf (diverged refinement) and NaN are flagged. The score is the calibration's
 (`OODCalibration.chunk_score`): the final energy E(a^(K_inf), C) (the paper's, default), the phase energy,
 the context distance of the chunk's pooled context, which the policy then computes from the backbone pass
-that encoded the chunk's context, or the larger of the standardized energy and context distance. `EBVLAConfig.ood_response` picks what happens to a flagged chunk:
+that encoded the chunk's context, the larger of the standardized energy and context distance, or the context
+k-NN distance of the pooled context (its distance to the k-th nearest calibration context). `EBVLAConfig.ood_response` picks what happens to a flagged chunk:
 
 - "continue": it is executed and a warning is logged (the default).
 - "hold": each of its H actions is replaced by the hold action; the next refinement checks again.
@@ -54,8 +55,8 @@ class OODResponseDecision:
     Attributes:
         response: The configured `ood_response`.
         threshold: The threshold T the chunk scores were compared to.
-        flagged: (B,) bool, the chunk score (the calibration's: final energy, phase energy or context
-            distance) exceeds T (or is not finite).
+        flagged: (B,) bool, the chunk score (the calibration's: final energy, phase energy, context
+            distance, energy and context, or context k-NN distance) exceeds T (or is not finite).
         held: (B,) bool, the chunk was replaced by the hold action (flagged and `response == "hold"`).
     """
 
@@ -69,8 +70,8 @@ class EnergyOODError(RuntimeError):
     """Raised with `ood_response="raise"` when a refined chunk's score exceeds the OOD threshold.
 
     Attributes:
-        energy: The highest score (the calibration's `score`: final energy, phase energy, context distance or
-            energy and context) among the flagged chunks.
+        energy: The highest score (the calibration's `score`: final energy, phase energy, context distance,
+            energy and context, or context k-NN distance) among the flagged chunks.
         threshold: The threshold T it exceeded.
         decision: The full per-batch-element decision.
     """
@@ -177,7 +178,7 @@ class EnergyOODResponse:
 
     @property
     def needs_context_features(self) -> bool:
-        """Whether each chunk's pooled context must come with it (a context-distance calibration)."""
+        """Whether each chunk's pooled context must come with it (a calibration of a `CONTEXT_SCORES` score)."""
         return self.calibration.needs_context_features
 
     @property
@@ -206,14 +207,15 @@ class EnergyOODResponse:
         """Checks each chunk (B, H, action_dim) against T and continues, holds or raises.
 
         `chunk_index` is the chunk's index in its episode, for a calibration whose score depends on it;
-        `context_features`, (B, D), the pooled context of each chunk's observation, for a context-distance or an
-        energy-and-context calibration. Returns the chunks to execute (held ones replaced) and the decision.
+        `context_features`, (B, D), the pooled context of each chunk's observation, for a context-distance, an
+        energy-and-context or a context k-NN calibration. Returns the chunks to execute (held ones replaced) and the decision.
         """
         response, threshold = self.config.ood_response, self.threshold
         energies = final_energy.detach().float().cpu().reshape(-1)
         # The calibration's score: the final energy itself, its z-score at this chunk index (phase energy), the
         # Mahalanobis distance of the chunk's context (context distance), or the larger of the last and the
-        # energy, each standardized (energy and context).
+        # energy, each standardized (energy and context), or the distance of the chunk's context to its k-th
+        # nearest calibration context (context k-NN).
         scores = self.calibration.chunk_score(energies, chunk_index, context_features)
         energies = torch.as_tensor(scores, dtype=torch.float32).reshape(-1)
         flagged = torch.from_numpy(exceeds(energies, threshold))

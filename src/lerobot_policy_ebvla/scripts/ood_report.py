@@ -13,7 +13,9 @@ over the first chunks (`--table_iii_first_chunks`)) and the figures `roc_curve.p
 `energy_histogram.png`. `--score=phase_energy` saves the phase-energy calibration instead of the final
 energy's, `--score=context_distance` the context distance's (the report's `mahalanobis` score; its context
 statistics go beside the JSON in `ood_calibration_context.safetensors`), `--score=energy_and_context` the
-larger of the two standardized on the calibration rollouts (the report's `energy_and_context` score).
+larger of the two standardized on the calibration rollouts (the report's `energy_and_context` score),
+`--score=context_knn` the context k-NN distance (the report's `knn` score at `--knn_k`; the calibration
+contexts go beside the JSON in `ood_calibration_neighbours.safetensors`).
 `--help` lists every option; the report is built by `lerobot_policy_ebvla.monitoring.ood_report`.
 """
 
