@@ -74,3 +74,39 @@ def write_tiny_dataset(root, repo_id: str = "local/ebvla_tiny", n_episodes: int 
         dataset.save_episode()
     dataset.finalize()
     return root
+
+
+def context_rollouts(n, seed, perturbation="none", energy=5.0, context=0.0, fail_every=3, n_chunks=5, dim=4):
+    """Energy records of n episodes with final energies around `energy` and `dim`-d context features around
+    `context`; every `fail_every`-th one fails. Episode i is seeded 1000 * seed + i, so runs of other `seed`s are
+    held out."""
+    import dataclasses
+
+    from lerobot_policy_ebvla.monitoring.records import EnergyRecord
+
+    rng = np.random.default_rng(seed)
+    records = []
+    for episode in range(n):
+        for chunk in range(n_chunks):
+            record = EnergyRecord(
+                episode_index=episode,
+                chunk_index=chunk,
+                env_step=8 * chunk,
+                initial_energy=float(energy + 2 + rng.normal(0, 0.2)),
+                final_energy=float(energy + rng.normal(0, 0.2)),
+                success=episode % fail_every != 0,
+                task="reach",
+                seed=1000 * seed + episode,
+                perturbation=perturbation,
+                severity=0.0 if perturbation == "none" else 1.0,
+            )
+            features = rng.normal(context, 1.0, dim).astype(np.float32)
+            records.append(dataclasses.replace(record, context_feature=features))
+    return records
+
+
+def write_records(folder, records) -> str:
+    """Writes `records` as the energy records of `folder`; returns the folder, as a report option takes it."""
+    from lerobot_policy_ebvla.monitoring.records import ENERGY_RECORDS_FILENAME, write_energy_records
+
+    return str(write_energy_records(folder / ENERGY_RECORDS_FILENAME, records).parent)

@@ -17,10 +17,7 @@ from lerobot_policy_ebvla.monitoring.metrics import auroc, format_auroc
 from lerobot_policy_ebvla.monitoring.ood import ood_detection_table
 from lerobot_policy_ebvla.monitoring.ood_report import OODReportConfig, write_ood_report
 from lerobot_policy_ebvla.monitoring.records import (
-    ENERGY_RECORDS_FILENAME,
-    EnergyRecord,
     load_episodes,
-    write_energy_records,
 )
 from lerobot_policy_ebvla.monitoring.scores import chunk_scores, combined_rollout_scores, episode_scores
 from lerobot_policy_ebvla.runtime import EnergyOODError
@@ -34,7 +31,7 @@ from lerobot_policy_ebvla.runtime.calibration import (
     OODCalibration,
 )
 
-from .conftest import tiny_batch, tiny_config
+from .conftest import context_rollouts, tiny_batch, tiny_config, write_records
 
 D = 4
 # mu = (1, 2), sigma = (0.5, 4): z_E = (E - 1) / 0.5, z_d = (d - 2) / 4.
@@ -227,44 +224,18 @@ def test_the_policy_responds_to_the_larger_z_of_each_chunks_energy_and_context(t
 # The report.
 
 
-def rollouts(n, seed, perturbation="none", energy=5.0, context=0.0, fail_every=3, n_chunks=5):
-    """n episodes with final energies around `energy` and 4-d context features around `context`; every
-    `fail_every`-th one fails. Episode i is seeded 1000 * seed + i, so runs of other `seed`s are held out."""
-    rng = np.random.default_rng(seed)
-    records = []
-    for episode in range(n):
-        for chunk in range(n_chunks):
-            record = EnergyRecord(
-                episode_index=episode,
-                chunk_index=chunk,
-                env_step=8 * chunk,
-                initial_energy=float(energy + 2 + rng.normal(0, 0.2)),
-                final_energy=float(energy + rng.normal(0, 0.2)),
-                success=episode % fail_every != 0,
-                task="reach",
-                seed=1000 * seed + episode,
-                perturbation=perturbation,
-                severity=0.0 if perturbation == "none" else 1.0,
-            )
-            records.append(
-                dataclasses.replace(record, context_feature=rng.normal(context, 1.0, D).astype(np.float32))
-            )
-    return records
-
-
-def write(folder: Path, records) -> str:
-    return str(write_energy_records(folder / ENERGY_RECORDS_FILENAME, records).parent)
-
-
 @pytest.fixture(scope="module")
 def record_dirs(tmp_path_factory):
     """Calibration and held-out vanilla rollouts; "energy" shifts only the final energy, "light" only the
     context."""
     root = tmp_path_factory.mktemp("records")
     return (
-        write(root / "calibration", rollouts(12, seed=10)),
-        write(root / "vanilla", rollouts(12, seed=11)),
-        write(root / "ood", rollouts(10, 1, "energy", energy=6.0) + rollouts(10, 2, "light", context=1.5)),
+        write_records(root / "calibration", context_rollouts(12, seed=10)),
+        write_records(root / "vanilla", context_rollouts(12, seed=11)),
+        write_records(
+            root / "ood",
+            context_rollouts(10, 1, "energy", energy=6.0) + context_rollouts(10, 2, "light", context=1.5),
+        ),
     )
 
 
@@ -359,7 +330,7 @@ def test_the_report_has_no_combined_score_without_context_features(record_dirs, 
         records = [
             dataclasses.replace(r, context_feature=None) for e in load_episodes([folder]).values() for r in e
         ]
-        dirs.append(write(tmp_path / name, records))
+        dirs.append(write_records(tmp_path / name, records))
     assert "energy_and_context" not in report(dirs, tmp_path / "out")
 
 

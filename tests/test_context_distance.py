@@ -118,39 +118,6 @@ def test_context_statistics_of_another_calibration_are_refused(tmp_path):
         OODCalibration.load(tmp_path)
 
 
-def test_a_context_calibration_without_its_statistics_file_is_refused(tmp_path):
-    context_calibration().save(tmp_path)
-    (tmp_path / OOD_CONTEXT_FILENAME).unlink()
-    with pytest.raises(ValueError, match="does not exist"):
-        OODCalibration.load(tmp_path)
-
-
-def test_saving_an_energy_calibration_removes_the_context_statistics_of_the_previous_one(tmp_path):
-    context_calibration().save(tmp_path)
-    OODCalibration(mu_v=1.0, sigma_v=1.0).save(tmp_path, overwrite=True)
-    assert not (tmp_path / OOD_CONTEXT_FILENAME).exists()
-    assert OODCalibration.load(tmp_path).context is None
-
-
-def test_a_hub_calibration_downloads_its_context_statistics_beside_the_json(tmp_path, monkeypatch):
-    import huggingface_hub
-
-    snapshot = tmp_path / "snapshot"
-    snapshot.mkdir()
-    calibration = context_calibration()
-    calibration.save(snapshot)
-    downloaded = []
-
-    def hf_hub_download(repo_id, filename):
-        downloaded.append((repo_id, filename))
-        return str(snapshot / filename)
-
-    monkeypatch.setattr(huggingface_hub, "hf_hub_download", hf_hub_download)
-    loaded = OODCalibration.from_pretrained("user/ebvla")
-    assert downloaded == [("user/ebvla", OOD_CALIBRATION_FILENAME), ("user/ebvla", OOD_CONTEXT_FILENAME)]
-    np.testing.assert_array_equal(loaded.context.mean, calibration.context.mean)
-
-
 # The run-time monitor.
 
 

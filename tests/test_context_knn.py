@@ -16,14 +16,12 @@ import torch
 from lerobot_policy_ebvla import EBVLAPolicy
 from lerobot_policy_ebvla.monitoring.baselines import ContextFeatureModel, fit_score_reference
 from lerobot_policy_ebvla.monitoring.records import (
-    ENERGY_RECORDS_FILENAME,
-    EnergyRecord,
     load_episodes,
-    write_energy_records,
 )
 from lerobot_policy_ebvla.monitoring.scores import episode_chunk_scores, episode_scores
 from lerobot_policy_ebvla.runtime import EnergyOODError
 from lerobot_policy_ebvla.runtime.calibration import (
+    CONTEXT_FIELD,
     CONTEXT_SCORES,
     NEIGHBOURS_FIELD,
     OOD_CALIBRATION_FILENAME,
@@ -35,7 +33,8 @@ from lerobot_policy_ebvla.runtime.calibration import (
 )
 from lerobot_policy_ebvla.scripts import ood_report
 
-from .conftest import tiny_batch, tiny_config
+from .conftest import context_rollouts, tiny_batch, tiny_config, write_records
+from .test_context_distance import context_calibration
 
 D = 4
 K = 3
@@ -174,26 +173,42 @@ def test_a_neighbours_entry_that_misstates_k_is_refused(tmp_path):
         OODCalibration.load(tmp_path)
 
 
-def test_a_context_knn_calibration_without_its_neighbours_file_is_refused(tmp_path):
-    knn_calibration().save(tmp_path)
-    (tmp_path / OOD_NEIGHBOURS_FILENAME).unlink()
-    with pytest.raises(ValueError, match="`context_neighbours.file` names .* which does not exist"):
+# What both context scores save beside the JSON: the context statistics, the context neighbours.
+SIDE_FILES = [
+    pytest.param(context_calibration, OOD_CONTEXT_FILENAME, CONTEXT_FIELD, "context", id="context_distance"),
+    pytest.param(knn_calibration, OOD_NEIGHBOURS_FILENAME, NEIGHBOURS_FIELD, "neighbours", id="context_knn"),
+]
+
+
+@pytest.mark.parametrize(("make_calibration", "filename", "field_name", "attribute"), SIDE_FILES)
+def test_a_context_calibration_without_its_side_file_is_refused(
+    tmp_path, make_calibration, filename, field_name, attribute
+):
+    make_calibration().save(tmp_path)
+    (tmp_path / filename).unlink()
+    with pytest.raises(ValueError, match=f"`{field_name}.file` names .* which does not exist"):
         OODCalibration.load(tmp_path)
 
 
-def test_saving_an_energy_calibration_removes_the_neighbours_of_the_previous_one(tmp_path):
-    knn_calibration().save(tmp_path)
+@pytest.mark.parametrize(("make_calibration", "filename", "field_name", "attribute"), SIDE_FILES)
+def test_saving_an_energy_calibration_removes_the_side_file_of_the_previous_one(
+    tmp_path, make_calibration, filename, field_name, attribute
+):
+    make_calibration().save(tmp_path)
     OODCalibration(mu_v=1.0, sigma_v=1.0).save(tmp_path, overwrite=True)
-    assert not (tmp_path / OOD_NEIGHBOURS_FILENAME).exists()
-    assert OODCalibration.load(tmp_path).neighbours is None
+    assert not (tmp_path / filename).exists()
+    assert getattr(OODCalibration.load(tmp_path), attribute) is None
 
 
-def test_a_hub_calibration_downloads_its_neighbours_beside_the_json(tmp_path, monkeypatch):
+@pytest.mark.parametrize(("make_calibration", "filename", "field_name", "attribute"), SIDE_FILES)
+def test_a_hub_calibration_downloads_its_side_file_beside_the_json(
+    tmp_path, monkeypatch, make_calibration, filename, field_name, attribute
+):
     import huggingface_hub
 
     snapshot = tmp_path / "snapshot"
     snapshot.mkdir()
-    calibration = knn_calibration()
+    calibration = make_calibration()
     calibration.save(snapshot)
     downloaded = []
 
@@ -203,8 +218,8 @@ def test_a_hub_calibration_downloads_its_neighbours_beside_the_json(tmp_path, mo
 
     monkeypatch.setattr(huggingface_hub, "hf_hub_download", hf_hub_download)
     loaded = OODCalibration.from_pretrained("user/ebvla")
-    assert downloaded == [("user/ebvla", OOD_CALIBRATION_FILENAME), ("user/ebvla", OOD_NEIGHBOURS_FILENAME)]
-    np.testing.assert_array_equal(loaded.neighbours.features, calibration.neighbours.features)
+    assert downloaded == [("user/ebvla", OOD_CALIBRATION_FILENAME), ("user/ebvla", filename)]
+    assert getattr(loaded, attribute).to_bytes() == getattr(calibration, attribute).to_bytes()
 
 
 # The run-time monitor.
@@ -239,41 +254,14 @@ def test_the_monitor_scores_each_environments_chunk_by_its_knn_distance():
 # ebvla-ood-report --score=context_knn.
 
 
-def rollouts(n, seed, perturbation="none", context=0.0, n_chunks=5):
-    """n episodes with 4-d context features around `context`; episode i is seeded 1000 * seed + i."""
-    rng = np.random.default_rng(seed)
-    records = []
-    for episode in range(n):
-        for chunk in range(n_chunks):
-            record = EnergyRecord(
-                episode_index=episode,
-                chunk_index=chunk,
-                env_step=8 * chunk,
-                initial_energy=float(7 + rng.normal(0, 0.2)),
-                final_energy=float(5 + rng.normal(0, 0.2)),
-                success=episode % 3 != 0,
-                task="reach",
-                seed=1000 * seed + episode,
-                perturbation=perturbation,
-                severity=0.0 if perturbation == "none" else 1.0,
-            )
-            features = rng.normal(context, 1.0, D).astype(np.float32)
-            records.append(dataclasses.replace(record, context_feature=features))
-    return records
-
-
-def write(folder: Path, records) -> str:
-    return str(write_energy_records(folder / ENERGY_RECORDS_FILENAME, records).parent)
-
-
 @pytest.fixture(scope="module")
 def record_dirs(tmp_path_factory):
     """Calibration and held-out vanilla rollouts, and rollouts whose contexts are shifted."""
     root = tmp_path_factory.mktemp("records")
     return (
-        write(root / "calibration", rollouts(12, seed=10)),
-        write(root / "vanilla", rollouts(12, seed=11)),
-        write(root / "ood", rollouts(10, 1, "light", context=2.0)),
+        write_records(root / "calibration", context_rollouts(12, seed=10)),
+        write_records(root / "vanilla", context_rollouts(12, seed=11)),
+        write_records(root / "ood", context_rollouts(10, 1, "light", context=2.0)),
     )
 
 
@@ -318,8 +306,8 @@ def test_ood_report_saves_a_context_knn_calibration_of_the_reports_knn_score(rec
 
 
 def test_ood_report_refuses_a_context_knn_calibration_without_context_features(record_dirs, tmp_path):
-    no_features = [dataclasses.replace(r, context_feature=None) for r in rollouts(6, seed=20)]
-    dirs = (write(tmp_path / "calibration", no_features), *record_dirs[1:])
+    no_features = [dataclasses.replace(r, context_feature=None) for r in context_rollouts(6, seed=20)]
+    dirs = (write_records(tmp_path / "calibration", no_features), *record_dirs[1:])
     with pytest.raises(ValueError, match="record_context_features"):
         ood_report.main([*report_args(dirs, tmp_path / "out"), "--score=context_knn"])
 

@@ -352,25 +352,20 @@ def _calibration_to_save(
 
 
 def _saved_score_note(cfg: OODReportConfig) -> str:
-    if cfg.score == "context_distance":
-        return (
-            "\n\n`--score=context_distance`, the score a calibration saved by this report has `ood_response` "
-            "act on, is the `mahalanobis` score of every table: the same features, fit and leave-one-episode-out "
-            "calibration scores."
-        )
-    if cfg.score == "context_knn":
-        return (
-            "\n\n`--score=context_knn`, the score a calibration saved by this report has `ood_response` act on, "
-            f"is the `knn` score of every table (k = {cfg.knn_k}): the same features, standardization and "
-            "leave-one-episode-out calibration scores; the saved calibration keeps every calibration context."
-        )
-    if cfg.score == "energy_and_context":
-        return (
-            "\n\n`--score=energy_and_context`, the score a calibration saved by this report has `ood_response` "
-            "act on, is the `energy_and_context` score of the whole-episode tables: the final energy and the "
-            "`mahalanobis` score, standardized by the calibration rollouts' mean and std of each, and their max."
-        )
-    return ""
+    """Which table rows the calibration saved by this report is, for the scores the report names otherwise."""
+    what = {
+        "context_distance": "of every table: the same features, fit and leave-one-episode-out calibration scores.",
+        "context_knn": f"of every table (k = {cfg.knn_k}): the same features, standardization and "
+        "leave-one-episode-out calibration scores; the saved calibration keeps every calibration context.",
+        "energy_and_context": "of the whole-episode tables: the final energy and the `mahalanobis` score, "
+        "standardized by the calibration rollouts' mean and std of each, and their max.",
+    }
+    if cfg.score not in what:
+        return ""
+    return (
+        f"\n\n`--score={cfg.score}`, the score a calibration saved by this report has `ood_response` act on, is "
+        f"the `{REPORTED_AS[cfg.score]}` score {what[cfg.score]}"
+    )
 
 
 def _first_chunks_section(scored, vanilla, conditions, names, cfg) -> str:

@@ -248,11 +248,7 @@ class ContextStatistics:
         Raises:
             ValueError: Not (N >= 2, D), or a non-finite feature.
         """
-        features = _float64(features)
-        if features.ndim != 2 or features.shape[0] < 2:
-            raise ValueError(f"Context features to fit must be (N >= 2, D), got shape {features.shape}.")
-        if not np.all(np.isfinite(features)):
-            raise ValueError("Cannot fit context statistics on non-finite context features.")
+        features = _features_to_fit(features, "context statistics")
         mean = features.mean(axis=0)
         covariance = ledoit_wolf_covariance(features - mean)
         try:
@@ -275,14 +271,7 @@ class ContextStatistics:
         Raises:
             ValueError: The features are not D-dimensional (a calibration of another backbone).
         """
-        features = _float64(features)
-        if features.ndim not in (1, 2) or features.shape[-1] != self.dim:
-            raise ValueError(
-                f"`context_features` must be (N, {self.dim}): the calibration's context statistics were fitted "
-                f"on {self.dim}-dimensional pooled contexts; got shape {features.shape}. Calibrate this "
-                "checkpoint again (`ebvla-ood-report --score=context_distance`)."
-            )
-        centered = np.atleast_2d(features) - self.mean
+        centered = _context_features(features, self.dim, "context_distance") - self.mean
         return np.sqrt(np.maximum(np.sum((centered @ self.precision) * centered, axis=1), 0.0))
 
     def to_bytes(self) -> bytes:
@@ -297,14 +286,7 @@ class ContextStatistics:
         Raises:
             ValueError: Not a safetensors file holding `mean`, `precision` and `n_chunks`, or invalid statistics.
         """
-        try:
-            tensors = safetensors.numpy.load(data)
-        except SafetensorError as e:
-            raise ValueError(f"not a safetensors file ({e})") from e
-        if set(tensors) != {"mean", "precision", "n_chunks"}:
-            raise ValueError(
-                f"expected the tensors `mean`, `precision` and `n_chunks`, got {sorted(tensors)}"
-            )
+        tensors = _read_tensors(data, ("mean", "precision", "n_chunks"))
         return cls(tensors["mean"], tensors["precision"], int(tensors["n_chunks"]))
 
 
@@ -388,11 +370,7 @@ class ContextNeighbours:
         Raises:
             ValueError: Not (N >= 2, D), or a non-finite feature.
         """
-        features = _float64(features)
-        if features.ndim != 2 or features.shape[0] < 2:
-            raise ValueError(f"Context features to fit must be (N >= 2, D), got shape {features.shape}.")
-        if not np.all(np.isfinite(features)):
-            raise ValueError("Cannot fit context neighbours on non-finite context features.")
+        features = _features_to_fit(features, "context neighbours")
         return cls(features, features.mean(axis=0), np.maximum(features.std(axis=0), _MIN_SIGMA), k)
 
     @property
@@ -414,14 +392,7 @@ class ContextNeighbours:
         Raises:
             ValueError: The features are not D-dimensional (a calibration of another backbone).
         """
-        features = _float64(features)
-        if features.ndim not in (1, 2) or features.shape[-1] != self.dim:
-            raise ValueError(
-                f"`context_features` must be (N, {self.dim}): the calibration's context neighbours are "
-                f"{self.dim}-dimensional pooled contexts; got shape {features.shape}. Calibrate this checkpoint "
-                "again (`ebvla-ood-report --score=context_knn`)."
-            )
-        queries = (np.atleast_2d(features) - self.mean) / self.std
+        queries = (_context_features(features, self.dim, "context_knn") - self.mean) / self.std
         return kth_nearest_distance(queries, self._reference, self.k, excluded)
 
     def to_bytes(self) -> bytes:
@@ -442,12 +413,7 @@ class ContextNeighbours:
         Raises:
             ValueError: Not a safetensors file holding `features`, `mean`, `std` and `k`, or invalid ones.
         """
-        try:
-            tensors = safetensors.numpy.load(data)
-        except SafetensorError as e:
-            raise ValueError(f"not a safetensors file ({e})") from e
-        if set(tensors) != {"features", "mean", "std", "k"}:
-            raise ValueError(f"expected the tensors `features`, `mean`, `std` and `k`, got {sorted(tensors)}")
+        tensors = _read_tensors(data, ("features", "mean", "std", "k"))
         return cls(tensors["features"], tensors["mean"], tensors["std"], int(tensors["k"]))
 
 
@@ -512,6 +478,39 @@ class CombinedStatistics:
         z = self.z(energy, context_distance)
         # np.max propagates NaN, so the rule `score <= T` flags it, as it flags a NaN energy.
         return np.max(z, axis=1)
+
+
+def _features_to_fit(features: ArrayLike, what: str) -> np.ndarray:
+    """(N >= 2, D) finite vanilla context features as float64; a ValueError otherwise."""
+    features = _float64(features)
+    if features.ndim != 2 or features.shape[0] < 2:
+        raise ValueError(f"Context features to fit must be (N >= 2, D), got shape {features.shape}.")
+    if not np.all(np.isfinite(features)):
+        raise ValueError(f"Cannot fit {what} on non-finite context features.")
+    return features
+
+
+def _context_features(features: ArrayLike, dim: int, score: str) -> np.ndarray:
+    """(N, D) float64 pooled contexts from (N, D) or one (D,); raises a ValueError naming the expected D."""
+    features = _float64(features)
+    if features.ndim not in (1, 2) or features.shape[-1] != dim:
+        raise ValueError(
+            f"`context_features` must be (N, {dim}): the calibration's {score} was fitted on {dim}-dimensional "
+            f"pooled contexts; got shape {features.shape}. Calibrate this checkpoint again "
+            f"(`ebvla-ood-report --score={score}`)."
+        )
+    return np.atleast_2d(features)
+
+
+def _read_tensors(data: bytes, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The tensors of a safetensors file that must hold exactly `names`; a ValueError says what it holds."""
+    try:
+        tensors = safetensors.numpy.load(data)
+    except SafetensorError as e:
+        raise ValueError(f"not a safetensors file ({e})") from e
+    if set(tensors) != set(names):
+        raise ValueError(f"expected the tensors {', '.join(f'`{n}`' for n in names)}, got {sorted(tensors)}")
+    return tensors
 
 
 def _float64(values: ArrayLike) -> np.ndarray:
