@@ -196,3 +196,26 @@ def test_the_context_knn_flags_every_success_cutting_perturbation_on_the_first_c
     )
     assert first_chunk_auroc(report, "all perturbations", "knn") == pytest.approx(0.821, abs=5e-4)
     assert first_chunk_auroc(report, "all perturbations", "final_energy") == pytest.approx(0.598, abs=5e-4)
+
+
+def test_the_published_one_check_failure_alarm_of_the_paper_recipe_comes_out_of_its_committed_records():
+    """BENCHMARKS.md section 6: Slope Final checked once at step 5 catches 10 of 11 held-out failures and
+    alarms on 13 of 39 successes, 14 chunks ahead of the step cap."""
+    from lerobot_policy_ebvla.monitoring.failure import (
+        failure_alarm,
+        select_check_step,
+        select_configurations,
+        successful,
+    )
+    from lerobot_policy_ebvla.monitoring.records import load_episodes
+
+    calibration = list(load_episodes(sorted(STUDY.glob("calibration/*"))).values())
+    held_out = list(load_episodes(sorted(STUDY.glob("vanilla/*"))).values())
+    chosen = select_configurations(calibration, range(1, 21), range(2, 21), reference_episodes=calibration)
+    check = select_check_step(chosen, len(successful(calibration)))
+    alarm = failure_alarm(check, calibration)
+    assert (alarm.step, alarm.window, alarm.k) == (5, 4, 0.6)
+    flags = [(not e[0].success, alarm.check([r.final_energy for r in e])) for e in held_out]
+    assert sum(failed and alarmed for failed, alarmed in flags) == 10
+    assert sum(alarmed and not failed for failed, alarmed in flags) == 13
+    assert sum(failed for failed, _ in flags) == 11 and len(flags) == 50

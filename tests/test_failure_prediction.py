@@ -25,6 +25,7 @@ from lerobot_policy_ebvla.monitoring.failure import (
     format_failure_table,
     format_lead_time_table,
     linear_slope,
+    select_check_step,
     select_configurations,
     slope_scores,
 )
@@ -264,3 +265,34 @@ def test_format_alarms_lists_each_failed_episode():
         "| t | 0 | None | 5 | 2 | 3 | 24 |",
         "| t | 0 | None | 5 | never |  |  |",
     ]
+
+
+def rates(step, balanced, n_episodes, n_failed):
+    """A calibration result at `step` with the given balanced accuracy (TPR = it, specificity = it)."""
+    tp = round(balanced * n_failed)
+    tn = round(balanced * (n_episodes - n_failed))
+    return FailurePredictionResult(
+        tp,
+        n_episodes - n_failed - tn,
+        tn,
+        n_failed - tp,
+        step=step,
+        window=2,
+        multiplier=1.0,
+        n_episodes=n_episodes,
+        n_failed=n_failed,
+    )
+
+
+def test_the_check_step_is_the_best_calibration_step_while_most_successes_still_run():
+    # 10 successful calibration episodes: at step 9 only 3 still run, so its perfect accuracy does not count.
+    chosen = [rates(3, 0.6, 15, 5), rates(5, 0.8, 15, 5), rates(7, 0.8, 10, 5), rates(9, 1.0, 8, 5)]
+    assert select_check_step(chosen, n_successful=10).step == 5  # ties keep the earlier step
+    assert select_check_step(chosen, n_successful=10, min_running=0.3).step == 9
+
+
+def test_no_check_step_without_a_defined_accuracy_or_with_a_bad_fraction():
+    assert select_check_step([rates(2, 0.5, 10, 0)], n_successful=10) is None  # no failure: NaN
+    assert select_check_step([], n_successful=10) is None
+    with pytest.raises(ValueError, match="min_running"):
+        select_check_step([rates(2, 0.5, 10, 4)], n_successful=6, min_running=0.0)

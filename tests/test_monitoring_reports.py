@@ -17,6 +17,7 @@ from lerobot_policy_ebvla.monitoring.records import (
 )
 from lerobot_policy_ebvla.monitoring.scores import episode_scores
 from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
+from lerobot_policy_ebvla.runtime.failure_alarm import FAILURE_ALARM_FILENAME, FailureAlarm
 from lerobot_policy_ebvla.scripts import failure_report, landscape, ood_report
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -424,11 +425,57 @@ def test_failure_report_prints_the_slope_auroc_and_the_lead_time(tmp_path, capsy
     args = [f"--calibration=[{calibration}]", f"--records=[{held_out}]", "--max_step=6", "--max_window=4"]
     failure_report.main([*args, "--n_bootstrap=50", f"--output_dir={tmp_path / 'out'}"])
     out = capsys.readouterr().out
-    assert out.count("| AUROC [95% CI] |") == 2
+    assert out.count("| AUROC [95% CI] | Bal. Acc. (calibration) |") == 2  # one Table IV per metric
     assert "First alarm of each failed held-out episode (Slope Final" in out
     lead = section(out, "Lead time, Slope Final: pooled and per task")
     (row,) = [line for line in lead.splitlines() if line.startswith("| all tasks |")]
     assert row.startswith("| all tasks | 4 | 8 | ")
+
+
+def test_failure_report_gives_the_one_check_alarm_and_saves_what_it_reports(tmp_path, capsys):
+    calibration, held_out = failure_dirs(tmp_path)
+    checkpoint = tmp_path / "pretrained_model"
+    checkpoint.mkdir()
+    args = [f"--calibration=[{calibration}]", f"--records=[{held_out}]", "--max_step=6", "--max_window=4"]
+    failure_report.main([*args, f"--calibrate_to={checkpoint}", f"--output_dir={tmp_path / 'out'}"])
+    checks = section(
+        capsys.readouterr().out, "The deployable alarm: one check, at the step chosen on calibration"
+    )
+    alarm = FailureAlarm.load(checkpoint / FAILURE_ALARM_FILENAME)
+    title = {"final": "Slope Final", "start": "Slope Start"}[alarm.metric]
+    (row,) = [line for line in checks.splitlines() if line.startswith(f"| all tasks | {title} |")]
+    cells = [c.strip() for c in row.split("|")[1:-1]]
+    assert (int(cells[2]), int(cells[3])) == (alarm.step, alarm.window)
+    # The saved alarm, run on the held-out episodes, raises the alarms the report counts.
+    episodes = load_episodes([held_out]).values()
+    energy = {"final": "final_energy", "start": "initial_energy"}[alarm.metric]
+    flags = [(not e[0].success, alarm.check([getattr(r, energy) for r in e])) for e in episodes]
+    caught, false_alarms = sum(f and a for f, a in flags), sum(a and not f for f, a in flags)
+    assert cells[8] == f"{caught}/4" and cells[9] == f"{false_alarms}/8"
+    assert caught == 4  # the failed episodes' energy rises by 0.3 a chunk
+
+
+def test_failure_report_never_replaces_a_saved_alarm_unless_asked(tmp_path):
+    calibration, held_out = failure_dirs(tmp_path)
+    saved = FailureAlarm("final", 9, 2, 1.0, 0.0, 1.0, 5).save(tmp_path)
+    args = [
+        f"--calibration=[{calibration}]",
+        f"--records=[{held_out}]",
+        "--max_step=6",
+        f"--calibrate_to={tmp_path}",
+    ]
+    with pytest.raises(FileExistsError, match="--overwrite_alarm=true"):
+        failure_report.main([*args, f"--output_dir={tmp_path / 'out'}"])
+    assert FailureAlarm.load(saved).step == 9 and not (tmp_path / "out").exists()
+    failure_report.main([*args, "--overwrite_alarm=true", f"--output_dir={tmp_path / 'out'}"])
+    assert FailureAlarm.load(saved).step <= 6
+
+
+def test_failure_report_saves_no_alarm_from_carried_forward_episodes(tmp_path):
+    calibration, held_out = failure_dirs(tmp_path)
+    args = [f"--calibration=[{calibration}]", f"--records=[{held_out}]", "--carry_forward=true"]
+    with pytest.raises(ValueError, match="carry_forward=false"):
+        failure_report.main([*args, f"--calibrate_to={tmp_path}"])
 
 
 def test_failure_report_leaves_out_tasks_with_too_few_failures_or_successes(tmp_path, capsys):

@@ -11,13 +11,14 @@ Everything here studies rollouts; it imports the policy and `runtime/`, and neit
   `ood_report` builds `ebvla-ood-report`'s report from it.
 - `baselines`: the post-hoc scores the energy is compared with (initial energy, restart spread,
   Mahalanobis and k-NN distances of the context).
-- `failure`: energy-slope failure prediction and Table IV, in-sample or held out; `failure_report` builds
-  `ebvla-failure-report`'s report.
+- `failure`: energy-slope failure prediction and Table IV, in-sample or held out, and the one-check alarm
+  chosen on calibration (`select_check_step`, `failure_alarm`); `failure_report` builds
+  `ebvla-failure-report`'s report and saves that alarm with `--calibrate_to`.
 - `landscape`: the energy around a refined action chunk (Fig. 2).
 - `plots`: every figure (the only module that imports matplotlib).
 - `vision`: does the policy see? Its chunk and energy with real against blanked cameras.
 
-The threshold rule and the calibration that ships with a checkpoint live in `runtime/`.
+The threshold rule, the calibration and the failure alarm that ship with a checkpoint live in `runtime/`.
 """
 
 from .metrics import BinaryRates, auroc, bootstrap_auroc_interval, roc_curve

@@ -44,11 +44,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..runtime.failure_alarm import SLOPE_ENERGIES, FailureAlarm, window_slopes
 from ..runtime.threshold import MeanStd, exceeds
 from .metrics import BinaryRates, markdown_table, percent
 from .records import Episode
 
-ENERGY_METRICS = {"final": "final_energy", "start": "initial_energy"}
+ENERGY_METRICS = SLOPE_ENERGIES
 DEFAULT_STEPS = tuple(range(1, 21))
 DEFAULT_WINDOWS = tuple(range(2, 21))
 DEFAULT_MULTIPLIERS = tuple(round(0.1 * i, 1) for i in range(1, 21))
@@ -56,18 +57,7 @@ DEFAULT_MULTIPLIERS = tuple(round(0.1 * i, 1) for i in range(1, 21))
 
 def linear_slope(values: Sequence[float] | np.ndarray) -> float:
     """Least-squares slope of `values` against 0, 1, 2, ... (energy change per step); 0 for < 2 points."""
-    return float(_window_slopes(np.asarray(values, dtype=np.float64)[None, :])[0])
-
-
-def _window_slopes(windows: np.ndarray) -> np.ndarray:
-    """Least-squares slopes of the rows of a (N, w) array against 0 .. w-1, all rows at once."""
-    w = windows.shape[1]
-    if w < 2:
-        return np.zeros(windows.shape[0])
-    x_centered = np.arange(w, dtype=np.float64) - (w - 1) / 2
-    # Centering x alone is enough: sum(x_c * (y - y_mean)) = sum(x_c * y) because sum(x_c) = 0.
-    with np.errstate(invalid="ignore"):
-        return windows @ x_centered / np.sum(x_centered**2)
+    return float(window_slopes(np.asarray(values, dtype=np.float64)[None, :])[0])
 
 
 def energy_matrix(
@@ -113,7 +103,7 @@ class _Slopes:
         if step < 1 or window < 1:
             raise ValueError(f"`step` and `window` must be >= 1, got step={step}, window={window}.")
         rows = np.flatnonzero(self.lengths >= step)
-        return _window_slopes(self.energies[rows, max(0, step - window) : step]), rows
+        return window_slopes(self.energies[rows, max(0, step - window) : step]), rows
 
 
 def episode_slopes(
@@ -305,6 +295,57 @@ def evaluate_configurations(
     width = max((c.step for c in chosen), default=0)
     predictor = _Predictor(episodes, reference_episodes, metric, carry_forward, width=width)
     return [predictor.evaluate(c.step, c.window, [c.multiplier])[0] for c in chosen if c.step <= max_step]
+
+
+def select_check_step(
+    chosen: Sequence[FailurePredictionResult], n_successful: int, min_running: float = 0.5
+) -> FailurePredictionResult | None:
+    """The step of the one-check alarm (`runtime.failure_alarm`): the best calibration balanced accuracy.
+
+    Only steps where at least `min_running` of the `n_successful` successful calibration episodes are still
+    running compete. Failed episodes run to the step cap, so at a step most successes have passed, "still
+    running" alone predicts failure: such a check is a timeout, not a prediction. Ties keep the earliest step
+    (the earlier alarm). None when no step qualifies with a defined accuracy.
+
+    Args:
+        chosen: One configuration per step, with its calibration rates (`select_configurations`).
+        n_successful: How many successful episodes the calibration episodes that chose them hold.
+        min_running: The fraction of those a step must still judge, in (0, 1].
+    """
+    if not 0.0 < min_running <= 1.0:
+        raise ValueError(f"`min_running` must be in (0, 1], got {min_running}.")
+    best = None
+    for result in sorted(chosen, key=lambda c: c.step):
+        if result.n_episodes - result.n_failed >= min_running * n_successful and _better(result, best):
+            best = result
+    return None if best is None or math.isnan(best.balanced_accuracy) else best
+
+
+def failure_alarm(
+    check: FailurePredictionResult, reference_episodes: Sequence[Episode], metric: str = "final"
+) -> FailureAlarm:
+    """The run-time alarm of a chosen check, its threshold from the successful reference episodes.
+
+    Raises:
+        ValueError: No successful reference episode reaches the check's step.
+    """
+    predictor = _Predictor(
+        reference_episodes, reference_episodes, metric, carry_forward=False, width=check.step
+    )
+    stats = predictor._reference_stats(check.step, check.window)
+    if stats is None:
+        raise ValueError(f"No successful reference episode reaches step {check.step}: no threshold to save.")
+    return FailureAlarm(
+        metric=metric,
+        step=check.step,
+        window=check.window,
+        k=check.multiplier,
+        mu_ref=stats.mean,
+        sigma_ref=stats.std,
+        n_reference=stats.n,
+        calibration_balanced_accuracy=check.balanced_accuracy,
+        n_calibration=check.n_episodes,
+    )
 
 
 def format_failure_table(

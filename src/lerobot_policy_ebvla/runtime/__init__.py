@@ -7,6 +7,8 @@
   context score of `CombinedStatistics`, or the context k-NN distance of `ContextNeighbours`;
   `ood_calibration.json` beside the weights, context statistics and neighbours in safetensors files beside it),
   the rollout score it is defined on, and `EnergyOODMonitor`, which applies it to energies as they come.
+- `failure_alarm`: `FailureAlarm`, the energy-slope failure predictor as one check at a step chosen on
+  calibration (`failure_alarm.json` beside the weights), and `EnergyFailureMonitor`, which feeds it each chunk.
 - `response`: what the policy does with a flagged chunk (`EBVLAConfig.ood_response`: continue, hold, or raise
   `EnergyOODError`).
 
@@ -21,10 +23,15 @@ from .calibration import (
     PhaseStatistics,
     rollout_score,
 )
+from .failure_alarm import FAILURE_ALARM_FILENAME, EnergyFailureMonitor, FailureAlarm, FailureDecision
 from .response import EnergyOODError, EnergyOODResponse, HoldAction, OODResponseDecision, respond_to_energy
 from .threshold import MeanStd, conformal_threshold, exceeds, mean_std_threshold
 
 __all__ = [
+    "FAILURE_ALARM_FILENAME",
+    "EnergyFailureMonitor",
+    "FailureAlarm",
+    "FailureDecision",
     "OOD_CALIBRATION_FILENAME",
     "EnergyOODError",
     "EnergyOODMonitor",
