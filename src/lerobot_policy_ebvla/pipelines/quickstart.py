@@ -70,7 +70,7 @@ class QuickstartConfig:
     # about twice as fast on a CPU.
     observation_size: int = 128
     # Training steps. The policy's cosine schedule decays over them, with a warm-up of at most a tenth.
-    steps: int = 1500
+    steps: int = 1000
     # Training batch size.
     batch_size: int = 16
     # Evaluation episodes per task and condition (vanilla, blanked camera, perturbed).
