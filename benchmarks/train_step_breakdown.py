@@ -23,6 +23,7 @@ Rows (`--policies`):
                            all B - 1 and 8 (`energy_contrastive_mismatched=7`, `energy_contrastive_negatives=4`)
     ebvla-4-anchors        the same with 4 of the batch's observations ranking all of their candidates
                            (`energy_contrastive_anchors=4`)
+    ebvla-ffn4             the light policy before 2026-11-24: the head's FFN 4D wide (`ffn_multiplier=4`)
     diffusion              LeRobot's Diffusion Policy at its defaults (U-Net 512/1024/2048, 100 train timesteps),
                            with the light policy's encoder (ResNet-18 cut to the same stages, same image size, group
                            norm, 32 keypoints) and its chunk (1 observation, horizon 8)
@@ -58,6 +59,7 @@ ROWS = (
     "ebvla-no-contrastive",
     "ebvla-fewer-negatives",
     "ebvla-4-anchors",
+    "ebvla-ffn4",
     "diffusion",
     "diffusion-cpu",
 )
@@ -125,6 +127,8 @@ def policy_config(row: str):
         return light_policy_config(energy_contrastive_mismatched=7, energy_contrastive_negatives=4)
     if row == "ebvla-4-anchors":
         return light_policy_config(energy_contrastive_anchors=4)
+    if row == "ebvla-ffn4":
+        return light_policy_config(ffn_multiplier=4)
     from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 
     light = light_policy_config()
