@@ -24,6 +24,9 @@ Rows (`--policies`):
     ebvla-4-anchors        the same with 4 of the batch's observations ranking all of their candidates
                            (`energy_contrastive_anchors=4`)
     ebvla-ffn4             the light policy before 2026-11-24: the head's FFN 4D wide (`ffn_multiplier=4`)
+    ebvla-contrastive-fp32 the light policy until the evening of 2026-11-24: the contrastive term in fp32 on every CPU
+                           (`energy_contrastive_dtype="float32"`; the preset's "auto" takes bf16 where the CPU
+                           has AVX512-BF16 or AMX, and is this row elsewhere)
     diffusion              LeRobot's Diffusion Policy at its defaults (U-Net 512/1024/2048, 100 train timesteps),
                            with the light policy's encoder (ResNet-18 cut to the same stages, same image size, group
                            norm, 32 keypoints) and its chunk (1 observation, horizon 8)
@@ -60,6 +63,7 @@ ROWS = (
     "ebvla-fewer-negatives",
     "ebvla-4-anchors",
     "ebvla-ffn4",
+    "ebvla-contrastive-fp32",
     "diffusion",
     "diffusion-cpu",
 )
@@ -129,6 +133,8 @@ def policy_config(row: str):
         return light_policy_config(energy_contrastive_anchors=4)
     if row == "ebvla-ffn4":
         return light_policy_config(ffn_multiplier=4)
+    if row == "ebvla-contrastive-fp32":
+        return light_policy_config(energy_contrastive_dtype="float32")
     from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 
     light = light_policy_config()

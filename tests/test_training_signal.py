@@ -160,3 +160,47 @@ def test_state_dropout_hides_the_state_token_in_training_only():
 def test_state_dropout_outside_zero_one_is_rejected_by_name():
     with pytest.raises(ValueError, match="state_dropout"):
         tiny_config(state_dropout=1.0)
+
+
+def test_contrastive_term_in_bf16_runs_its_head_pass_in_bf16_and_stays_close_to_fp32():
+    """`energy_contrastive_dtype="bfloat16"`: the head's matrix products in bf16, the energies and the loss in
+    fp32, close to the fp32 loss, with gradients reaching the head and the image encoder."""
+    batch = tiny_batch(tiny_config(), batch_size=6)
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(tiny_config(energy_contrastive_weight=1.0))
+    kv = policy.model.encode_context(batch)
+    fp32 = policy.model.contrastive_energy_loss(kv, batch["action"], torch.Generator().manual_seed(0))
+    dtypes = []
+    handle = policy.model.head.blocks[0].ffn.down.register_forward_hook(
+        lambda m, args, out: dtypes.append(out.dtype)
+    )
+    policy.config.energy_contrastive_dtype = "bfloat16"
+    bf16 = policy.model.contrastive_energy_loss(kv, batch["action"], torch.Generator().manual_seed(0))
+    handle.remove()
+    assert dtypes == [torch.bfloat16]
+    assert bf16.dtype == torch.float32 and torch.isfinite(bf16)
+    torch.testing.assert_close(bf16, fp32, rtol=0.05, atol=0.05)
+    bf16.backward()
+    for name, module in (("head", policy.model.head), ("backbone", policy.model.backbone)):
+        grads = [p.grad for p in module.parameters() if p.requires_grad]
+        assert any(g is not None and g.abs().sum() > 0 for g in grads), name
+        assert all(g is None or (g.dtype == torch.float32 and torch.isfinite(g).all()) for g in grads), name
+
+
+@pytest.mark.parametrize(("native", "expected"), [(True, torch.bfloat16), (False, torch.float32)])
+def test_contrastive_dtype_auto_uses_bf16_only_where_the_device_has_it(monkeypatch, native, expected):
+    from lerobot_policy_ebvla import modeling_ebvla
+
+    monkeypatch.setattr(modeling_ebvla, "native_bf16", lambda device_type: native)
+    batch = tiny_batch(tiny_config(), batch_size=3)
+    policy = EBVLAPolicy(tiny_config(energy_contrastive_weight=1.0, energy_contrastive_dtype="auto"))
+    dtypes = []
+    policy.model.head.blocks[0].ffn.down.register_forward_hook(lambda m, args, out: dtypes.append(out.dtype))
+    kv = policy.model.encode_context(batch)
+    policy.model.contrastive_energy_loss(kv, batch["action"], torch.Generator().manual_seed(0))
+    assert dtypes == [expected]
+
+
+def test_contrastive_dtype_must_be_a_known_precision():
+    with pytest.raises(ValueError, match="energy_contrastive_dtype.*'float16'"):
+        tiny_config(energy_contrastive_dtype="float16")

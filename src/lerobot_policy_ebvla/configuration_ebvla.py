@@ -21,6 +21,7 @@ OOD_RESPONSES = ("continue", "hold", "raise")
 HOLD_ACTIONS = ("zero_delta", "current_state")
 COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 FROZEN_WEIGHTS_DTYPES = ("bfloat16", "float32")
+CONTRASTIVE_DTYPES = ("float32", "bfloat16", "auto")
 
 
 @PreTrainedConfig.register_subclass("ebvla")
@@ -135,6 +136,12 @@ class EBVLAConfig(PreTrainedConfig):
             so fewer anchors cut the term's cost in proportion while each ranking still sees the whole batch:
             an unbiased estimate of the same InfoNCE loss with more variance.
         energy_contrastive_noise_std: Std of the noise of those copies (normalized action units).
+        energy_contrastive_dtype: Precision of the head's matrix products in the contrastive term: "float32";
+            "bfloat16" (autocast; the candidates' energies and the loss stay fp32); "auto", bfloat16 where the
+            device computes it natively (a CUDA GPU with bf16, a CPU with AVX512-BF16 or AMX) and float32
+            elsewhere, where emulated bf16 would be slower. The term needs only first-order gradients and ranks
+            energies against each other, so it tolerates bf16's rounding; the MCMC chain, whose last step is
+            differentiated twice, always runs at the policy's own precision.
         energy_contrastive_temperature: Temperature of the InfoNCE logits -E / T. The energy level also sets
             the MCMC step length exp(e_t / tau) (Eq. 3); a small T asks for small energy gaps only, so the
             ranking does not inflate the energies that drive refinement.
@@ -290,6 +297,7 @@ class EBVLAConfig(PreTrainedConfig):
     energy_contrastive_anchors: int | None = None
     energy_contrastive_noise_std: float = 0.5
     energy_contrastive_temperature: float = 0.1
+    energy_contrastive_dtype: str = "float32"
 
     # Inference options beyond the paper (off by default).
     num_restarts: int = 1
@@ -401,6 +409,11 @@ class EBVLAConfig(PreTrainedConfig):
             raise ValueError(
                 "`energy_contrastive_anchors` must be >= 1 or None (every observation of the batch). Got "
                 f"{self.energy_contrastive_anchors}."
+            )
+        if self.energy_contrastive_dtype not in CONTRASTIVE_DTYPES:
+            raise ValueError(
+                f"`energy_contrastive_dtype` must be one of {CONTRASTIVE_DTYPES}. Got "
+                f"{self.energy_contrastive_dtype!r}."
             )
         if not self.energy_contrastive_temperature > 0:
             raise ValueError(

@@ -63,6 +63,9 @@ class EBVLASelfAttention(nn.Module):
 
     def forward(self, x: Tensor, cos: Tensor, sin: Tensor) -> Tensor:
         q, k, v = rearrange(self.qkv(x), "b t (three nh hd) -> three b nh t hd", three=3, nh=self.n_heads)
+        # Under bf16 autocast q and k come out in bf16: fp32 angles would promote them, and the attention with
+        # them, back to fp32.
+        cos, sin = cos.to(q.dtype), sin.to(q.dtype)
         q, k = apply_rotary(q, cos, sin), apply_rotary(k, cos, sin)
         y = F.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
         return self.out(rearrange(y, "b nh t hd -> b t (nh hd)"))

@@ -586,7 +586,9 @@ class EBVLA(nn.Module):
         candidates = torch.cat([target[order], noisy], dim=1)  # (A, 1 + M + N_noisy, H, d_a)
         num_candidates = candidates.shape[1]
         anchor_kv = kv if anchors == batch_size else [(k[:anchors], v[:anchors]) for k, v in kv]
-        energies = self.head(candidates.flatten(0, 1), anchor_kv).mean(dim=-1)
+        device_type = target.device.type
+        with torch.autocast(device_type, torch.bfloat16, enabled=contrastive_in_bf16(cfg, device_type)):
+            energies = self.head(candidates.flatten(0, 1), anchor_kv).mean(dim=-1)
         logits = -energies.view(anchors, num_candidates).float() / cfg.energy_contrastive_temperature
         return nn.functional.cross_entropy(
             logits, torch.zeros(anchors, dtype=torch.long, device=target.device)
@@ -603,6 +605,26 @@ def sample_training_step_sizes(config: EBVLAConfig, generator: torch.Generator) 
     alpha_min, alpha_max = config.train_step_size_range
     alphas = alpha_min + (alpha_max - alpha_min) * torch.rand(num_alphas, generator=generator, device=device)
     return alphas.expand(num_steps).tolist()
+
+
+def contrastive_in_bf16(config: EBVLAConfig, device_type: str) -> bool:
+    """Whether the contrastive term's head pass runs under bf16 autocast (`energy_contrastive_dtype`)."""
+    if config.energy_contrastive_dtype == "auto":
+        return native_bf16(device_type)
+    return config.energy_contrastive_dtype == "bfloat16"
+
+
+@functools.cache
+def native_bf16(device_type: str) -> bool:
+    """Whether `device_type` multiplies bf16 matrices in hardware: a CUDA GPU that supports bf16, or a CPU
+    with AVX512-BF16 or AMX tiles (elsewhere oneDNN emulates bf16, slower than fp32)."""
+    if device_type == "cuda":
+        return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
+    if device_type == "cpu":
+        # Private torch names: getattr, so that a torch without them reads as "no native bf16".
+        probes = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
+        return any(getattr(torch.cpu, probe, lambda: False)() for probe in probes)
+    return False
 
 
 def head_energy(head: EBVLAEnergyHead, params: dict[str, Tensor], actions: Tensor, kv: ContextKV) -> Tensor:
