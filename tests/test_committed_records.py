@@ -76,6 +76,34 @@ def test_the_auroc_beside_table_iii_recomputed_from_the_committed_records_matche
     assert expected_auroc(first_chunks) in table(report, title)
 
 
+DISTRACTOR30 = (
+    Path(__file__).parents[1] / "benchmarks" / "results" / "metaworld_sweep_distractor30" / "records"
+)
+
+
+def test_with_30_rollouts_a_side_no_score_flags_the_distractor_on_the_first_3_chunks(tmp_path):
+    """BENCHMARKS.md section 6, the distractor with 30 rollouts a side (the 8-rollout sweep's checkpoint): it cuts
+    success from 90% to 63.3% at severities 3 and 5, and no score reaches 0.85 over the first 3 chunks (k-NN
+    0.652 / 0.740, the final energy 0.654 / 0.637); 8 rollouts a side had put k-NN at 0.72 / 0.89."""
+    report = write_ood_report(
+        OODReportConfig(
+            calibration=[str(DISTRACTOR30 / "calibration")],
+            vanilla=[str(DISTRACTOR30 / "vanilla")],
+            ood=[str(DISTRACTOR30 / "distractor_s3"), str(DISTRACTOR30 / "distractor_s5")],
+            output_dir=tmp_path,
+            n_bootstrap=10,
+            table_iii_first_chunks=0,
+        )
+    )
+    assert "success 27/30 (90.0%)" in report
+    assert "### distractor 3: 30 perturbed rollouts, success 19/30 (63.3%)" in report
+    scores = ("final_energy", "phase_energy", "mahalanobis", "knn", "energy_and_context")
+    for condition in ("distractor 3", "distractor 5"):
+        assert max(first_chunks_row(report, condition, s)[1] for s in scores) < 0.85, condition
+    assert first_chunks_row(report, "distractor 3", "knn")[1] == pytest.approx(0.652, abs=5e-4)
+    assert first_chunks_row(report, "distractor 5", "knn")[1] == pytest.approx(0.740, abs=5e-4)
+
+
 def test_the_committed_records_are_small():
     assert sum(f.stat().st_size for f in RECORDS.rglob("*.gz")) < 20_000
 
@@ -167,12 +195,17 @@ SUCCESS_CUTTING = ("blank 3", "distractor 3", "distractor 5", "fov 3", "fov 5", 
 SUCCESS_CUTTING += ("robot_init 3", "robot_init 5", "table_texture 5")
 
 
-def first_chunk_auroc(report: str, condition: str, score: str) -> float:
-    """A score's AUROC over each episode's first chunk, from the report's first-chunks section."""
+def first_chunks_row(report: str, condition: str, score: str) -> list[float]:
+    """A score's AUROCs over the first 1, 3, 5 chunks and the whole episode, from the first-chunks section."""
     section = report.split("## Detection on the first chunks")[1].split("\n## ")[0]
     block = section.split(f"\n### {condition}:")[1].split("\n### ")[0]
     row = next(line for line in block.splitlines() if line.startswith(f"| {score} |"))
-    return float(row.split("|")[2].split()[0])
+    return [float(cell.split()[0]) for cell in row.split("|")[2:-1]]
+
+
+def first_chunk_auroc(report: str, condition: str, score: str) -> float:
+    """A score's AUROC over each episode's first chunk, from the report's first-chunks section."""
+    return first_chunks_row(report, condition, score)[0]
 
 
 def test_the_context_knn_flags_every_success_cutting_perturbation_on_the_first_chunk(tmp_path):
