@@ -35,7 +35,8 @@ Rows (`--policies`):
 Timings are medians over `--repeats` rounds of `--steps` steps; the rows take turns within each round, so a
 load that comes and goes on a shared machine touches every row alike. The data part depends on how the frames
 are stored: `--image_size` records the dataset at that side (the quickstart stores 64 px since issue 23, 128 px
-before). Run on an idle machine, once per stored size:
+before). `--single_column_queries` reads the action chunks as the quickstart trains them
+(the action column alone, not the frames of every chunk row). Run on an idle machine, once per stored size:
 
     MUJOCO_GL=egl python benchmarks/train_step_breakdown.py --dataset=outputs/tsb/data64 --image_size=64 \
         --json benchmarks/results/train_step_breakdown_cpu_64px.json
@@ -44,6 +45,7 @@ before). Run on an idle machine, once per stored size:
 """
 
 import argparse
+import contextlib
 import json
 import logging
 import platform
@@ -54,6 +56,7 @@ from pathlib import Path
 
 import torch
 
+from lerobot_policy_ebvla.pipelines.column_queries import single_column_delta_queries
 from lerobot_policy_ebvla.presets import LIGHT_POLICY, light_policy_config
 
 PARTS = ("data", "preprocess", "forward", "backward", "optimizer")
@@ -85,6 +88,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--episodes", type=int, default=10, help="Expert episodes when recording the dataset."
     )
     parser.add_argument("--use_videos", action="store_true", help="Record the frames as video, not PNG.")
+    parser.add_argument(
+        "--single_column_queries",
+        action="store_true",
+        help="Read action chunks from the action column alone, as the quickstart trains "
+        "(`pipelines.column_queries`); without it, LeRobot 0.6.1's reader decodes the frames of every chunk row.",
+    )
     parser.add_argument(
         "--loader_samples",
         type=int,
@@ -297,13 +306,8 @@ def print_table(results: dict) -> None:
         )
 
 
-def main(argv=None) -> dict:
-    args = parse_args(argv)
-    # LeRobot falls back from torchcodec to PyAV with a long traceback; PNG frames need neither.
-    logging.getLogger("lerobot.utils.import_utils").setLevel(logging.ERROR)
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    record_if_missing(args.dataset, args.image_size, args.episodes, args.use_videos)
+def time_rows(args: argparse.Namespace) -> dict:
+    """Each row's medians: warm-up steps, then `repeats` rounds in which the rows take turns."""
     torch.manual_seed(0)
     rows = [build_row(name, args) for name in args.policies]
     for row in rows:
@@ -313,7 +317,18 @@ def main(argv=None) -> dict:
         for row in rows:
             for _ in range(args.steps):
                 timed_step(row, record=True)
-    results = {row.name: summarize(row) for row in rows}
+    return {row.name: summarize(row) for row in rows}
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    # LeRobot falls back from torchcodec to PyAV with a long traceback; PNG frames need neither.
+    logging.getLogger("lerobot.utils.import_utils").setLevel(logging.ERROR)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    record_if_missing(args.dataset, args.image_size, args.episodes, args.use_videos)
+    with single_column_delta_queries() if args.single_column_queries else contextlib.nullcontext():
+        results = time_rows(args)
     print_table(results)
     report = {
         "command_args": vars(args) | {"dataset": str(args.dataset), "json": str(args.json)},

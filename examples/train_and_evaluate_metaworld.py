@@ -35,6 +35,7 @@ from lerobot_policy_ebvla.monitoring import (
     group_by_episode,
     write_energy_records,
 )
+from lerobot_policy_ebvla.pipelines.column_queries import single_column_delta_queries
 from lerobot_policy_ebvla.presets import light_policy_config
 from lerobot_policy_ebvla.recording.metaworld import RecordMetaworldConfig, record_metaworld
 
@@ -82,19 +83,22 @@ def main(cfg: ExampleConfig) -> None:
         device=cfg.device,
     )
     train_dir = cfg.output_dir / "train"
-    train(
-        TrainPipelineConfig(
-            dataset=DatasetConfig(repo_id=repo_id, root=str(data_root)),
-            policy=policy_cfg,
-            output_dir=train_dir,
-            steps=cfg.steps,
-            batch_size=cfg.batch_size,
-            save_freq=cfg.steps,
-            log_freq=max(1, cfg.steps // 10),
-            num_workers=0,
-            wandb=WandBConfig(enable=False),
+    # LeRobot 0.6.1 decodes the frames of all 8 rows of an action chunk to read the actions; this context reads
+    # the action column alone (pipelines/column_queries.py), a training step ~60 ms faster on two cores.
+    with single_column_delta_queries():
+        train(
+            TrainPipelineConfig(
+                dataset=DatasetConfig(repo_id=repo_id, root=str(data_root)),
+                policy=policy_cfg,
+                output_dir=train_dir,
+                steps=cfg.steps,
+                batch_size=cfg.batch_size,
+                save_freq=cfg.steps,
+                log_freq=max(1, cfg.steps // 10),
+                num_workers=0,
+                wandb=WandBConfig(enable=False),
+            )
         )
-    )
     checkpoint = train_dir / "checkpoints" / "last" / "pretrained_model"
 
     # 3. Evaluation with energies: LeRobot's rollout, the recorder watching the policy and the env.

@@ -252,3 +252,35 @@ def test_the_published_one_check_failure_alarm_of_the_paper_recipe_comes_out_of_
     assert sum(failed and alarmed for failed, alarmed in flags) == 10
     assert sum(alarmed and not failed for failed, alarmed in flags) == 13
     assert sum(failed for failed, _ in flags) == 11 and len(flags) == 50
+
+
+BUDGET = Path(__file__).parents[1] / "benchmarks" / "results" / "quickstart_budget"
+
+
+def quickstart_aurocs(run: Path) -> dict[str, float]:
+    """The quickstart's AUROCs of a committed run, recomputed from its compressed energy records."""
+    from lerobot_policy_ebvla.monitoring.records import group_by_episode, read_energy_records
+    from lerobot_policy_ebvla.monitoring.summary import condition_summary, energy_aurocs
+
+    conditions = {
+        c: condition_summary(group_by_episode(read_energy_records(run / "eval" / c)))
+        for c in ("vanilla", "blank", "pose_s3")
+    }
+    return energy_aurocs(conditions, reference="vanilla")
+
+
+@pytest.mark.parametrize("weight", [0.1, 0.2])
+def test_the_contrastive_weight_choice_comes_out_of_the_committed_quickstart_runs(weight):
+    """BENCHMARKS.md section 7, fifth round: the energy separates both shifts (AUROC >= 0.9) on 3 of 5 seeds at the
+    contrastive weight 0.1 and on 4 of 5 at 0.2, the light preset's weight since."""
+    name = "steps1000_bf16_seed{}" if weight == 0.1 else "steps1000_weight02_seed{}"
+    separated = 0
+    for seed in (1000, 2000, 3000, 4000, 5000):
+        run = BUDGET / name.format(seed)
+        config = json.loads((run / "quickstart_run.json").read_text())["config"]
+        assert (config["seed"], config["policy"]["energy_contrastive_weight"]) == (seed, weight)
+        aurocs = quickstart_aurocs(run)
+        published = json.loads((run / "summary.json").read_text())["energy_auroc"]
+        assert aurocs == pytest.approx(published), run.name
+        separated += min(aurocs["blank"], aurocs["pose_s3"]) >= 0.9
+    assert separated == {0.1: 3, 0.2: 4}[weight]

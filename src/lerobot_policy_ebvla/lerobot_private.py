@@ -13,6 +13,8 @@ LeRobot may rename or remove its private names in any release. They were checked
   stdin until LIBERO is set up (`ebvla-install-libero-assets`).
 - `POLICY_SERVER_CHUNK_METHOD`: the private method of LeRobot's `PolicyServer` that `EBVLAPolicyServer`
   (serving.py, run by `ebvla-policy-server`) overrides to see every chunk it serves.
+- `DATASET_READER_QUERY_METHOD`: the private method of LeRobot's `DatasetReader` that reads a sample's delta rows;
+  `pipelines.column_queries` replaces it, while the quickstart trains, by one that reads only the queried column.
 """
 
 import importlib
@@ -21,6 +23,7 @@ from collections.abc import Iterable
 from typing import Any
 
 __all__ = [
+    "DATASET_READER_QUERY_METHOD",
     "LEROBOT_VERSION_CHECKED",
     "POLICY_SERVER_CHUNK_METHOD",
     "PRIVATE_NAMES",
@@ -33,6 +36,7 @@ __all__ = [
 # The LeRobot release every name below was checked against (`pip show lerobot`).
 LEROBOT_VERSION_CHECKED = "0.6.1"
 POLICY_SERVER_CHUNK_METHOD = "_predict_action_chunk"
+DATASET_READER_QUERY_METHOD = "_query_hf_dataset"
 LIBERO_MODULE = "lerobot.envs.libero"
 # (module, attribute) of every private LeRobot name above; attributes of a class are dotted.
 PRIVATE_NAMES = (
@@ -41,6 +45,7 @@ PRIVATE_NAMES = (
     (LIBERO_MODULE, "_get_suite"),
     (LIBERO_MODULE, "_select_task_ids"),
     ("lerobot.async_inference.policy_server", f"PolicyServer.{POLICY_SERVER_CHUNK_METHOD}"),
+    ("lerobot.datasets.dataset_reader", f"DatasetReader.{DATASET_READER_QUERY_METHOD}"),
 )
 
 

@@ -6,7 +6,8 @@ The whole pipeline of the project, offline and sized for a small CPU (`run`):
    existing dataset is reused.
 2. **Train** `ebvla` with LeRobot's own `train` (the function behind `lerobot-train`), given a
    `TrainPipelineConfig` composed here (`train_config`): the dataset, and the light policy of
-   `presets.LIGHT_POLICY`.
+   `presets.LIGHT_POLICY`. Its loader reads each action chunk from the action column alone
+   (`column_queries`), not from whole decoded rows as LeRobot 0.6.1 does.
 3. **Evaluate** with `pipelines.eval_energy` (LeRobot's `eval_policy_all` under the `EnergyRecorder`),
    recording the energy of every refined chunk, in three conditions: the vanilla scene, a blanked camera (does
    success depend on the camera?) and one perturbed scene. Then the camera check on dataset frames
@@ -43,6 +44,7 @@ from ..monitoring.summary import (
 )
 from ..presets import light_policy_config
 from ..recording.metaworld import RecordMetaworldConfig, record_metaworld
+from .column_queries import single_column_delta_queries
 from .eval_energy import eval_metaworld_checkpoint, metaworld_eval_env
 
 # Written into output_dir when a run starts: a second run there is refused without `overwrite`.
@@ -311,7 +313,8 @@ def run(cfg: QuickstartConfig) -> dict:
         f"{p.vision_backbone} at {p.resize_shape} px, energy head D={p.dim_model}, {p.n_heads} heads, "
         f"L={p.n_blocks}; state dropout {p.state_dropout}, contrastive weight {p.energy_contrastive_weight})"
     )
-    train(train_config(cfg, root, repo_id, train_dir))
+    with single_column_delta_queries():
+        train(train_config(cfg, root, repo_id, train_dir))
     timings["train_s"] = time.perf_counter() - start
     checkpoint = train_dir / "checkpoints" / "last" / "pretrained_model"
 
