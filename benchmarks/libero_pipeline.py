@@ -1,7 +1,8 @@
 """LIBERO-Object at scale (issue 21) in resumable stages, each of which fits one short GPU slice.
 
 The paper's LIBERO experiment with a light `ebvla`: scripted demonstrations of all ten LIBERO-Object tasks,
-`lerobot-train` of the paper's recipe (Table V's K_train 8-15, K_inf 15), of the contrastive variant and of
+`ebvla-train` (lerobot-train reading each action chunk from its column alone: the demonstrations' frames are
+stored as images) of the paper's recipe (Table V's K_train 8-15, K_inf 15), of the contrastive variant and of
 LeRobot's Diffusion Policy on the same data, evaluation in LeRobot's LIBERO env with energy records (vanilla
 calibration and held-out rollouts, LIBERO-Plus camera perturbations), then Table III and Table IV from the
 records. Every stage skips what its folder already holds, so a stage cut short by the end of a GPU slice is
@@ -198,14 +199,14 @@ def run_args(run: str, image_size: int) -> list[str]:
 
 
 def train_command(work: Path, run: str, steps: int, batch_size: int, device: str, workers: int) -> list[str]:
-    """`lerobot-train` of `run`, or its resumption from the last checkpoint when there is one."""
+    """`ebvla-train` (lerobot-train reading action chunks from their column) of `run`, or its resumption."""
     out = work / "train" / run
     last = out / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
     if last.exists():
-        return [bin_path("lerobot-train"), f"--config_path={last}", "--resume=true", f"--steps={steps}"]
+        return [bin_path("ebvla-train"), f"--config_path={last}", "--resume=true", f"--steps={steps}"]
     image_size = json.loads((work / "recording_summary.json").read_text())["image_size"]
     return [
-        bin_path("lerobot-train"),
+        bin_path("ebvla-train"),
         *run_args(run, image_size),
         f"--policy.device={device}",
         f"--dataset.repo_id={REPO_ID}",
@@ -232,7 +233,7 @@ def train(work: Path, runs: list[str], steps: int, batch_size: int, device: str,
             print(f"train: {run} done")
             continue
         cmd = train_command(work, run, steps, batch_size, device, workers)
-        # Marks the run done only when lerobot-train exits 0.
+        # Marks the run done only when the training exits 0.
         script = f'{subprocess.list2cmdline(cmd)} && touch "{work / "train" / run / "DONE"}"'
         log = work / "logs" / f"train_{run}.log"
         log.parent.mkdir(parents=True, exist_ok=True)
@@ -253,7 +254,7 @@ def train(work: Path, runs: list[str], steps: int, batch_size: int, device: str,
 
 def stop_training(work: Path) -> None:
     """Stops every training of `work` (their last checkpoint stays): the GPU slice is needed for evaluation."""
-    subprocess.run(["pkill", "-f", f"lerobot-train.*{work / 'train'}"], check=False)
+    subprocess.run(["pkill", "-f", f"ebvla-train.*{work / 'train'}"], check=False)
 
 
 def last_checkpoint(work: Path, run: str) -> Path | None:

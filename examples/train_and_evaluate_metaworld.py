@@ -84,7 +84,7 @@ def main(cfg: ExampleConfig) -> None:
     )
     train_dir = cfg.output_dir / "train"
     # LeRobot 0.6.1 decodes the frames of all 8 rows of an action chunk to read the actions; this context reads
-    # the action column alone (pipelines/column_queries.py), a training step ~60 ms faster on two cores.
+    # the action column alone (pipelines/column_queries.py), a training step ~45 ms faster on two cores.
     with single_column_delta_queries():
         train(
             TrainPipelineConfig(

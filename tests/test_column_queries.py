@@ -80,3 +80,20 @@ def test_lerobots_method_is_back_after_the_context_even_on_an_error(dataset_root
         assert getattr(DatasetReader, DATASET_READER_QUERY_METHOD) is not original
         raise RuntimeError("raised inside the context")
     assert getattr(DatasetReader, DATASET_READER_QUERY_METHOD) is original
+
+
+class ReaderMethodName(torch.utils.data.Dataset):
+    """Reports, from wherever it is read, the qualified name of LeRobot's delta-query method there."""
+
+    def __len__(self):
+        return 1
+
+    def __getitem__(self, index):
+        return getattr(DatasetReader, DATASET_READER_QUERY_METHOD).__qualname__
+
+
+def test_loader_workers_forked_inside_the_context_read_single_columns_too():
+    with single_column_delta_queries():
+        loader = torch.utils.data.DataLoader(ReaderMethodName(), num_workers=1, batch_size=None)
+        in_worker = next(iter(loader))
+    assert "single_column_delta_queries" in in_worker

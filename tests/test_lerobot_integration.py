@@ -98,3 +98,19 @@ def test_checkpoint_loads_like_lerobot_eval_and_gives_finite_in_range_actions(tr
     assert ((action - mean).abs() <= policy.config.action_clamp * std + 1e-5).all()
     assert policy.last_energy.final_energy.shape == (1,)
     assert torch.isfinite(policy.last_energy.final_energy).all()
+
+
+def test_ebvla_train_trains_exactly_as_lerobot_train(trained_checkpoint, tmp_path):
+    """`ebvla-train` (lerobot-train with action chunks read from their column alone) gives the same weights."""
+    from safetensors.torch import load_file
+
+    root, output_dir, _ = trained_checkpoint
+    result = lerobot_train(root, tmp_path / "run", launcher=[console_script("ebvla-train")])
+    assert result.returncode == 0, result.stderr[-3000:]
+    weights = [
+        load_file(run / "checkpoints" / "last" / "pretrained_model" / "model.safetensors")
+        for run in (output_dir, tmp_path / "run")
+    ]
+    assert weights[0].keys() == weights[1].keys()
+    for name, tensor in weights[0].items():
+        torch.testing.assert_close(weights[1][name], tensor, rtol=1e-5, atol=1e-6, msg=name)

@@ -126,7 +126,7 @@ def test_diffusion_policy_crops_ninety_percent_of_the_frame_and_ebvla_runs_are_u
 
 def test_training_starts_on_the_merged_dataset_then_resumes_from_the_last_checkpoint(work):
     fresh = pipeline.train_command(work, "diffusion", 100, 8, "cpu", 0)
-    assert Path(fresh[0]).name == "lerobot-train"
+    assert Path(fresh[0]).name == "ebvla-train"
     for arg in (
         f"--dataset.root={work / 'data' / 'all'}",
         f"--output_dir={work / 'train' / 'diffusion'}",

@@ -4,15 +4,14 @@ LeRobot 0.6.1's `DatasetReader` fetches a sample's delta rows (its chunk of `chu
 `hf_dataset[key][indices]`. Since `datasets` 4.4 a dataset with a custom transform (LeRobot always sets
 `hf_transform_to_torch`) answers that by formatting whole rows, so on a dataset that stores its frames as images
 every sample decodes `chunk_size` frames per camera only to read the action column (LeRobot issue #4392; fixed
-upstream by PR #4314, after 0.6.1). On the quickstart's 64 px dataset that is 4.5 of a sample's 5 ms, about
-60 ms of a training step of batch 16 on two cores (BENCHMARKS.md, section 7).
+upstream by PR #4314, after 0.6.1). On the quickstart's 64 px dataset a sample took 4.1 ms instead of 0.6, and
+a training step of batch 16 on two cores 226 ms instead of 182 (BENCHMARKS.md, section 7).
 
 `single_column_delta_queries` answers those queries from `select_columns` views of the one queried column
 (a projection of the Arrow table, no copy), with the same transform, so the items are unchanged
 (`tests/test_column_queries.py` compares them key by key). It acts only while the context is open, on every
-`DatasetReader` in the process, and restores LeRobot's method on exit: the quickstart wraps its call of
-LeRobot's `train` in it. A `lerobot-train` user on an image dataset gets the same with the upstream fix, or by
-storing the frames as video.
+`DatasetReader` in the process (and in loader workers forked inside it), and restores LeRobot's method on exit:
+the quickstart and `ebvla-train` run LeRobot's training inside it.
 """
 
 from collections.abc import Iterator
