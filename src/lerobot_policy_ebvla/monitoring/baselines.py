@@ -42,7 +42,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..runtime.calibration import ContextNeighbours, ContextStatistics, PhaseStatistics, kth_nearest_distance
+from ..runtime.calibration import (
+    DEFAULT_KNN_K,
+    ContextNeighbours,
+    ContextStatistics,
+    PhaseStatistics,
+    kth_nearest_distance,
+)
 from .records import Episode
 
 SCORE_NAMES = (
@@ -81,12 +87,14 @@ class ContextFeatureModel:
     reference: np.ndarray
     reference_ids: list
     neighbours: ContextNeighbours
-    k: int = 5
+    k: int = DEFAULT_KNN_K
     # Mahalanobis's statistics without one episode, by episode id, fitted when first needed.
     _left_out: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @classmethod
-    def fit(cls, features: np.ndarray, episode_ids: Sequence[Hashable], k: int = 5) -> "ContextFeatureModel":
+    def fit(
+        cls, features: np.ndarray, episode_ids: Sequence[Hashable], k: int = DEFAULT_KNN_K
+    ) -> "ContextFeatureModel":
         """Fits on (N, D) calibration features, `episode_ids[i]` the episode of feature i."""
         features = np.asarray(features, dtype=np.float64)
         if features.ndim != 2 or features.shape[0] != len(episode_ids) or features.shape[0] < 2:
@@ -171,7 +179,7 @@ def available_scores(episodes: Sequence[Episode]) -> list[str]:
     return names
 
 
-def fit_feature_model(episodes: Mapping[Hashable, Episode], k: int = 5) -> ContextFeatureModel:
+def fit_feature_model(episodes: Mapping[Hashable, Episode], k: int = DEFAULT_KNN_K) -> ContextFeatureModel:
     """Fits the feature baselines on the context features of every chunk of the (calibration) episodes."""
     features = [r.context_feature for episode in episodes.values() for r in episode]
     ids = [key for key, episode in episodes.items() for _ in episode]
@@ -190,7 +198,7 @@ def fit_phase_model(episodes: Mapping[Hashable, Episode]) -> PhaseEnergyModel:
 
 
 def fit_score_reference(
-    episodes: Mapping[Hashable, Episode], knn_k: int = 5, features: bool = True
+    episodes: Mapping[Hashable, Episode], knn_k: int = DEFAULT_KNN_K, features: bool = True
 ) -> ScoreReference:
     """Fits the reference scores on calibration episodes; the feature baselines only with `features`."""
     return ScoreReference(fit_phase_model(episodes), fit_feature_model(episodes, knn_k) if features else None)

@@ -23,6 +23,7 @@ import numpy as np
 
 from ..runtime.calibration import (
     CALIBRATED_SCORES,
+    DEFAULT_KNN_K,
     OOD_CALIBRATION_FILENAME,
     SCORE_AGGREGATIONS,
     THRESHOLD_RULES,
@@ -90,8 +91,9 @@ class OODReportConfig:
     n_bootstrap: int = 1000
     # Seed of the bootstrap generator.
     seed: int = 0
-    # Neighbours of the k-NN feature baseline (and the k a `--score=context_knn` calibration saves).
-    knn_k: int = 5
+    # Neighbours of the k-NN feature baseline (and the k a `--score=context_knn` calibration saves); 5 before
+    # 2026-11-24 (runtime.calibration.DEFAULT_KNN_K says why 1).
+    knn_k: int = DEFAULT_KNN_K
     # Detection on the first chunks: every score's AUROC over each episode's first k chunks, for each k,
     # beside the whole episode's (an episode shorter than k uses all its chunks).
     first_chunks: list[int] = field(default_factory=lambda: [1, 3, 5])

@@ -83,6 +83,12 @@ THRESHOLD_RULES = ("mean_std", "conformal")
 # from the vanilla contexts, the larger of the first and the third, each standardized, and the distance of the
 # chunk's pooled context to its k-th nearest vanilla context.
 CALIBRATED_SCORES = ("final_energy", "phase_energy", "context_distance", "energy_and_context", "context_knn")
+# Which nearest vanilla context the context k-NN distance measures to, unless told. The nearest: vanilla
+# rollouts differ mostly by where the scene's objects start, so a vanilla chunk has a close twin among the
+# calibration chunks while a shifted one does not; from the 5th the spread of starting scenes drowns a small
+# shift (a distractor: AUROC 0.65 / 0.74 on the first 3 chunks at k = 5, 0.98 / 1.00 at k = 1; BENCHMARKS.md,
+# section 6).
+DEFAULT_KNN_K = 1
 # The scores a calibration computes from each chunk's pooled context.
 CONTEXT_SCORES = ("context_distance", "energy_and_context", "context_knn")
 # Of those, the ones computed with `ContextStatistics` (the others with `ContextNeighbours`).
@@ -364,7 +370,7 @@ class ContextNeighbours:
         object.__setattr__(self, "_reference", (features.astype(np.float64) - mean) / std)
 
     @classmethod
-    def fit(cls, features: ArrayLike, k: int = 5) -> "ContextNeighbours":
+    def fit(cls, features: ArrayLike, k: int = DEFAULT_KNN_K) -> "ContextNeighbours":
         """Keeps (N >= 2, D) vanilla context features, one row per chunk, with their mean and std.
 
         Raises:
