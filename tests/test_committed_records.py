@@ -82,25 +82,27 @@ DISTRACTOR30 = (
 )
 
 
-def distractor30_report(output_dir: Path, knn_k: int) -> str:
-    return write_ood_report(
-        OODReportConfig(
-            calibration=[str(DISTRACTOR30 / "calibration")],
-            vanilla=[str(DISTRACTOR30 / "vanilla")],
-            ood=[str(DISTRACTOR30 / "distractor_s3"), str(DISTRACTOR30 / "distractor_s5")],
-            output_dir=output_dir,
-            n_bootstrap=10,
-            table_iii_first_chunks=0,
-            knn_k=knn_k,
-        )
+def records_report(records: Path, output_dir: Path, **options) -> str:
+    """The OOD report of a sweep's committed records: its `calibration` and `vanilla` folders against every
+    other folder, with few bootstrap resamples, the first 1 and 3 chunks and no first-chunks Table III unless
+    `options` say otherwise."""
+    conditions = sorted(p for p in records.iterdir() if p.name not in ("calibration", "vanilla"))
+    defaults = {"n_bootstrap": 10, "first_chunks": [1, 3], "table_iii_first_chunks": 0}
+    cfg = OODReportConfig(
+        calibration=[str(records / "calibration")],
+        vanilla=[str(records / "vanilla")],
+        ood=[str(p) for p in conditions],
+        output_dir=output_dir,
+        **(defaults | options),
     )
+    return write_ood_report(cfg)
 
 
 def test_with_30_rollouts_a_side_no_score_flagged_the_distractor_at_the_5th_neighbour(tmp_path):
     """BENCHMARKS.md section 6, the distractor with 30 rollouts a side (the 8-rollout sweep's checkpoint): it cuts
     success from 90% to 63.3% at severities 3 and 5, and with the k-NN at its former k = 5 no score reaches 0.85
     over the first 3 chunks (k-NN 0.652 / 0.740, the final energy 0.654 / 0.637)."""
-    report = distractor30_report(tmp_path, knn_k=5)
+    report = records_report(DISTRACTOR30, tmp_path, knn_k=5)
     assert "success 27/30 (90.0%)" in report
     assert "### distractor 3: 30 perturbed rollouts, success 19/30 (63.3%)" in report
     scores = ("final_energy", "phase_energy", "mahalanobis", "knn", "energy_and_context")
@@ -113,7 +115,7 @@ def test_with_30_rollouts_a_side_no_score_flagged_the_distractor_at_the_5th_neig
 def test_the_nearest_vanilla_context_flags_the_distractor_on_the_first_3_chunks(tmp_path):
     """BENCHMARKS.md section 6: the same records at the default k = 1: k-NN 0.983 / 0.999 over the first 3
     chunks, above every other score."""
-    report = distractor30_report(tmp_path, knn_k=DEFAULT_KNN_K)
+    report = records_report(DISTRACTOR30, tmp_path, knn_k=DEFAULT_KNN_K)
     assert DEFAULT_KNN_K == 1
     assert first_chunks_row(report, "distractor 3", "knn")[1] == pytest.approx(0.983, abs=5e-4)
     assert first_chunks_row(report, "distractor 5", "knn")[1] == pytest.approx(0.999, abs=5e-4)
@@ -153,10 +155,12 @@ def test_the_published_table_iii_of_the_paper_recipe_at_k_train_8_15_comes_out_o
 
 
 def table_iii_balanced_accuracy_at_k1(report: str, title: str, score: str) -> str:
-    """A score's balanced accuracy at T = mu_v + 1.0 sigma_v in the report's Table III section `title`."""
+    """A score's balanced accuracy at T = mu_v + 1.0 sigma_v in the side table of the report's section `title`
+    (e.g. "Table III: all perturbations")."""
     section = report.split(f"\n## {title} (")[1].split("\n## ")[0]
     side = section.split("Balanced accuracy of every score")[1].splitlines()
-    column = [c.strip() for c in side[2].split("|")].index(f"Bal. Acc. {score}")
+    header = next(line for line in side if line.startswith("| Rule"))
+    column = [c.strip() for c in header.split("|")].index(f"Bal. Acc. {score}")
     row = next(line for line in side if line.startswith("| 1.0σ"))
     return [c.strip() for c in row.split("|")][column]
 
@@ -191,36 +195,19 @@ def test_the_nearest_vanilla_context_detects_the_paper_recipes_shifts_on_the_fir
 SWEEP = Path(__file__).parents[1] / "benchmarks" / "results" / "metaworld_sweep_context_distance" / "records"
 
 
-def sweep_report(tmp_path: Path, **options) -> str:
-    conditions = sorted(p for p in SWEEP.iterdir() if p.name not in ("calibration", "vanilla"))
-    cfg = OODReportConfig(
-        calibration=[str(SWEEP / "calibration")],
-        vanilla=[str(SWEEP / "vanilla")],
-        ood=[str(p) for p in conditions],
-        output_dir=tmp_path,
-        n_bootstrap=10,
-        first_chunks=[3],
-        table_iii_first_chunks=0,
-        **options,
-    )
-    return write_ood_report(cfg)
-
-
 def mahalanobis_balanced_accuracy_at_k1(report: str) -> str:
     """The context distance's balanced accuracy at k = 1.0 over all perturbations (Table III's side table)."""
-    section = report.split("## Table III: all perturbations")[1].split("\n## ")[0]
-    side = section.split("Balanced accuracy of every score")[1]
-    header = next(line for line in side.splitlines() if line.startswith("| Rule"))
-    column = [c.strip() for c in header.split("|")].index("Bal. Acc. mahalanobis")
-    row = next(line for line in side.splitlines() if line.startswith("| 1.0σ"))
-    return [c.strip() for c in row.split("|")][column]
+    return table_iii_balanced_accuracy_at_k1(report, "Table III: all perturbations", "mahalanobis")
 
 
 def test_a_failed_calibration_rollout_silences_the_context_distance_unless_only_successes_calibrate(tmp_path):
     """BENCHMARKS.md section 6, the sweep: with its 5 calibration rollouts the failed one (seed 2003) inflates
     sigma_v and the context distance flags nothing (50.0%); calibrated on the 4 successful ones it reaches 71.5%."""
-    assert mahalanobis_balanced_accuracy_at_k1(sweep_report(tmp_path / "all")) == "50.0%"
-    successes_only = sweep_report(tmp_path / "ok", calibration_successes_only=True)
+    assert (
+        mahalanobis_balanced_accuracy_at_k1(records_report(SWEEP, tmp_path / "all", first_chunks=[3]))
+        == "50.0%"
+    )
+    successes_only = records_report(SWEEP, tmp_path / "ok", first_chunks=[3], calibration_successes_only=True)
     assert "(successful only: 1 failed left out)" in successes_only
     assert mahalanobis_balanced_accuracy_at_k1(successes_only) == "71.5%"
 
@@ -263,26 +250,10 @@ def first_chunk_auroc(report: str, condition: str, score: str) -> float:
     return first_chunks_row(report, condition, score)[0]
 
 
-def sweep_cal20_report(output_dir: Path, knn_k: int) -> str:
-    conditions = sorted(p for p in SWEEP_CAL20.iterdir() if p.name not in ("calibration", "vanilla"))
-    return write_ood_report(
-        OODReportConfig(
-            calibration=[str(SWEEP_CAL20 / "calibration")],
-            vanilla=[str(SWEEP_CAL20 / "vanilla")],
-            ood=[str(p) for p in conditions],
-            output_dir=output_dir,
-            n_bootstrap=10,
-            first_chunks=[1, 3],
-            table_iii_first_chunks=0,
-            knn_k=knn_k,
-        )
-    )
-
-
 def test_the_context_knn_flags_every_success_cutting_perturbation_on_the_first_chunk(tmp_path):
     """BENCHMARKS.md section 6, the sweep with 20 calibration rollouts, k-NN at its former k = 5: >= 0.85 on the
     first chunk under all ten conditions that cut success by 20+ points, 0.821 pooled; the final energy 0.598."""
-    report = sweep_cal20_report(tmp_path, knn_k=5)
+    report = records_report(SWEEP_CAL20, tmp_path, knn_k=5)
     assert "Calibration: 20 vanilla rollouts" in report
     assert {c: first_chunk_auroc(report, c, "knn") >= 0.85 for c in SUCCESS_CUTTING} == dict.fromkeys(
         SUCCESS_CUTTING, True
@@ -294,7 +265,7 @@ def test_the_context_knn_flags_every_success_cutting_perturbation_on_the_first_c
 def test_the_nearest_vanilla_context_flags_every_success_cutting_perturbation_on_the_first_3_chunks(tmp_path):
     """BENCHMARKS.md section 6, the same sweep at the default k = 1: 1.000 over the first 3 chunks under all ten
     conditions, 0.957 / 0.910 pooled over the first 1 / 3 chunks."""
-    report = sweep_cal20_report(tmp_path, knn_k=DEFAULT_KNN_K)
+    report = records_report(SWEEP_CAL20, tmp_path, knn_k=DEFAULT_KNN_K)
     assert {c: first_chunks_row(report, c, "knn")[1] for c in SUCCESS_CUTTING} == dict.fromkeys(
         SUCCESS_CUTTING, 1.0
     )
@@ -364,22 +335,8 @@ def test_the_nearest_vanilla_context_holds_on_the_checkpoint_and_seeds_nothing_w
     checkpoint and new seeds: pooled 0.910 / 0.842 against 0.876 / 0.816 over the first 1 / 3 chunks, 1.000 on
     the first 3 chunks under every condition that cuts success by 20+ points, Table III at k = 1.0 100% on every
     camera row over whole episodes."""
-    conditions = sorted(p for p in KNN_CONFIRM.iterdir() if p.name not in ("calibration", "vanilla"))
-
-    def report(knn_k: int) -> str:
-        cfg = OODReportConfig(
-            calibration=[str(KNN_CONFIRM / "calibration")],
-            vanilla=[str(KNN_CONFIRM / "vanilla")],
-            ood=[str(p) for p in conditions],
-            output_dir=tmp_path / f"k{knn_k}",
-            n_bootstrap=10,
-            first_chunks=[1, 3],
-            table_iii_first_chunks=0,
-            knn_k=knn_k,
-        )
-        return write_ood_report(cfg)
-
-    nearest, fifth = report(DEFAULT_KNN_K), report(5)
+    nearest = records_report(KNN_CONFIRM, tmp_path / "nearest", knn_k=DEFAULT_KNN_K)
+    fifth = records_report(KNN_CONFIRM, tmp_path / "fifth", knn_k=5)
     assert first_chunks_row(nearest, "all perturbations", "knn")[:2] == pytest.approx(
         [0.910, 0.842], abs=5e-4
     )

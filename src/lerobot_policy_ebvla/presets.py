@@ -25,8 +25,8 @@ LIGHT_POLICY: dict[str, Any] = {
     # section 7).
     "ffn_multiplier": 2,
     # The contrastive term is half of a light training step; its head pass in bf16 where the CPU (or GPU)
-    # multiplies bf16 natively takes a step from about 280 to 220 ms on an AMD EPYC with AVX512-BF16, and is
-    # fp32 elsewhere (BENCHMARKS.md, section 7).
+    # multiplies bf16 natively takes a step from about 231 to 198 ms on an AMD EPYC with AVX512-BF16, and is
+    # fp32 elsewhere (BENCHMARKS.md, section 7, fourth round).
     "energy_contrastive_dtype": "auto",
     "train_mcmc_steps_range": (2, 4),
     "optimizer_lr": 5e-4,
