@@ -21,15 +21,10 @@ from lerobot_policy_ebvla.monitoring.records import (
 )
 from lerobot_policy_ebvla.monitoring.scores import chunk_scores, combined_rollout_scores, episode_scores
 from lerobot_policy_ebvla.runtime import EnergyOODError
-from lerobot_policy_ebvla.runtime.calibration import (
-    CONTEXT_FIELD,
-    OOD_CALIBRATION_FILENAME,
-    OOD_CONTEXT_FILENAME,
-    CombinedStatistics,
-    ContextStatistics,
-    EnergyOODMonitor,
-    OODCalibration,
-)
+from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
+from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
+from lerobot_policy_ebvla.runtime.scores import CONTEXT_FILE, EnergyAndContext
+from lerobot_policy_ebvla.runtime.statistics import CombinedStatistics, ContextStatistics
 
 from .conftest import context_rollouts, tiny_batch, tiny_config, write_records
 
@@ -43,9 +38,18 @@ def context_statistics() -> ContextStatistics:
 
 
 def combined_calibration(**kwargs) -> OODCalibration:
-    fields = {"mu_v": 0.0, "sigma_v": 1.0, "score": "energy_and_context", "context": context_statistics()}
-    fields |= {"combined_mean": STATISTICS.mean, "combined_std": STATISTICS.std, **kwargs}
-    return OODCalibration(**fields)
+    """An energy-and-context calibration from its JSON fields (`context` for its side file); `kwargs` override
+    them, or set the calibration's."""
+    fields = {
+        "context": context_statistics(),
+        "combined_mean": STATISTICS.mean,
+        "combined_std": STATISTICS.std,
+    }
+    fields |= {key: kwargs.pop(key) for key in list(kwargs) if key in fields}
+    fields[CONTEXT_FILE.field] = fields.pop("context")
+    return OODCalibration(
+        **({"mu_v": 0.0, "sigma_v": 1.0} | kwargs), score=EnergyAndContext.from_json(fields)
+    )
 
 
 # The combination.
@@ -95,10 +99,10 @@ def test_the_scores_to_combine_come_one_per_rollout():
 
 def test_the_report_combines_rollout_scores_standardized_on_the_calibration_rollouts_by_max_or_sum():
     # Calibration: final energy mu 1, sigma 1; context distance mu 2, sigma 1.
-    calibration = {"final_energy": np.array([0.0, 2.0]), "mahalanobis": np.array([1.0, 3.0])}
+    calibration = {"final_energy": np.array([0.0, 2.0]), "context_distance": np.array([1.0, 3.0])}
     rollouts = {
         "final_energy": np.array([3.0, 0.0]),
-        "mahalanobis": np.array([3.0, 2.0]),
+        "context_distance": np.array([3.0, 2.0]),
     }  # z: (2, 1), (-1, 0)
     np.testing.assert_allclose(
         combined_rollout_scores("energy_and_context", rollouts, calibration), [2.0, 0.0]
@@ -110,8 +114,10 @@ def test_the_report_combines_rollout_scores_standardized_on_the_calibration_roll
 
 def test_the_report_needs_both_scores_to_combine():
     scores = {"final_energy": np.array([0.0, 2.0])}
-    with pytest.raises(ValueError, match=r"`rollout_scores` needs .*missing \['mahalanobis'\]"):
-        combined_rollout_scores("energy_and_context", scores, {**scores, "mahalanobis": np.array([1.0, 2.0])})
+    with pytest.raises(ValueError, match=r"`rollout_scores` needs .*missing \['context_distance'\]"):
+        combined_rollout_scores(
+            "energy_and_context", scores, {**scores, "context_distance": np.array([1.0, 2.0])}
+        )
 
 
 def test_a_combined_score_has_no_chunk_score():
@@ -132,16 +138,14 @@ def test_an_energy_and_context_calibration_needs_its_statistics():
 
 
 def test_fitting_an_energy_and_context_calibration_keeps_its_standardization():
-    calibration = OODCalibration.fit(
-        [0.0, 2.0], score="energy_and_context", context=context_statistics(), combined=STATISTICS
-    )
-    assert (calibration.mu_v, calibration.sigma_v) == (1.0, 1.0) and calibration.combined == STATISTICS
+    calibration = OODCalibration.fit([0.0, 2.0], score=EnergyAndContext(context_statistics(), STATISTICS))
+    assert (calibration.mu_v, calibration.sigma_v) == (1.0, 1.0) and calibration.score.combined == STATISTICS
 
 
 def test_an_energy_and_context_calibration_scores_a_chunk_by_the_larger_z_of_its_energy_and_context():
     calibration = combined_calibration()
     features = np.array([[0.0, 0.0, 0.0, 0.0], [6.0, 6.0, 6.0, 6.0]])
-    distances = calibration.context.distance(features)
+    distances = calibration.score.context.distance(features)
     expected = np.maximum((np.array([3.0, 1.0]) - 1.0) / 0.5, (distances - 2.0) / 4.0)
     np.testing.assert_allclose(calibration.chunk_score(np.array([3.0, 1.0]), 0, features), expected)
     assert calibration.needs_context_features
@@ -176,7 +180,7 @@ def test_the_monitor_scores_a_running_rollout_as_it_scores_the_finished_one():
         finished = EnergyOODMonitor(calibration).check_rollout(
             energies[:, env], context_features=features[:, env]
         )
-        mean_distance = calibration.context.distance(features[:, env]).mean()
+        mean_distance = calibration.score.context.distance(features[:, env]).mean()
         expected = STATISTICS.combine(energies[:, env].mean(), mean_distance)[0]
         assert decisions[env].energy == pytest.approx(finished.energy) == pytest.approx(expected)
 
@@ -186,9 +190,9 @@ def test_an_energy_and_context_calibration_round_trips_through_json_and_safetens
     calibration.save(tmp_path)
     payload = json.loads((tmp_path / OOD_CALIBRATION_FILENAME).read_text())
     assert payload["combined_mean"] == [1.0, 2.0] and payload["combined_std"] == [0.5, 4.0]
-    assert payload[CONTEXT_FIELD]["file"] == OOD_CONTEXT_FILENAME
+    assert payload[CONTEXT_FILE.field]["file"] == CONTEXT_FILE.filename
     loaded = OODCalibration.load(tmp_path)
-    assert loaded == calibration and loaded.combined == STATISTICS
+    assert loaded == calibration and loaded.score.combined == STATISTICS
     features = np.full((1, D), 3.0)
     assert loaded.chunk_score(np.array([2.0]), 0, features) == pytest.approx(
         calibration.chunk_score(np.array([2.0]), 0, features)
@@ -271,7 +275,7 @@ def expected_combined_scores(record_dirs, first_chunks=None) -> dict[str, np.nda
     def scores(episodes):
         return {
             n: episode_scores(episodes, n, reference=reference, first_chunks=first_chunks)
-            for n in ("final_energy", "mahalanobis")
+            for n in ("final_energy", "context_distance")
         }
 
     statistics = CombinedStatistics.fit(*scores(calibration).values())
@@ -283,7 +287,7 @@ def expected_combined_scores(record_dirs, first_chunks=None) -> dict[str, np.nda
 
 def test_the_report_puts_the_combined_scores_beside_every_other(report_text):
     auroc_table = section(report_text, "AUROC [bootstrap 95% interval] by score")
-    assert "| mahalanobis | knn | energy_and_context | energy_and_context_sum |" in auroc_table
+    assert "| context_distance | context_knn | energy_and_context | energy_and_context_sum |" in auroc_table
     assert section(report_text, "Detection on the first chunks").count("| energy_and_context | ") == 3
     assert section(report_text, "Table III: light 1").count("Bal. Acc. energy_and_context") == 2
     assert "| energy_and_context | 12 |" in section(report_text, "Calibration")
@@ -296,10 +300,10 @@ def test_the_combined_score_catches_a_condition_only_the_energy_sees_and_one_onl
     value = {
         (c, s): float(cell(table, c, s).split()[0])
         for c in ("energy 1", "light 1")
-        for s in ("final_energy", "mahalanobis", "energy_and_context")
+        for s in ("final_energy", "context_distance", "energy_and_context")
     }
-    assert value["energy 1", "final_energy"] > 0.95 and value["energy 1", "mahalanobis"] < 0.8
-    assert value["light 1", "mahalanobis"] > 0.95 and value["light 1", "final_energy"] < 0.8
+    assert value["energy 1", "final_energy"] > 0.95 and value["energy 1", "context_distance"] < 0.8
+    assert value["light 1", "context_distance"] > 0.95 and value["light 1", "final_energy"] < 0.8
     assert value["energy 1", "energy_and_context"] > 0.95 and value["light 1", "energy_and_context"] > 0.95
 
 
@@ -365,7 +369,7 @@ def test_the_report_saves_the_energy_and_context_calibration_its_tables_score(re
     text = report(record_dirs, tmp_path / "out", calibrate_to=checkpoint, score="energy_and_context")
     assert "`--score=energy_and_context`" in text
     calibration = OODCalibration.load(checkpoint)
-    assert calibration.score == "energy_and_context" and calibration.n_rollouts == 12
+    assert calibration.score.name == "energy_and_context" and calibration.n_rollouts == 12
     # The run-time score of each held-out rollout is the report's: same statistics, same combination.
     expected = expected_combined_scores(record_dirs)["vanilla"]
     vanilla = load_episodes([record_dirs[1]])
@@ -396,7 +400,9 @@ def test_the_combined_score_of_the_committed_sweep_catches_pose_3_which_neither_
     reference = fit_score_reference(calibration)
 
     def scores(episodes):
-        return [episode_scores(episodes, n, reference=reference) for n in ("final_energy", "mahalanobis")]
+        return [
+            episode_scores(episodes, n, reference=reference) for n in ("final_energy", "context_distance")
+        ]
 
     statistics = CombinedStatistics.fit(*scores(calibration))
     negatives, positives = statistics.combine(*scores(vanilla)), statistics.combine(*scores(pose))

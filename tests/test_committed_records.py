@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from lerobot_policy_ebvla.monitoring.ood_report import OODReportConfig, write_ood_report
-from lerobot_policy_ebvla.runtime.calibration import DEFAULT_KNN_K
+from lerobot_policy_ebvla.runtime.statistics import DEFAULT_KNN_K
 
 RECORDS = Path(__file__).parent / "fixtures" / "ood_records"
 
@@ -105,11 +105,11 @@ def test_with_30_rollouts_a_side_no_score_flagged_the_distractor_at_the_5th_neig
     report = records_report(DISTRACTOR30, tmp_path, knn_k=5)
     assert "success 27/30 (90.0%)" in report
     assert "### distractor 3: 30 perturbed rollouts, success 19/30 (63.3%)" in report
-    scores = ("final_energy", "phase_energy", "mahalanobis", "knn", "energy_and_context")
+    scores = ("final_energy", "phase_energy", "context_distance", "context_knn", "energy_and_context")
     for condition in ("distractor 3", "distractor 5"):
         assert max(first_chunks_row(report, condition, s)[1] for s in scores) < 0.85, condition
-    assert first_chunks_row(report, "distractor 3", "knn")[1] == pytest.approx(0.652, abs=5e-4)
-    assert first_chunks_row(report, "distractor 5", "knn")[1] == pytest.approx(0.740, abs=5e-4)
+    assert first_chunks_row(report, "distractor 3", "context_knn")[1] == pytest.approx(0.652, abs=5e-4)
+    assert first_chunks_row(report, "distractor 5", "context_knn")[1] == pytest.approx(0.740, abs=5e-4)
 
 
 def test_the_nearest_vanilla_context_flags_the_distractor_on_the_first_3_chunks(tmp_path):
@@ -117,11 +117,11 @@ def test_the_nearest_vanilla_context_flags_the_distractor_on_the_first_3_chunks(
     chunks, above every other score."""
     report = records_report(DISTRACTOR30, tmp_path, knn_k=DEFAULT_KNN_K)
     assert DEFAULT_KNN_K == 1
-    assert first_chunks_row(report, "distractor 3", "knn")[1] == pytest.approx(0.983, abs=5e-4)
-    assert first_chunks_row(report, "distractor 5", "knn")[1] == pytest.approx(0.999, abs=5e-4)
+    assert first_chunks_row(report, "distractor 3", "context_knn")[1] == pytest.approx(0.983, abs=5e-4)
+    assert first_chunks_row(report, "distractor 5", "context_knn")[1] == pytest.approx(0.999, abs=5e-4)
     for condition in ("distractor 3", "distractor 5"):
-        knn = first_chunks_row(report, condition, "knn")[1]
-        others = ("final_energy", "phase_energy", "mahalanobis", "energy_and_context")
+        knn = first_chunks_row(report, condition, "context_knn")[1]
+        others = ("final_energy", "phase_energy", "context_distance", "energy_and_context")
         assert knn > max(first_chunks_row(report, condition, s)[1] for s in others), condition
 
 
@@ -179,15 +179,16 @@ def test_the_nearest_vanilla_context_detects_the_paper_recipes_shifts_on_the_fir
             first_chunks=[3],
         )
     )
-    assert first_chunks_row(report, "blank 1", "knn")[0] == pytest.approx(1.0)
-    assert first_chunks_row(report, "pose 5", "knn")[0] == pytest.approx(0.988, abs=5e-4)
-    assert first_chunks_row(report, "pose 5", "mahalanobis")[0] == pytest.approx(0.878, abs=5e-4)
+    assert first_chunks_row(report, "blank 1", "context_knn")[0] == pytest.approx(1.0)
+    assert first_chunks_row(report, "pose 5", "context_knn")[0] == pytest.approx(0.988, abs=5e-4)
+    assert first_chunks_row(report, "pose 5", "context_distance")[0] == pytest.approx(0.878, abs=5e-4)
     first3 = [
-        table_iii_balanced_accuracy_at_k1(report, f"Table III, first 3 chunks: {c}", "knn")
+        table_iii_balanced_accuracy_at_k1(report, f"Table III, first 3 chunks: {c}", "context_knn")
         for c in ("blank 1", "pose 5")
     ]
     whole = [
-        table_iii_balanced_accuracy_at_k1(report, f"Table III: {c}", "knn") for c in ("blank 1", "pose 5")
+        table_iii_balanced_accuracy_at_k1(report, f"Table III: {c}", "context_knn")
+        for c in ("blank 1", "pose 5")
     ]
     assert (first3, whole) == (["98.0%", "92.0%"], ["93.0%", "83.0%"])
 
@@ -197,7 +198,7 @@ SWEEP = Path(__file__).parents[1] / "benchmarks" / "results" / "metaworld_sweep_
 
 def mahalanobis_balanced_accuracy_at_k1(report: str) -> str:
     """The context distance's balanced accuracy at k = 1.0 over all perturbations (Table III's side table)."""
-    return table_iii_balanced_accuracy_at_k1(report, "Table III: all perturbations", "mahalanobis")
+    return table_iii_balanced_accuracy_at_k1(report, "Table III: all perturbations", "context_distance")
 
 
 def test_a_failed_calibration_rollout_silences_the_context_distance_unless_only_successes_calibrate(tmp_path):
@@ -255,10 +256,10 @@ def test_the_context_knn_flags_every_success_cutting_perturbation_on_the_first_c
     first chunk under all ten conditions that cut success by 20+ points, 0.821 pooled; the final energy 0.598."""
     report = records_report(SWEEP_CAL20, tmp_path, knn_k=5)
     assert "Calibration: 20 vanilla rollouts" in report
-    assert {c: first_chunk_auroc(report, c, "knn") >= 0.85 for c in SUCCESS_CUTTING} == dict.fromkeys(
+    assert {c: first_chunk_auroc(report, c, "context_knn") >= 0.85 for c in SUCCESS_CUTTING} == dict.fromkeys(
         SUCCESS_CUTTING, True
     )
-    assert first_chunk_auroc(report, "all perturbations", "knn") == pytest.approx(0.821, abs=5e-4)
+    assert first_chunk_auroc(report, "all perturbations", "context_knn") == pytest.approx(0.821, abs=5e-4)
     assert first_chunk_auroc(report, "all perturbations", "final_energy") == pytest.approx(0.598, abs=5e-4)
 
 
@@ -266,10 +267,12 @@ def test_the_nearest_vanilla_context_flags_every_success_cutting_perturbation_on
     """BENCHMARKS.md section 6, the same sweep at the default k = 1: 1.000 over the first 3 chunks under all ten
     conditions, 0.957 / 0.910 pooled over the first 1 / 3 chunks."""
     report = records_report(SWEEP_CAL20, tmp_path, knn_k=DEFAULT_KNN_K)
-    assert {c: first_chunks_row(report, c, "knn")[1] for c in SUCCESS_CUTTING} == dict.fromkeys(
+    assert {c: first_chunks_row(report, c, "context_knn")[1] for c in SUCCESS_CUTTING} == dict.fromkeys(
         SUCCESS_CUTTING, 1.0
     )
-    assert first_chunks_row(report, "all perturbations", "knn")[:2] == pytest.approx([0.957, 0.910], abs=5e-4)
+    assert first_chunks_row(report, "all perturbations", "context_knn")[:2] == pytest.approx(
+        [0.957, 0.910], abs=5e-4
+    )
 
 
 def test_the_published_one_check_failure_alarm_of_the_paper_recipe_comes_out_of_its_committed_records():
@@ -337,14 +340,16 @@ def test_the_nearest_vanilla_context_holds_on_the_checkpoint_and_seeds_nothing_w
     camera row over whole episodes."""
     nearest = records_report(KNN_CONFIRM, tmp_path / "nearest", knn_k=DEFAULT_KNN_K)
     fifth = records_report(KNN_CONFIRM, tmp_path / "fifth", knn_k=5)
-    assert first_chunks_row(nearest, "all perturbations", "knn")[:2] == pytest.approx(
+    assert first_chunks_row(nearest, "all perturbations", "context_knn")[:2] == pytest.approx(
         [0.910, 0.842], abs=5e-4
     )
-    assert first_chunks_row(fifth, "all perturbations", "knn")[:2] == pytest.approx([0.876, 0.816], abs=5e-4)
+    assert first_chunks_row(fifth, "all perturbations", "context_knn")[:2] == pytest.approx(
+        [0.876, 0.816], abs=5e-4
+    )
     for condition in ("blank 3", "blank 5", "robot_init 3", "robot_init 5"):
         assert "success 2/8 (25.0%)" in nearest.split(f"### {condition}:")[1].split("\n")[0]
-        assert first_chunks_row(nearest, condition, "knn")[1] == 1.0, condition
+        assert first_chunks_row(nearest, condition, "context_knn")[1] == 1.0, condition
     camera = [f"{p} {s}" for p in ("blank", "fov", "pose") for s in (3, 5)]
     assert {
-        c: table_iii_balanced_accuracy_at_k1(nearest, f"Table III: {c}", "knn") for c in camera
+        c: table_iii_balanced_accuracy_at_k1(nearest, f"Table III: {c}", "context_knn") for c in camera
     } == dict.fromkeys(camera, "100.0%")

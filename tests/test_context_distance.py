@@ -14,15 +14,10 @@ import torch
 
 from lerobot_policy_ebvla import EBVLAPolicy
 from lerobot_policy_ebvla.runtime import EnergyOODError
-from lerobot_policy_ebvla.runtime.calibration import (
-    CONTEXT_FIELD,
-    OOD_CALIBRATION_FILENAME,
-    OOD_CONTEXT_FILENAME,
-    ContextStatistics,
-    EnergyOODMonitor,
-    OODCalibration,
-    ledoit_wolf_covariance,
-)
+from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
+from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
+from lerobot_policy_ebvla.runtime.scores import CONTEXT_FILE, ContextDistance
+from lerobot_policy_ebvla.runtime.statistics import ContextStatistics, ledoit_wolf_covariance
 
 from .conftest import tiny_batch, tiny_config
 
@@ -35,7 +30,7 @@ def vanilla_features(n: int = 40, seed: int = 0) -> np.ndarray:
 
 def context_calibration(**kwargs) -> OODCalibration:
     statistics = ContextStatistics.fit(vanilla_features())
-    return OODCalibration.fit([1.0, 2.0], score="context_distance", context=statistics, **kwargs)
+    return OODCalibration.fit([1.0, 2.0], score=ContextDistance(statistics), **kwargs)
 
 
 # The statistics.
@@ -80,7 +75,7 @@ def test_a_context_calibration_scores_a_chunk_by_its_context_distance():
     features = np.array([[0.0, 0.0, 0.0, 0.0], [5.0, 5.0, 5.0, 5.0]])
     np.testing.assert_allclose(
         calibration.chunk_score(torch.tensor([9.0, 9.0]), context_features=torch.from_numpy(features)),
-        calibration.context.distance(features),
+        calibration.score.context.distance(features),
     )
 
 
@@ -96,24 +91,24 @@ def test_a_context_calibration_needs_one_context_per_chunk():
 
 def test_a_context_calibration_needs_its_statistics():
     with pytest.raises(ValueError, match="needs `context`"):
-        OODCalibration(mu_v=0.0, sigma_v=1.0, score="context_distance")
+        ContextDistance(None)
 
 
 def test_a_context_calibration_round_trips_through_json_and_safetensors(tmp_path):
     calibration = context_calibration(k=0.5)
     calibration.save(tmp_path)
-    entry = json.loads((tmp_path / OOD_CALIBRATION_FILENAME).read_text())[CONTEXT_FIELD]
-    assert entry["file"] == OOD_CONTEXT_FILENAME and entry["dim"] == D and entry["n_chunks"] == 40
+    entry = json.loads((tmp_path / OOD_CALIBRATION_FILENAME).read_text())[CONTEXT_FILE.field]
+    assert entry["file"] == CONTEXT_FILE.filename and entry["dim"] == D and entry["n_chunks"] == 40
     loaded = OODCalibration.load(tmp_path)
-    assert loaded == calibration and loaded.score == "context_distance"
-    np.testing.assert_array_equal(loaded.context.mean, calibration.context.mean)
-    np.testing.assert_array_equal(loaded.context.precision, calibration.context.precision)
+    assert loaded == calibration and loaded.score.name == "context_distance"
+    np.testing.assert_array_equal(loaded.score.context.mean, calibration.score.context.mean)
+    np.testing.assert_array_equal(loaded.score.context.precision, calibration.score.context.precision)
 
 
 def test_context_statistics_of_another_calibration_are_refused(tmp_path):
     context_calibration().save(tmp_path)
     other = ContextStatistics.fit(vanilla_features(seed=1))
-    (tmp_path / OOD_CONTEXT_FILENAME).write_bytes(other.to_bytes())
+    (tmp_path / CONTEXT_FILE.filename).write_bytes(other.to_bytes())
     with pytest.raises(ValueError, match="does not match `context_statistics.sha256`"):
         OODCalibration.load(tmp_path)
 
@@ -125,7 +120,7 @@ def test_the_monitor_scores_each_environments_chunk_by_its_context_distance():
     monitor = EnergyOODMonitor(context_calibration())
     features = np.array([[0.0, 0.0, 0.0, 0.0], [5.0, 5.0, 5.0, 5.0]])
     decisions = monitor.update(torch.tensor([9.0, 9.0]), context_features=features)
-    expected = monitor.calibration.context.distance(features)
+    expected = monitor.calibration.score.context.distance(features)
     assert [d.energy for d in decisions] == pytest.approx(expected.tolist())
 
 
@@ -133,13 +128,13 @@ def test_the_monitor_checks_a_rollout_by_its_chunks_context_distances():
     monitor = EnergyOODMonitor(context_calibration(aggregation="max"))
     features = vanilla_features(n=3, seed=2)
     decision = monitor.check_rollout([0.0, 0.0, 0.0], context_features=features)
-    assert decision.energy == pytest.approx(monitor.calibration.context.distance(features).max())
+    assert decision.energy == pytest.approx(monitor.calibration.score.context.distance(features).max())
 
 
 def test_the_monitor_checks_one_chunk_with_one_context_feature():
     monitor = EnergyOODMonitor(context_calibration())
     decision = monitor.check(0.0, context_features=np.full(D, 10.0))
-    assert decision.energy == pytest.approx(monitor.calibration.context.distance(np.full(D, 10.0))[0])
+    assert decision.energy == pytest.approx(monitor.calibration.score.context.distance(np.full(D, 10.0))[0])
 
 
 # The policy's response.
@@ -151,7 +146,7 @@ def test_the_policy_scores_each_chunk_by_the_context_distance_of_its_observation
     contexts = [tiny_batch(policy.config, batch_size=4, seed=s, with_action=False) for s in range(3)]
     statistics = ContextStatistics.fit(torch.cat([policy.context_features(b) for b in contexts]))
     # A threshold below every distance: every chunk is flagged and raises with its highest distance.
-    OODCalibration(mu_v=-1.0, sigma_v=0.0, score="context_distance", context=statistics).save(tmp_path)
+    OODCalibration(mu_v=-1.0, sigma_v=0.0, score=ContextDistance(statistics)).save(tmp_path)
     policy.configure_ood_response(tmp_path, ood_response="raise")
     batch = tiny_batch(policy.config, batch_size=2, seed=7, with_action=False)
     with pytest.raises(EnergyOODError, match="context_distance") as raised:

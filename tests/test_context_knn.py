@@ -20,17 +20,10 @@ from lerobot_policy_ebvla.monitoring.records import (
 )
 from lerobot_policy_ebvla.monitoring.scores import episode_chunk_scores, episode_scores
 from lerobot_policy_ebvla.runtime import EnergyOODError
-from lerobot_policy_ebvla.runtime.calibration import (
-    CONTEXT_FIELD,
-    CONTEXT_SCORES,
-    NEIGHBOURS_FIELD,
-    OOD_CALIBRATION_FILENAME,
-    OOD_CONTEXT_FILENAME,
-    OOD_NEIGHBOURS_FILENAME,
-    ContextNeighbours,
-    EnergyOODMonitor,
-    OODCalibration,
-)
+from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
+from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
+from lerobot_policy_ebvla.runtime.scores import CONTEXT_FILE, NEIGHBOURS_FILE, SCORES, ContextKNN
+from lerobot_policy_ebvla.runtime.statistics import ContextNeighbours
 from lerobot_policy_ebvla.scripts import ood_report
 
 from .conftest import context_rollouts, tiny_batch, tiny_config, write_records
@@ -47,7 +40,7 @@ def vanilla_features(n: int = 40, seed: int = 0) -> np.ndarray:
 
 def knn_calibration(**kwargs) -> OODCalibration:
     neighbours = ContextNeighbours.fit(vanilla_features(), k=K)
-    return OODCalibration.fit([1.0, 2.0], score="context_knn", neighbours=neighbours, **kwargs)
+    return OODCalibration.fit([1.0, 2.0], score=ContextKNN(neighbours), **kwargs)
 
 
 # The neighbours.
@@ -66,7 +59,7 @@ def test_context_knn_distance_of_a_held_out_chunk_is_the_reports_knn_score():
     features = vanilla_features()
     episode_ids = [i // 5 for i in range(len(features))]
     queries = np.random.default_rng(2).normal(size=(7, D)).astype(np.float32) + 0.5
-    report_knn = ContextFeatureModel.fit(features.astype(np.float64), episode_ids, k=K).knn(queries)
+    report_knn = ContextFeatureModel.fit(features.astype(np.float64), episode_ids, k=K).context_knn(queries)
     run_time = ContextNeighbours.fit(features, k=K).distance(torch.from_numpy(queries))
     np.testing.assert_allclose(run_time, report_knn, rtol=1e-12)
 
@@ -115,7 +108,7 @@ def test_invalid_context_neighbours_are_refused(features, k, match):
 
 
 def test_context_knn_is_a_calibrated_context_score():
-    assert "context_knn" in CONTEXT_SCORES and knn_calibration().needs_context_features
+    assert SCORES["context_knn"].needs_context_features and knn_calibration().needs_context_features
 
 
 def test_a_context_knn_calibration_scores_a_chunk_by_its_knn_distance():
@@ -123,7 +116,7 @@ def test_a_context_knn_calibration_scores_a_chunk_by_its_knn_distance():
     features = np.array([[0.0, 0.0, 0.0, 0.0], [5.0, 5.0, 5.0, 5.0]])
     np.testing.assert_allclose(
         calibration.chunk_score(torch.tensor([9.0, 9.0]), context_features=torch.from_numpy(features)),
-        calibration.neighbours.distance(features),
+        calibration.score.neighbours.distance(features),
     )
 
 
@@ -134,31 +127,31 @@ def test_a_context_knn_calibration_needs_the_context_features():
 
 def test_a_context_knn_calibration_needs_its_neighbours():
     with pytest.raises(ValueError, match="needs `neighbours`"):
-        OODCalibration(mu_v=0.0, sigma_v=1.0, score="context_knn")
+        ContextKNN(None)
 
 
 def test_a_context_knn_calibration_round_trips_through_json_and_safetensors(tmp_path):
     calibration = knn_calibration(k=0.5)
     calibration.save(tmp_path)
-    entry = json.loads((tmp_path / OOD_CALIBRATION_FILENAME).read_text())[NEIGHBOURS_FIELD]
-    assert entry["file"] == OOD_NEIGHBOURS_FILENAME and (entry["dim"], entry["n_chunks"], entry["k"]) == (
+    entry = json.loads((tmp_path / OOD_CALIBRATION_FILENAME).read_text())[NEIGHBOURS_FILE.field]
+    assert entry["file"] == NEIGHBOURS_FILE.filename and (entry["dim"], entry["n_chunks"], entry["k"]) == (
         D,
         40,
         K,
     )
-    assert not (tmp_path / OOD_CONTEXT_FILENAME).exists()
+    assert not (tmp_path / CONTEXT_FILE.filename).exists()
     loaded = OODCalibration.load(tmp_path)
-    assert loaded == calibration and loaded.score == "context_knn" and loaded.neighbours.k == K
-    assert loaded.neighbours.features.dtype == np.float32
-    np.testing.assert_array_equal(loaded.neighbours.features, calibration.neighbours.features)
-    np.testing.assert_array_equal(loaded.neighbours.mean, calibration.neighbours.mean)
-    np.testing.assert_array_equal(loaded.neighbours.std, calibration.neighbours.std)
+    assert loaded == calibration and loaded.score.name == "context_knn" and loaded.score.neighbours.k == K
+    assert loaded.score.neighbours.features.dtype == np.float32
+    np.testing.assert_array_equal(loaded.score.neighbours.features, calibration.score.neighbours.features)
+    np.testing.assert_array_equal(loaded.score.neighbours.mean, calibration.score.neighbours.mean)
+    np.testing.assert_array_equal(loaded.score.neighbours.std, calibration.score.neighbours.std)
 
 
 def test_context_neighbours_of_another_calibration_are_refused(tmp_path):
     knn_calibration().save(tmp_path)
     other = ContextNeighbours.fit(vanilla_features(seed=1), k=K)
-    (tmp_path / OOD_NEIGHBOURS_FILENAME).write_bytes(other.to_bytes())
+    (tmp_path / NEIGHBOURS_FILE.filename).write_bytes(other.to_bytes())
     with pytest.raises(ValueError, match="does not match `context_neighbours.sha256`"):
         OODCalibration.load(tmp_path)
 
@@ -167,7 +160,7 @@ def test_a_neighbours_entry_that_misstates_k_is_refused(tmp_path):
     knn_calibration().save(tmp_path)
     path = tmp_path / OOD_CALIBRATION_FILENAME
     payload = json.loads(path.read_text())
-    payload[NEIGHBOURS_FIELD]["k"] = K + 1
+    payload[NEIGHBOURS_FILE.field]["k"] = K + 1
     path.write_text(json.dumps(payload))
     with pytest.raises(ValueError, match="but `context_neighbours` says"):
         OODCalibration.load(tmp_path)
@@ -175,8 +168,12 @@ def test_a_neighbours_entry_that_misstates_k_is_refused(tmp_path):
 
 # What both context scores save beside the JSON: the context statistics, the context neighbours.
 SIDE_FILES = [
-    pytest.param(context_calibration, OOD_CONTEXT_FILENAME, CONTEXT_FIELD, "context", id="context_distance"),
-    pytest.param(knn_calibration, OOD_NEIGHBOURS_FILENAME, NEIGHBOURS_FIELD, "neighbours", id="context_knn"),
+    pytest.param(
+        context_calibration, CONTEXT_FILE.filename, CONTEXT_FILE.field, "context", id="context_distance"
+    ),
+    pytest.param(
+        knn_calibration, NEIGHBOURS_FILE.filename, NEIGHBOURS_FILE.field, "neighbours", id="context_knn"
+    ),
 ]
 
 
@@ -197,7 +194,7 @@ def test_saving_an_energy_calibration_removes_the_side_file_of_the_previous_one(
     make_calibration().save(tmp_path)
     OODCalibration(mu_v=1.0, sigma_v=1.0).save(tmp_path, overwrite=True)
     assert not (tmp_path / filename).exists()
-    assert getattr(OODCalibration.load(tmp_path), attribute) is None
+    assert getattr(OODCalibration.load(tmp_path).score, attribute, None) is None
 
 
 @pytest.mark.parametrize(("make_calibration", "filename", "field_name", "attribute"), SIDE_FILES)
@@ -219,7 +216,7 @@ def test_a_hub_calibration_downloads_its_side_file_beside_the_json(
     monkeypatch.setattr(huggingface_hub, "hf_hub_download", hf_hub_download)
     loaded = OODCalibration.from_pretrained("user/ebvla")
     assert downloaded == [("user/ebvla", OOD_CALIBRATION_FILENAME), ("user/ebvla", filename)]
-    assert getattr(loaded, attribute).to_bytes() == getattr(calibration, attribute).to_bytes()
+    assert getattr(loaded.score, attribute).to_bytes() == getattr(calibration.score, attribute).to_bytes()
 
 
 # The run-time monitor.
@@ -230,14 +227,14 @@ def calibrated_monitor() -> EnergyOODMonitor:
     features = vanilla_features(n=80)
     episode_ids = [i // 8 for i in range(len(features))]
     model = ContextFeatureModel.fit(features.astype(np.float64), episode_ids, k=K)
-    scores = [model.knn(features[i : i + 8], episode_id=i // 8).mean() for i in range(0, 80, 8)]
-    calibration = OODCalibration.fit(scores, k=1.0, score="context_knn", neighbours=model.neighbours)
+    scores = [model.context_knn(features[i : i + 8], episode_id=i // 8).mean() for i in range(0, 80, 8)]
+    calibration = OODCalibration.fit(scores, k=1.0, score=ContextKNN(model.neighbours))
     return EnergyOODMonitor(calibration)
 
 
 def test_the_monitor_passes_an_in_distribution_context_and_flags_a_shifted_one():
     monitor = calibrated_monitor()
-    centre = monitor.calibration.neighbours.mean
+    centre = monitor.calibration.score.neighbours.mean
     assert monitor.check(0.0, context_features=centre).in_distribution
     assert monitor.check(0.0, context_features=centre + 4.0).is_ood
 
@@ -246,7 +243,7 @@ def test_the_monitor_scores_each_environments_chunk_by_its_knn_distance():
     monitor = calibrated_monitor()
     features = np.array([[0.0, 0.0, 0.0, 0.0], [5.0, 5.0, 5.0, 5.0]])
     decisions = monitor.update(torch.tensor([9.0, 9.0]), context_features=features)
-    expected = monitor.calibration.neighbours.distance(features)
+    expected = monitor.calibration.score.neighbours.distance(features)
     assert [d.energy for d in decisions] == pytest.approx(expected.tolist())
     assert [d.is_ood for d in decisions] == [False, True]
 
@@ -287,18 +284,18 @@ def test_ood_report_saves_a_context_knn_calibration_of_the_reports_knn_score(rec
     ood_report.main([*args, f"--knn_k={K}"])
     assert "`--score=context_knn`" in capsys.readouterr().out
     calibration = OODCalibration.load(checkpoint)
-    assert calibration.score == "context_knn" and calibration.n_rollouts == 12
-    assert calibration.neighbours.k == K and calibration.neighbours.n_chunks == 12 * 5
+    assert calibration.score.name == "context_knn" and calibration.n_rollouts == 12
+    assert calibration.score.neighbours.k == K and calibration.score.neighbours.n_chunks == 12 * 5
     calibration_set, vanilla = load_episodes([record_dirs[0]]), load_episodes([record_dirs[1]])
     reference = fit_score_reference(calibration_set, knn_k=K)
     features = np.stack([r.context_feature for episode in calibration_set.values() for r in episode])
-    np.testing.assert_array_equal(calibration.neighbours.features, features)
+    np.testing.assert_array_equal(calibration.score.neighbours.features, features)
     # mu_v and sigma_v are those of the report's knn score: the calibration rollouts leave-one-episode-out.
-    knn = episode_scores(calibration_set, "knn", reference=reference)
+    knn = episode_scores(calibration_set, "context_knn", reference=reference)
     assert calibration.mu_v == pytest.approx(knn.mean()) and calibration.sigma_v == pytest.approx(knn.std())
     # A held-out rollout scores at run time what it scores in the report.
     monitor = EnergyOODMonitor(calibration)
-    held_out = episode_chunk_scores(vanilla, "knn", reference)
+    held_out = episode_chunk_scores(vanilla, "context_knn", reference)
     for key, episode in vanilla.items():
         energies = [r.final_energy for r in episode]
         decision = monitor.check_rollout(energies, np.stack([r.context_feature for r in episode]))
@@ -321,7 +318,7 @@ def test_the_policy_scores_each_chunk_by_the_knn_distance_of_its_observation(tmp
     contexts = [tiny_batch(policy.config, batch_size=4, seed=s, with_action=False) for s in range(3)]
     neighbours = ContextNeighbours.fit(torch.cat([policy.context_features(b) for b in contexts]), k=K)
     # A threshold below every distance: every chunk is flagged and raises with its highest distance.
-    OODCalibration(mu_v=-1.0, sigma_v=0.0, score="context_knn", neighbours=neighbours).save(tmp_path)
+    OODCalibration(mu_v=-1.0, sigma_v=0.0, score=ContextKNN(neighbours)).save(tmp_path)
     policy.configure_ood_response(tmp_path, ood_response="raise")
     batch = tiny_batch(policy.config, batch_size=2, seed=7, with_action=False)
     with pytest.raises(EnergyOODError, match="context_knn") as raised:

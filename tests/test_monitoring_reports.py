@@ -100,9 +100,9 @@ def test_ood_report_prints_the_held_out_tables_with_intervals_and_baselines(reco
     # Every baseline sits beside the final energy in the AUROC table and in every Table III.
     assert (
         "| Condition | Episodes | final_energy | phase_energy | initial_energy | restart_spread "
-        "| mahalanobis | knn |" in out
+        "| context_distance | context_knn |" in out
     )
-    assert whole_episode.count("Bal. Acc. knn") == 3
+    assert whole_episode.count("Bal. Acc. context_knn") == 3
     assert whole_episode.count("conf. α=5.0%") == 3
 
 
@@ -235,7 +235,7 @@ def test_ood_report_prints_each_scores_first_chunk_auroc_beside_the_whole_episod
     assert "Held-out vanilla rollouts (the negatives): 12, success 8/12 (66.7%)." in first
     assert "### camera 2: 10 perturbed rollouts, success 5/10 (50.0%)" in first
     assert first.count("| Score | first 1 chunk | first 2 chunks | whole episode |") == 3
-    assert first.count("| knn | ") == 3
+    assert first.count("| context_knn | ") == 3
 
 
 def test_ood_report_first_chunk_auroc_sees_only_the_first_chunks(tmp_path, capsys):
@@ -287,7 +287,7 @@ def test_ood_report_saves_a_phase_energy_calibration_when_asked(record_dirs, tmp
     )
     calibration = OODCalibration.load(checkpoint)
     expected = fit_score_reference(load_episodes([record_dirs[0]]), features=False).phase.statistics
-    assert calibration.score == "phase_energy" and calibration.phase == expected
+    assert calibration.score.name == "phase_energy" and calibration.score.phase == expected
     assert calibration.n_rollouts == 12 and abs(calibration.mu_v) < 1.0  # z-scores of vanilla rollouts
 
 
@@ -304,12 +304,12 @@ def test_ood_report_saves_a_context_distance_calibration_when_asked(record_dirs,
     calibration = OODCalibration.load(checkpoint)
     episodes = load_episodes([record_dirs[0]])
     reference = fit_score_reference(episodes)
-    assert calibration.score == "context_distance" and calibration.n_rollouts == 12
-    np.testing.assert_allclose(calibration.context.mean, reference.features.statistics.mean)
-    np.testing.assert_allclose(calibration.context.precision, reference.features.statistics.precision)
-    # mu_v is that of the report's mahalanobis score: the calibration rollouts scored leave-one-episode-out.
-    mahalanobis = episode_scores(episodes, "mahalanobis", reference=reference)
-    assert calibration.mu_v == pytest.approx(mahalanobis.mean())
+    assert calibration.score.name == "context_distance" and calibration.n_rollouts == 12
+    np.testing.assert_allclose(calibration.score.context.mean, reference.features.statistics.mean)
+    np.testing.assert_allclose(calibration.score.context.precision, reference.features.statistics.precision)
+    # mu_v is that of the report's context_distance score: the calibration rollouts leave-one-episode-out.
+    context_distance = episode_scores(episodes, "context_distance", reference=reference)
+    assert calibration.mu_v == pytest.approx(context_distance.mean())
 
 
 def test_ood_report_refuses_a_context_distance_calibration_without_context_features(tmp_path):

@@ -23,12 +23,9 @@ from lerobot_policy_ebvla.monitoring.ood import (
 )
 from lerobot_policy_ebvla.monitoring.records import EnergyRecord, group_by_episode
 from lerobot_policy_ebvla.monitoring.scores import episode_scores
-from lerobot_policy_ebvla.runtime.calibration import (
-    OOD_CALIBRATION_FILENAME,
-    EnergyOODMonitor,
-    OODCalibration,
-    rollout_score,
-)
+from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
+from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
+from lerobot_policy_ebvla.runtime.scores import rollout_score
 from lerobot_policy_ebvla.runtime.threshold import conformal_threshold, exceeds
 
 VANILLA = [1.0, 2.0, 3.0, 4.0]
@@ -462,15 +459,15 @@ def test_feature_distances_rank_far_contexts_above_calibration_like_ones():
     calibration = rng.normal(size=(200, 8))
     model = ContextFeatureModel.fit(calibration, episode_ids=[i // 10 for i in range(200)], k=3)
     near, far = rng.normal(size=(50, 8)), rng.normal(size=(50, 8)) + np.r_[4.0, np.zeros(7)]
-    assert auroc(model.mahalanobis(near), model.mahalanobis(far)) > 0.95
-    assert auroc(model.knn(near), model.knn(far)) > 0.95
+    assert auroc(model.context_distance(near), model.context_distance(far)) > 0.95
+    assert auroc(model.context_knn(near), model.context_knn(far)) > 0.95
 
 
 def test_knn_skips_the_neighbours_of_the_same_episode():
     model = ContextFeatureModel.fit(np.array([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0]]), ["a", "a", "b"], k=1)
-    assert model.knn(np.array([[1.0, 0.0]]))[0] == pytest.approx(0.0)
+    assert model.context_knn(np.array([[1.0, 0.0]]))[0] == pytest.approx(0.0)
     # Standardized by the calibration std (sqrt(2) / 3 in each dimension): (1, 0) and (0, 1) are 3 apart.
-    assert model.knn(np.array([[1.0, 0.0]]), episode_id="a")[0] == pytest.approx(3.0)
+    assert model.context_knn(np.array([[1.0, 0.0]]), episode_id="a")[0] == pytest.approx(3.0)
 
 
 def test_mahalanobis_of_a_calibration_episode_leaves_its_features_out():
@@ -479,7 +476,7 @@ def test_mahalanobis_of_a_calibration_episode_leaves_its_features_out():
     model = ContextFeatureModel.fit(features, ids)
     without_episode_0 = ContextFeatureModel.fit(features[5:], ids[5:])
     np.testing.assert_allclose(
-        model.mahalanobis(features[:5], episode_id=0), without_episode_0.mahalanobis(features[:5])
+        model.context_distance(features[:5], episode_id=0), without_episode_0.context_distance(features[:5])
     )
 
 
@@ -489,7 +486,7 @@ def test_mahalanobis_of_a_held_out_episode_uses_every_calibration_feature():
     model = ContextFeatureModel.fit(features, [i // 4 for i in range(20)])
     queries = rng.normal(size=(3, 3))
     np.testing.assert_array_equal(
-        model.mahalanobis(queries, episode_id="held out"), model.mahalanobis(queries)
+        model.context_distance(queries, episode_id="held out"), model.context_distance(queries)
     )
 
 
@@ -499,11 +496,14 @@ def test_mahalanobis_scores_calibration_episodes_leave_one_out_as_held_out_ones_
     features, ids = rng.normal(size=(60, 8)), [i // 6 for i in range(60)]
     model = ContextFeatureModel.fit(features, ids)
     in_sample = np.mean(
-        [model.mahalanobis(features[ids.index(e) : ids.index(e) + 6]).mean() for e in range(10)]
+        [model.context_distance(features[ids.index(e) : ids.index(e) + 6]).mean() for e in range(10)]
     )
     left_out = np.mean(
-        [model.mahalanobis(features[ids.index(e) : ids.index(e) + 6], episode_id=e).mean() for e in range(10)]
+        [
+            model.context_distance(features[ids.index(e) : ids.index(e) + 6], episode_id=e).mean()
+            for e in range(10)
+        ]
     )
-    held_out = model.mahalanobis(rng.normal(size=(600, 8))).mean()
+    held_out = model.context_distance(rng.normal(size=(600, 8))).mean()
     assert in_sample < left_out
     assert abs(left_out - held_out) < abs(in_sample - held_out)

@@ -14,7 +14,8 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 from lerobot_policy_ebvla import EBVLAPolicy, make_ebvla_pre_post_processors
-from lerobot_policy_ebvla.runtime import EnergyOODError, EnergyOODResponse, OODCalibration
+from lerobot_policy_ebvla.runtime import EnergyOODError, EnergyOODResponse, OODCalibration, PhaseStatistics
+from lerobot_policy_ebvla.runtime.scores import PhaseEnergy
 from tests.conftest import tiny_batch, tiny_config
 
 BELOW_ALL_ENERGIES = OODCalibration(mu_v=-1e6, sigma_v=0.0)
@@ -273,9 +274,8 @@ def test_energy_records_count_the_held_chunks(metaworld_env, checkpoints, checkp
 
 def test_a_phase_calibration_compares_each_chunk_with_the_vanilla_energy_at_its_index():
     # Vanilla energies fall from 0 at the first chunk to -10 at the second: -5 is normal early, not late.
-    calibration = OODCalibration(
-        mu_v=0.0, sigma_v=1.0, k=1.0, score="phase_energy", phase_mean=(0.0, -10.0), phase_std=(1.0, 1.0)
-    )
+    phase = PhaseEnergy(PhaseStatistics((0.0, -10.0), (1.0, 1.0)))
+    calibration = OODCalibration(mu_v=0.0, sigma_v=1.0, k=1.0, score=phase)
     response = EnergyOODResponse(tiny_config(ood_response="raise"), calibration)
     actions, energy = torch.zeros(1, 3, 2), torch.tensor([-5.0])
     _, decision = response(actions, energy, {}, chunk_index=0)

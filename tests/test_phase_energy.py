@@ -18,12 +18,10 @@ import torch
 from lerobot_policy_ebvla.monitoring.baselines import fit_phase_model, fit_score_reference
 from lerobot_policy_ebvla.monitoring.records import EnergyRecord
 from lerobot_policy_ebvla.monitoring.scores import chunk_scores, episode_scores
-from lerobot_policy_ebvla.runtime.calibration import (
-    OOD_CALIBRATION_FILENAME,
-    EnergyOODMonitor,
-    OODCalibration,
-    PhaseStatistics,
-)
+from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
+from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
+from lerobot_policy_ebvla.runtime.scores import FinalEnergy, PhaseEnergy
+from lerobot_policy_ebvla.runtime.statistics import PhaseStatistics
 
 VANILLA = [[0.0, 2.0, 10.0], [2.0, 4.0]]
 POOLED_SIGMA = float(np.std([0.0, 2.0, 10.0, 2.0, 4.0]))
@@ -80,7 +78,7 @@ def test_phase_energy_rejects_a_negative_chunk_index():
 
 
 def phase_calibration(**kwargs) -> OODCalibration:
-    return OODCalibration.fit([0.0, 1.0], score="phase_energy", phase=PhaseStatistics.fit(VANILLA), **kwargs)
+    return OODCalibration.fit([0.0, 1.0], score=PhaseEnergy(PhaseStatistics.fit(VANILLA)), **kwargs)
 
 
 def test_a_final_energy_calibration_scores_a_chunk_by_its_final_energy():
@@ -98,14 +96,20 @@ def test_a_phase_calibration_needs_the_chunk_index():
         phase_calibration().chunk_score(5.0)
 
 
-def test_a_phase_calibration_needs_its_statistics():
+def write_calibration(folder, **fields):
+    (folder / OOD_CALIBRATION_FILENAME).write_text(json.dumps({"mu_v": 0.0, "sigma_v": 1.0, **fields}))
+
+
+def test_a_phase_calibration_needs_its_statistics(tmp_path):
+    write_calibration(tmp_path, score="phase_energy")
     with pytest.raises(ValueError, match="phase_mean"):
-        OODCalibration(mu_v=0.0, sigma_v=1.0, score="phase_energy")
+        OODCalibration.load(tmp_path)
 
 
-def test_a_calibration_of_an_unknown_score_is_rejected():
+def test_a_calibration_of_an_unknown_score_is_rejected(tmp_path):
+    write_calibration(tmp_path, score="knn")
     with pytest.raises(ValueError, match="score"):
-        OODCalibration(mu_v=0.0, sigma_v=1.0, score="knn")
+        OODCalibration.load(tmp_path)
 
 
 def test_a_phase_calibration_round_trips_through_json(tmp_path):
@@ -120,7 +124,7 @@ def test_a_calibration_file_without_the_phase_fields_loads_as_the_final_energy(t
     old = {"mu_v": 2.5, "sigma_v": 1.0, "k": 1.0, "aggregation": "mean", "n_rollouts": 4, "threshold": 3.5}
     (tmp_path / OOD_CALIBRATION_FILENAME).write_text(json.dumps(old))
     calibration = OODCalibration.load(tmp_path)
-    assert calibration.score == "final_energy" and calibration.phase is None
+    assert calibration.score.name == "final_energy" and calibration.score == FinalEnergy()
 
 
 def test_the_monitor_counts_chunks_to_apply_a_phase_calibration():

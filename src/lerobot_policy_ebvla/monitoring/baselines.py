@@ -1,12 +1,13 @@
 """The post-hoc confidence scores the paper says the final energy replaces, scored from the same records.
 
 Every score is per chunk, higher meaning less confident, and a rollout's score aggregates its chunks as the
-final energy's does (`scores.episode_scores`), so all of them go through the same threshold and metrics:
+final energy's does (`scores.episode_scores`), so all of them go through the same threshold and metrics. The
+scores a run-time calibration can apply have the name of their class in `runtime.scores.SCORES`:
 
 - "final_energy": E(a^(K_inf), C), the paper's score.
 - "phase_energy": the final energy against the vanilla final energy at the same chunk index,
   (E_t - mu_v[t]) / sigma_v[t] with mu_v[t], sigma_v[t] from the calibration rollouts
-  (`runtime.calibration.PhaseStatistics`): the energy's level follows the task's phase, so a chunk is compared
+  (`runtime.statistics.PhaseStatistics`): the energy's level follows the task's phase, so a chunk is compared
   with what is normal at its point of the task. Needs only the final energy and the chunk index.
 - "initial_energy": E(a^(0), C), the energy of the unrefined sample (always recorded).
 - "normalized_energy": the final energy plus the log of the mean Boltzmann weight exp(-E) of N chunks drawn
@@ -14,27 +15,29 @@ final energy's does (`scores.episode_scores`), so all of them go through the sam
   only defined up to a per-context offset, which this Monte-Carlo log-partition removes.
 - "restart_spread": the spread of N chunks refined from independent a^(0) for the same observation
   (recorder option `restart_spread_chains`): an ensemble-disagreement score.
-- "mahalanobis", "knn": how far the observation's pooled backbone context is from the contexts of the
-  calibration rollouts (recorder option `record_context_features`). Mahalanobis uses the calibration
-  features' mean and their Ledoit-Wolf shrunk covariance (D can exceed the number of chunks): it is the
-  run-time context distance (`runtime.calibration.ContextStatistics`, `score="context_distance"`), fitted and
-  computed by the same code. k-NN is the Euclidean distance to the k-th nearest calibration feature,
-  features standardized per dimension by the calibration mean and std: for a held-out chunk it is the
-  run-time context k-NN distance (`runtime.calibration.ContextNeighbours`, `score="context_knn"`), computed by
-  the same function (`runtime.calibration.kth_nearest_distance`).
+- "context_distance", "context_knn": how far the observation's pooled backbone context is from the contexts of
+  the calibration rollouts (recorder option `record_context_features`). The context distance is the
+  Mahalanobis distance under the calibration features' mean and Ledoit-Wolf shrunk covariance (D can exceed
+  the number of chunks; `runtime.statistics.ContextStatistics`); the context k-NN distance is the Euclidean
+  distance to the k-th nearest calibration feature, features standardized per dimension by the calibration
+  mean and std (`runtime.statistics.ContextNeighbours`). Both are the run-time scores of the same names,
+  computed by the same code.
 
 Two more scores combine the final energy and the context distance per rollout, so they have no chunk score
-(`scores.combined_rollout_scores`): the rollout's final energy and its Mahalanobis distance, each aggregated
-over its chunks as every score is, are each standardized by the calibration rollouts' mean and std of that
-score, z = (s - mu_v) / sigma_v (`runtime.calibration.CombinedStatistics`), and
+(`scores.combined_rollout_scores`): the rollout's final energy and its context distance, each aggregated over
+its chunks as every score is, are each standardized by the calibration rollouts' mean and std of that score,
+z = (s - mu_v) / sigma_v (`runtime.statistics.CombinedStatistics`), and
 
-- "energy_and_context": max(z_E, z_d), the run-time `score="energy_and_context"`: high when either is;
+- "energy_and_context": max(z_E, z_d), the run-time score of that name: high when either is;
 - "energy_and_context_sum": z_E + z_d, for comparison: a score that sees nothing adds its noise to the other's.
 
-The reference scores ("phase_energy", "mahalanobis", "knn") are fitted on the calibration rollouts
-(`fit_score_reference`). A calibration rollout is scored leave-one-episode-out, against a reference fitted
-without it: in-sample, its own chunks would pull its score down and with it the threshold fitted on these
-scores.
+A run-time score registered in `SCORES` that none of these is (a new one) is scored through its class
+(`RegisteredScoreModel`), so that the report has it without a line here.
+
+The reference scores ("phase_energy", "context_distance", "context_knn", and the registered ones) are fitted
+on the calibration rollouts (`fit_score_reference`). A calibration rollout is scored leave-one-episode-out,
+against a reference fitted without it: in-sample, its own chunks would pull its score down and with it the
+threshold fitted on these scores.
 """
 
 from collections.abc import Hashable, Mapping, Sequence
@@ -42,53 +45,59 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..runtime.calibration import (
+from ..runtime.scores import (
+    SCORES,
+    ChunkScore,
+    ContextDistance,
+    ContextKNN,
+    EnergyAndContext,
+    FinalEnergy,
+    PhaseEnergy,
+    VanillaRollouts,
+)
+from ..runtime.statistics import (
     DEFAULT_KNN_K,
     ContextNeighbours,
     ContextStatistics,
     PhaseStatistics,
-    kth_nearest_distance,
+    energies_by_index,
 )
 from .records import Episode
 
 SCORE_NAMES = (
-    "final_energy",
-    "phase_energy",
+    FinalEnergy.name,
+    PhaseEnergy.name,
     "initial_energy",
     "normalized_energy",
     "restart_spread",
-    "mahalanobis",
-    "knn",
+    ContextDistance.name,
+    ContextKNN.name,
 )
-FEATURE_SCORES = ("mahalanobis", "knn")
+FEATURE_SCORES = (ContextDistance.name, ContextKNN.name)
 # Rollout scores combining the final energy's and the context distance's, standardized on the calibration
 # rollouts: their max (the run-time "energy_and_context") and their sum.
-COMBINED_SCORES = ("energy_and_context", "energy_and_context_sum")
+COMBINED_SCORES = (EnergyAndContext.name, "energy_and_context_sum")
 # The scores they combine, in `CombinedStatistics` order.
-COMBINED_FROM = ("final_energy", "mahalanobis")
-# Scores fitted on the calibration rollouts (`ScoreReference`).
-REFERENCE_SCORES = ("phase_energy", *FEATURE_SCORES)
+COMBINED_FROM = (FinalEnergy.name, ContextDistance.name)
+# Scores fitted on the calibration rollouts (`ScoreReference`), besides the registered ones.
+REFERENCE_SCORES = (PhaseEnergy.name, *FEATURE_SCORES)
 
 
 @dataclass
 class ContextFeatureModel:
-    """Mahalanobis and k-NN distances of context features to the calibration rollouts' contexts.
+    """The context distance and k-NN distance of context features to the calibration rollouts' contexts.
 
-    Build it with `fit`; `reference_ids` names the episode of each reference feature. Both distances of an
-    episode named by `episode_id` leave that episode's features out of the reference (leave-one-episode-out).
-    The Mahalanobis distance is the run-time context distance (`runtime.calibration.ContextStatistics`):
-    `statistics` is what `--score=context_distance` saves with the calibration. The k-NN distance of a held-out
-    feature is the run-time context k-NN distance (`runtime.calibration.ContextNeighbours`): `neighbours` is
-    what `--score=context_knn` saves with the calibration.
+    Build it with `fit`; `reference_ids` names the episode of each calibration feature. Both distances of an
+    episode named by `episode_id` leave that episode's features out (leave-one-episode-out). `statistics` is
+    what `--score=context_distance` saves with the calibration, `neighbours` what `--score=context_knn` saves:
+    a held-out feature's distances are the run-time ones.
     """
 
-    statistics: ContextStatistics
-    scale: np.ndarray
-    reference: np.ndarray
+    features: np.ndarray
     reference_ids: list
+    statistics: ContextStatistics
     neighbours: ContextNeighbours
-    k: int = DEFAULT_KNN_K
-    # Mahalanobis's statistics without one episode, by episode id, fitted when first needed.
+    # The context statistics without one episode, by episode id, fitted when first needed.
     _left_out: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @classmethod
@@ -105,35 +114,27 @@ class ContextFeatureModel:
         if k < 1:
             raise ValueError(f"`k` (nearest neighbours) must be >= 1, got {k}.")
         statistics = ContextStatistics.fit(features)
-        neighbours = ContextNeighbours.fit(
-            features, k
-        )  # the std is floored: constant dimensions carry no distance
-        scale = neighbours.std
-        reference = (features - statistics.mean) / scale
-        return cls(statistics, scale, reference, list(episode_ids), neighbours, k)
+        return cls(features, list(episode_ids), statistics, ContextNeighbours.fit(features, k))
 
     def _same_episode(self, episode_id: Hashable) -> np.ndarray:
         return np.array([i == episode_id for i in self.reference_ids])
 
-    def mahalanobis(self, features: np.ndarray, episode_id: Hashable = None) -> np.ndarray:
-        """Mahalanobis distance of each feature to the reference features outside episode `episode_id`.
+    def context_distance(self, features: np.ndarray, episode_id: Hashable = None) -> np.ndarray:
+        """Mahalanobis distance of each feature to the calibration features outside episode `episode_id`.
 
         A calibration episode's distances come from a mean and covariance refitted without its features
         (cached per episode); with fewer than two features left, the full fit is used.
         """
-        statistics = self.statistics
         same_episode = self._same_episode(episode_id)
-        if same_episode.any() and np.sum(~same_episode) >= 2:
-            if episode_id not in self._left_out:
-                others = self.reference[~same_episode] * self.scale + self.statistics.mean
-                self._left_out[episode_id] = ContextStatistics.fit(others)
-            statistics = self._left_out[episode_id]
-        return statistics.distance(features)
+        if not same_episode.any():
+            return self.statistics.distance(features)
+        if episode_id not in self._left_out:
+            self._left_out[episode_id] = ContextStatistics.fit_without(self.features, same_episode)
+        return self._left_out[episode_id].distance(features)
 
-    def knn(self, features: np.ndarray, episode_id: Hashable = None) -> np.ndarray:
-        """Distance of each feature to its k-th nearest reference feature outside episode `episode_id`."""
-        queries = (np.asarray(features, dtype=np.float64) - self.statistics.mean) / self.scale
-        return kth_nearest_distance(queries, self.reference, self.k, self._same_episode(episode_id))
+    def context_knn(self, features: np.ndarray, episode_id: Hashable = None) -> np.ndarray:
+        """Distance of each feature to its k-th nearest calibration feature outside episode `episode_id`."""
+        return self.neighbours.distance(features, excluded=self._same_episode(episode_id))
 
 
 class PhaseEnergyModel:
@@ -158,16 +159,73 @@ class PhaseEnergyModel:
         return statistics.z(final_energies, chunk_indices)
 
 
+def vanilla_rollouts(
+    episodes: Mapping[Hashable, Episode], aggregation: str = "mean", knn_k: int = DEFAULT_KNN_K
+) -> VanillaRollouts:
+    """The calibration episodes as a run-time score is fitted on them (their pooled contexts when every chunk
+    has one)."""
+    chunks = list(episodes.values())
+    with_features = all(r.context_feature is not None for episode in chunks for r in episode)
+    return VanillaRollouts(
+        [np.array([r.final_energy for r in episode], dtype=np.float64) for episode in chunks],
+        [np.array([r.chunk_index for r in episode]) for episode in chunks],
+        [np.stack([r.context_feature for r in episode]) for episode in chunks] if with_features else None,
+        aggregation,
+        knn_k,
+    )
+
+
+class RegisteredScoreModel:
+    """A run-time score of `SCORES` that this module has no baseline of, fitted on the calibration episodes.
+
+    A calibration episode (named by `episode_id`) is scored against the score refitted without it (cached per
+    episode); with no other calibration episode, against the full fit.
+    """
+
+    def __init__(
+        self, score: type[ChunkScore], episodes: Mapping[Hashable, Episode], aggregation: str, knn_k: int
+    ):
+        self.keys = list(episodes)
+        self.rollouts = vanilla_rollouts(episodes, aggregation, knn_k)
+        self.score = score
+        self.fitted = score.fit(self.rollouts)
+        self._left_out: dict[Hashable, ChunkScore] = {}
+
+    def fitted_for(self, episode_id: Hashable = None) -> ChunkScore:
+        """The fitted score an episode is scored with."""
+        if episode_id not in self.keys or len(self.keys) < 2:
+            return self.fitted
+        if episode_id not in self._left_out:
+            self._left_out[episode_id] = self.score.fit(self.rollouts.without(self.keys.index(episode_id)))
+        return self._left_out[episode_id]
+
+    def components(self, episode: Episode, episode_id: Hashable = None) -> tuple[ChunkScore, np.ndarray]:
+        """The fitted score of the episode and its chunks' components, (N, n_components), in chunk order."""
+        fitted = self.fitted_for(episode_id)
+        features = None
+        if fitted.needs_context_features:
+            features = np.stack([r.context_feature for r in episode])
+        energies = np.array([r.final_energy for r in episode], dtype=np.float64)
+        return fitted, fitted.components(energies, np.array([r.chunk_index for r in episode]), features)
+
+
 @dataclass
 class ScoreReference:
     """What the reference scores learn from the calibration episodes (`fit_score_reference`)."""
 
     phase: PhaseEnergyModel
     features: ContextFeatureModel | None = None
+    # The registered run-time scores none of the above is, by name.
+    registered: dict[str, RegisteredScoreModel] = field(default_factory=dict)
+
+
+def registered_scores() -> list[str]:
+    """The run-time scores of `SCORES` that none of `SCORE_NAMES` and `COMBINED_SCORES` is."""
+    return [name for name in SCORES if name not in (*SCORE_NAMES, *COMBINED_SCORES)]
 
 
 def available_scores(episodes: Sequence[Episode]) -> list[str]:
-    """The scores every chunk of `episodes` has the data for, in `SCORE_NAMES` order."""
+    """The chunk scores of `SCORE_NAMES` every chunk of `episodes` has the data for, in that order."""
     records = [r for episode in episodes for r in episode]
     names = ["final_energy", "phase_energy", "initial_energy"]
     if records and all(r.normalized_energy is not None for r in records):
@@ -188,17 +246,25 @@ def fit_feature_model(episodes: Mapping[Hashable, Episode], k: int = DEFAULT_KNN
 
 def fit_phase_model(episodes: Mapping[Hashable, Episode]) -> PhaseEnergyModel:
     """Fits the phase energy on the final energies of the (calibration) episodes, by chunk index."""
-    energies = {}
-    for key, episode in episodes.items():
-        # A missing chunk index stays NaN, which the fit leaves out like any non-finite energy.
-        series = np.full(max((r.chunk_index for r in episode), default=-1) + 1, np.nan)
-        series[[r.chunk_index for r in episode]] = [r.final_energy for r in episode]
-        energies[key] = series
-    return PhaseEnergyModel(energies)
+    return PhaseEnergyModel(
+        {
+            key: energies_by_index([r.final_energy for r in episode], [r.chunk_index for r in episode])
+            for key, episode in episodes.items()
+        }
+    )
 
 
 def fit_score_reference(
-    episodes: Mapping[Hashable, Episode], knn_k: int = DEFAULT_KNN_K, features: bool = True
+    episodes: Mapping[Hashable, Episode],
+    knn_k: int = DEFAULT_KNN_K,
+    features: bool = True,
+    registered: Sequence[str] = (),
+    aggregation: str = "mean",
 ) -> ScoreReference:
-    """Fits the reference scores on calibration episodes; the feature baselines only with `features`."""
-    return ScoreReference(fit_phase_model(episodes), fit_feature_model(episodes, knn_k) if features else None)
+    """Fits the reference scores on calibration episodes: the feature baselines only with `features`, and the
+    `registered` scores (of `registered_scores`) with the calibration's `aggregation`."""
+    return ScoreReference(
+        fit_phase_model(episodes),
+        fit_feature_model(episodes, knn_k) if features else None,
+        {name: RegisteredScoreModel(SCORES[name], episodes, aggregation, knn_k) for name in registered},
+    )

@@ -21,16 +21,18 @@ from pathlib import Path
 
 import numpy as np
 
-from ..runtime.calibration import (
-    CALIBRATED_SCORES,
-    DEFAULT_KNN_K,
-    OOD_CALIBRATION_FILENAME,
-    SCORE_AGGREGATIONS,
-    THRESHOLD_RULES,
-    CombinedStatistics,
-    OODCalibration,
+from ..runtime.calibration import OOD_CALIBRATION_FILENAME, THRESHOLD_RULES, OODCalibration
+from ..runtime.scores import SCORE_AGGREGATIONS, SCORES
+from ..runtime.statistics import DEFAULT_KNN_K
+from .baselines import (
+    COMBINED_FROM,
+    COMBINED_SCORES,
+    FEATURE_SCORES,
+    available_scores,
+    fit_score_reference,
+    registered_scores,
+    vanilla_rollouts,
 )
-from .baselines import COMBINED_FROM, COMBINED_SCORES, ScoreReference, available_scores, fit_score_reference
 from .metrics import BinaryRates, auroc, format_auroc, markdown_table, percent, roc_curve
 from .ood import (
     TABLE_III_MULTIPLIERS,
@@ -41,19 +43,16 @@ from .ood import (
 from .plots import plot_roc, plot_score_histograms
 from .protocol import check_held_out
 from .records import load_episodes, resolve_record_files
-from .scores import aggregate_episodes, combined_rollout_scores, episode_chunk_scores
+from .scores import (
+    aggregate_episodes,
+    combined_rollout_scores,
+    episode_chunk_scores,
+    registered_rollout_scores,
+)
 
 logger = logging.getLogger(__name__)
 
 ALL_CONDITIONS = "all perturbations"
-# The report's score (`baselines.SCORE_NAMES`) behind each score a calibration can be saved for.
-REPORTED_AS = {
-    "final_energy": "final_energy",
-    "phase_energy": "phase_energy",
-    "context_distance": "mahalanobis",
-    "energy_and_context": "energy_and_context",
-    "context_knn": "knn",
-}
 
 
 @dataclass
@@ -92,7 +91,7 @@ class OODReportConfig:
     # Seed of the bootstrap generator.
     seed: int = 0
     # Neighbours of the k-NN feature baseline (and the k a `--score=context_knn` calibration saves); 5 before
-    # 2026-11-24 (runtime.calibration.DEFAULT_KNN_K says why 1).
+    # 2026-11-24 (runtime.statistics.DEFAULT_KNN_K says why 1).
     knn_k: int = DEFAULT_KNN_K
     # Detection on the first chunks: every score's AUROC over each episode's first k chunks, for each k,
     # beside the whole episode's (an episode shorter than k uses all its chunks).
@@ -102,13 +101,13 @@ class OODReportConfig:
     table_iii_first_chunks: int = 3
     # Write ood_calibration.json (`score`, fitted on `calibration`) into this pretrained_model folder.
     calibrate_to: Path | None = None
-    # The chunk score the saved calibration is of: final_energy (the paper's), phase_energy (the final
-    # energy against the calibration rollouts' final energy at the same chunk index), context_distance (the
-    # report's mahalanobis score: the chunk's pooled context against the calibration contexts; needs records
-    # with context features) or energy_and_context (the report's energy_and_context score: the larger of the
-    # final energy and the context distance, each standardized on the calibration rollouts; needs them too)
-    # or context_knn (the report's knn score: the chunk's standardized pooled context against its knn_k-th
-    # nearest calibration context; needs them too, and saves every calibration context beside the JSON).
+    # The chunk score the saved calibration is of, a name of `runtime.scores.SCORES` and a row of the report:
+    # final_energy (the paper's), phase_energy (the final energy against the calibration rollouts' final
+    # energy at the same chunk index), context_distance (the chunk's pooled context against the calibration
+    # contexts; needs records with context features), energy_and_context (the larger of the final energy and
+    # the context distance, each standardized on the calibration rollouts; needs them too) or context_knn (the
+    # chunk's standardized pooled context against its knn_k-th nearest calibration context; needs them too,
+    # and saves every calibration context beside the JSON).
     score: str = "final_energy"
     # k saved in the calibration.
     k: float = 1.0
@@ -125,8 +124,8 @@ class OODReportConfig:
             raise ValueError(
                 f"`threshold_rule` must be one of {THRESHOLD_RULES}, got {self.threshold_rule!r}."
             )
-        if self.score not in CALIBRATED_SCORES:
-            raise ValueError(f"`score` must be one of {CALIBRATED_SCORES}, got {self.score!r}.")
+        if self.score not in SCORES:
+            raise ValueError(f"`score` must be one of {tuple(SCORES)}, got {self.score!r}.")
         if any(k < 1 for k in self.first_chunks) or self.table_iii_first_chunks < 0:
             raise ValueError(
                 f"`first_chunks` must be >= 1 and `table_iii_first_chunks` >= 0, got {self.first_chunks} "
@@ -221,27 +220,36 @@ def write_ood_report(cfg: OODReportConfig) -> str:
     conditions = _conditions(ood)
 
     chunk_names = available_scores([*calibration_set.values(), *vanilla.values(), *ood.values()])
+    has_features = all(name in chunk_names for name in FEATURE_SCORES)
     can_combine = all(name in chunk_names for name in COMBINED_FROM)
-    names = [*chunk_names, *(COMBINED_SCORES if can_combine else ())]
-    if REPORTED_AS[cfg.score] not in names:
+    registered = [n for n in registered_scores() if has_features or not SCORES[n].needs_context_features]
+    names = [*chunk_names, *registered, *(COMBINED_SCORES if can_combine else ())]
+    if cfg.score not in names:
         raise ValueError(
             f"`--score={cfg.score}` needs the context feature of every chunk of every set: record them with "
             "`ebvla-eval --record_context_features=true`."
         )
-    reference = fit_score_reference(calibration_set, cfg.knn_k, features="mahalanobis" in names)
+    reference = fit_score_reference(calibration_set, cfg.knn_k, has_features, registered, cfg.aggregation)
 
-    # Each chunk is scored once; the whole-episode and first-chunk scores aggregate the same chunk scores.
+    # Each chunk is scored once; the whole-episode and first-chunk scores aggregate the same chunk scores (a
+    # registered score's chunk components, with the fitted score of each episode).
     calibration_chunks, vanilla_chunks, ood_chunks = (
         {name: episode_chunk_scores(episodes, name, reference) for name in chunk_names}
+        | {
+            name: {key: model.components(episode, key) for key, episode in episodes.items()}
+            for name, model in reference.registered.items()
+        }
         for episodes in (calibration_set, vanilla, ood)
     )
     condition_chunks = {
-        c: {name: {key: ood_chunks[name][key] for key in episodes} for name in chunk_names}
+        c: {name: {key: chunks[key] for key in episodes} for name, chunks in ood_chunks.items()}
         for c, episodes in conditions.items()
     }
 
     def scores(chunks: dict, name: str, first_chunks: int | None = None) -> np.ndarray:
         """The rollout scores of one set (its chunk scores by name), over whole episodes or first chunks."""
+        if name in reference.registered:
+            return registered_rollout_scores(chunks[name], cfg.aggregation, first_chunks)
         if name in COMBINED_SCORES:
             # Standardized on the calibration rollouts aggregated over the same chunks.
             return combined_rollout_scores(
@@ -254,7 +262,11 @@ def write_ood_report(cfg: OODReportConfig) -> str:
     def fit(name: str, first_chunks: int | None = None) -> OODCalibration:
         calibration_scores = scores(calibration_chunks, name, first_chunks)
         return OODCalibration.fit(
-            calibration_scores, cfg.k, cfg.aggregation, cfg.false_alarm_rate, cfg.threshold_rule
+            calibration_scores,
+            k=cfg.k,
+            aggregation=cfg.aggregation,
+            false_alarm_rate=cfg.false_alarm_rate,
+            rule=cfg.threshold_rule,
         )
 
     scored: dict[int | None, _Scored] = {}
@@ -284,7 +296,7 @@ def write_ood_report(cfg: OODReportConfig) -> str:
         f"(Eq. 5) and the conformal threshold at false-alarm rate alpha = {percent(cfg.false_alarm_rate)}. "
         f"Scores: {', '.join(names)}. Held out changes only what is fitted on the calibration rollouts: the "
         "thresholds and the reference scores (phase_energy"
-        + (", mahalanobis, knn" if reference.features else "")
+        + "".join(f", {name}" for name in [*(FEATURE_SCORES if reference.features else ()), *registered])
         + "); an AUROC of the final energy needs no threshold. A calibration rollout's own reference scores "
         "are computed leave-one-episode-out.",
         "## Calibration\n\n"
@@ -316,41 +328,14 @@ def write_ood_report(cfg: OODReportConfig) -> str:
     (cfg.output_dir / "ood_report.md").write_text(report, encoding="utf-8")
     _figures(cfg, fits, scores(calibration_chunks, "final_energy"), negatives, positives, names)
     if cfg.calibrate_to is not None:
-        standardization = None
-        if cfg.score == "energy_and_context":
-            standardization = CombinedStatistics.fit(*(scores(calibration_chunks, n) for n in COMBINED_FROM))
-        path = _calibration_to_save(fits, reference, standardization, cfg).save(
-            cfg.calibrate_to, overwrite=cfg.overwrite_calibration
-        )
-        threshold = fits[REPORTED_AS[cfg.score]].threshold
-        logger.info(f"Saved the OOD calibration ({cfg.score}, T = {threshold:.3f}) to {path}")
+        # The run-time monitor scores chunks against a score fitted on every calibration rollout; mu_v and
+        # sigma_v are the report's: the calibration rollouts' scores, leave-one-episode-out where the score
+        # is fitted on them, as a new rollout's would be.
+        score = SCORES[cfg.score].fit(vanilla_rollouts(calibration_set, cfg.aggregation, cfg.knn_k))
+        calibration = dataclasses.replace(fits[cfg.score], score=score)
+        path = calibration.save(cfg.calibrate_to, overwrite=cfg.overwrite_calibration)
+        logger.info(f"Saved the OOD calibration ({cfg.score}, T = {calibration.threshold:.3f}) to {path}")
     return report
-
-
-def _calibration_to_save(
-    fits: dict, reference: ScoreReference, combined: CombinedStatistics | None, cfg: OODReportConfig
-) -> OODCalibration:
-    fit = fits[REPORTED_AS[cfg.score]]
-    # The run-time monitor scores chunks against the statistics of every calibration rollout; mu_v and
-    # sigma_v come from the calibration rollouts' leave-one-episode-out scores, as a new rollout's would.
-    if cfg.score == "phase_energy":
-        phase = reference.phase.statistics
-        return dataclasses.replace(fit, score=cfg.score, phase_mean=phase.mean, phase_std=phase.std)
-    if cfg.score == "context_distance":
-        return dataclasses.replace(fit, score=cfg.score, context=reference.features.statistics)
-    if cfg.score == "context_knn":
-        return dataclasses.replace(fit, score=cfg.score, neighbours=reference.features.neighbours)
-    if cfg.score == "energy_and_context":
-        # The same standardization as the report's energy_and_context rows: the calibration rollouts' final
-        # energies and leave-one-episode-out context distances.
-        return dataclasses.replace(
-            fit,
-            score=cfg.score,
-            context=reference.features.statistics,
-            combined_mean=combined.mean,
-            combined_std=combined.std,
-        )
-    return fit
 
 
 def _saved_score_note(cfg: OODReportConfig) -> str:
@@ -359,14 +344,14 @@ def _saved_score_note(cfg: OODReportConfig) -> str:
         "context_distance": "of every table: the same features, fit and leave-one-episode-out calibration scores.",
         "context_knn": f"of every table (k = {cfg.knn_k}): the same features, standardization and "
         "leave-one-episode-out calibration scores; the saved calibration keeps every calibration context.",
-        "energy_and_context": "of the whole-episode tables: the final energy and the `mahalanobis` score, "
-        "standardized by the calibration rollouts' mean and std of each, and their max.",
+        "energy_and_context": "of the whole-episode tables: the final energy and the `context_distance` "
+        "score, standardized by the calibration rollouts' mean and std of each, and their max.",
     }
     if cfg.score not in what:
         return ""
     return (
         f"\n\n`--score={cfg.score}`, the score a calibration saved by this report has `ood_response` act on, is "
-        f"the `{REPORTED_AS[cfg.score]}` score {what[cfg.score]}"
+        f"the `{cfg.score}` score {what[cfg.score]}"
     )
 
 

@@ -2,18 +2,21 @@
 
 Each chunk of an episode has a score (its final energy, the paper's; or another score of `baselines.py`), and
 an episode's score aggregates its chunks in order as the run-time monitor does
-(`runtime.calibration.rollout_score`), over all its chunks or over its first k only (what a monitor has seen
-k chunks into the episode).
+(`runtime.scores.rollout_score`), over all its chunks or over its first k only (what a monitor has seen k
+chunks into the episode).
 
 The combined scores (`baselines.COMBINED_SCORES`) are rollout scores only: `combined_rollout_scores` forms them
-from the rollout scores of the final energy and the context distance.
+from the rollout scores of the final energy and the context distance. So are the registered run-time scores
+`baselines.py` has no baseline of (`baselines.registered_scores`): their chunks' components are aggregated and
+combined by their class (`registered_rollout_scores`), as the run-time monitor does.
 """
 
 from collections.abc import Hashable, Mapping
 
 import numpy as np
 
-from ..runtime.calibration import CombinedStatistics, rollout_score
+from ..runtime.scores import ChunkScore, ContextDistance, EnergyAndContext, rollout_score, score_rollout
+from ..runtime.statistics import CombinedStatistics
 from .baselines import (
     COMBINED_FROM,
     COMBINED_SCORES,
@@ -54,9 +57,9 @@ def chunk_scores(
         return reference.phase.score(energies, np.array([r.chunk_index for r in episode]), episode_id)
     if score in FEATURE_SCORES:
         features = np.stack([r.context_feature for r in episode])
-        if score == "mahalanobis":
-            return reference.features.mahalanobis(features, episode_id)
-        return reference.features.knn(features, episode_id)
+        if score == ContextDistance.name:
+            return reference.features.context_distance(features, episode_id)
+        return reference.features.context_knn(features, episode_id)
     return np.array([getattr(r, score) for r in episode], dtype=np.float64)
 
 
@@ -71,6 +74,11 @@ def episode_chunk_scores(
     return {key: chunk_scores(episode, score, reference, key) for key, episode in episodes.items()}
 
 
+def _check_first_chunks(first_chunks: int | None) -> None:
+    if first_chunks is not None and first_chunks < 1:
+        raise ValueError(f"`first_chunks` must be >= 1 or None, got {first_chunks}.")
+
+
 def aggregate_episodes(
     scores: Mapping[Hashable, np.ndarray], aggregation: str = "mean", first_chunks: int | None = None
 ) -> np.ndarray:
@@ -82,8 +90,7 @@ def aggregate_episodes(
         first_chunks: Aggregate each episode's first k chunks only; an episode shorter than k uses all its
             chunks. None aggregates whole episodes.
     """
-    if first_chunks is not None and first_chunks < 1:
-        raise ValueError(f"`first_chunks` must be >= 1 or None, got {first_chunks}.")
+    _check_first_chunks(first_chunks)
     return np.array([rollout_score(s[:first_chunks], aggregation) for s in scores.values()])
 
 
@@ -98,13 +105,28 @@ def episode_scores(
 
     Args:
         episodes: Episodes by key, each its chunk records in chunk order.
-        score: One of `baselines.SCORE_NAMES`.
+        score: One of `baselines.SCORE_NAMES`, or a registered score `reference` was fitted for.
         aggregation: How the chunk scores form the episode's (`rollout_score`).
         reference: See `chunk_scores`.
         first_chunks: Score each episode over its first k chunks only; an episode shorter than k uses all
             its chunks. None scores whole episodes.
     """
+    if reference is not None and score in reference.registered:
+        model = reference.registered[score]
+        components = {key: model.components(episode, key) for key, episode in episodes.items()}
+        return registered_rollout_scores(components, aggregation, first_chunks)
     return aggregate_episodes(episode_chunk_scores(episodes, score, reference), aggregation, first_chunks)
+
+
+def registered_rollout_scores(
+    components: Mapping[Hashable, tuple[ChunkScore, np.ndarray]],
+    aggregation: str = "mean",
+    first_chunks: int | None = None,
+) -> np.ndarray:
+    """One rollout score per episode of a registered score, from each episode's fitted score and chunk
+    components (`baselines.RegisteredScoreModel.components`), over its first k chunks or all."""
+    _check_first_chunks(first_chunks)
+    return np.array([score_rollout(s, c[:first_chunks], aggregation) for s, c in components.values()])
 
 
 def combined_rollout_scores(
@@ -113,13 +135,13 @@ def combined_rollout_scores(
     """The rollout scores of a combined score (`baselines.COMBINED_SCORES`), one per rollout.
 
     Each of the final energy's and the context distance's rollout scores is standardized by the mean and std
-    of the calibration rollouts' (`CombinedStatistics`, as the run-time `score="energy_and_context"` is); the
-    z's are then combined: their max ("energy_and_context") or their sum ("energy_and_context_sum").
+    of the calibration rollouts' (`CombinedStatistics`, as the run-time "energy_and_context" is); the z's are
+    then combined: their max ("energy_and_context") or their sum ("energy_and_context_sum").
 
     Args:
         score: One of `baselines.COMBINED_SCORES`.
-        rollout_scores: The rollouts' "final_energy" and "mahalanobis" scores, aggregated alike (e.g. over
-            the same first chunks), one entry per rollout.
+        rollout_scores: The rollouts' "final_energy" and "context_distance" scores, aggregated alike (e.g.
+            over the same first chunks), one entry per rollout.
         calibration_scores: The calibration rollouts' scores of the same two names, aggregated the same way.
 
     Raises:
@@ -135,4 +157,4 @@ def combined_rollout_scores(
             )
     statistics = CombinedStatistics.fit(*(calibration_scores[n] for n in COMBINED_FROM))
     z = statistics.z(*(rollout_scores[n] for n in COMBINED_FROM))
-    return z.max(axis=1) if score == "energy_and_context" else z.sum(axis=1)
+    return z.max(axis=1) if score == EnergyAndContext.name else z.sum(axis=1)

@@ -21,14 +21,16 @@ Nothing here imports the analysis (`monitoring/`).
 """
 
 import dataclasses
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from torch import Tensor
 
+from .checkpoint_files import CheckpointJSON
+from .history import EnvironmentHistories
 from .threshold import ArrayLike, as_array, exceeds, mean_std_threshold
 
 FAILURE_ALARM_FILENAME = "failure_alarm.json"
@@ -48,7 +50,7 @@ def window_slopes(windows: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class FailureAlarm:
+class FailureAlarm(CheckpointJSON):
     """One slope check: at step `step`, alarm when the slope over `window` steps exceeds T.
 
     Args:
@@ -73,6 +75,10 @@ class FailureAlarm:
     n_reference: int
     calibration_balanced_accuracy: float = math.nan
     n_calibration: int = 0
+
+    filename = FAILURE_ALARM_FILENAME
+    what = "failure alarm"
+    command = "ebvla-failure-report"
 
     def __post_init__(self):
         if self.metric not in SLOPE_ENERGIES:
@@ -100,61 +106,24 @@ class FailureAlarm:
         """Whether one episode's energies (steps 1 .. >= s*) raise the alarm at s*."""
         return bool(exceeds(self.slope(energies), self.threshold)[0])
 
-    def save(self, checkpoint_dir: str | Path, overwrite: bool = False) -> Path:
-        """Writes `failure_alarm.json` into a policy checkpoint folder (the `pretrained_model` folder).
+    # failure_alarm.json: the fields, and `threshold` for people reading the file (loading recomputes it).
 
-        Raises:
-            FileNotFoundError: The folder does not exist.
-            FileExistsError: An alarm is saved there and `overwrite` is False.
-        """
-        checkpoint_dir = Path(checkpoint_dir)
-        if not checkpoint_dir.is_dir():
-            raise FileNotFoundError(f"Checkpoint folder {checkpoint_dir} does not exist.")
-        path = checkpoint_dir / FAILURE_ALARM_FILENAME
-        if path.exists() and not overwrite:
-            raise FileExistsError(f"{path} already exists; pass overwrite=True to replace it.")
+    def to_json(self, checkpoint_dir: Path) -> dict[str, Any]:
         payload = {**dataclasses.asdict(self), "threshold": self.threshold}
         # JSON has no NaN: an unknown calibration accuracy is written as null.
-        payload = {key: None if isinstance(v, float) and math.isnan(v) else v for key, v in payload.items()}
-        path.write_text(json.dumps(payload, indent=2, allow_nan=False) + "\n", encoding="utf-8")
-        return path
+        return {key: None if isinstance(v, float) and math.isnan(v) else v for key, v in payload.items()}
 
     @classmethod
-    def load(cls, path: str | Path) -> "FailureAlarm":
-        """Reads `failure_alarm.json`, or the checkpoint folder that holds it."""
-        path = Path(path)
-        if path.is_dir():
-            path = path / FAILURE_ALARM_FILENAME
-        try:
-            payload = json.loads(path.read_text(encoding="utf-8"))
-            if not isinstance(payload, dict):
-                raise TypeError(f"expected a JSON object, got {type(payload).__name__}")
-            payload.pop("threshold", None)
-            if payload.get("calibration_balanced_accuracy") is None:
-                payload["calibration_balanced_accuracy"] = math.nan
-            return cls(**payload)
-        except (json.JSONDecodeError, TypeError, ValueError) as e:
-            fields = ", ".join(f.name for f in dataclasses.fields(cls))
-            raise ValueError(
-                f"{path} is not a valid failure alarm ({e}). Expected a JSON object with the fields {fields}, "
-                "as `ebvla-failure-report --calibrate_to` writes it: calibrate again, or remove the file."
-            ) from e
+    def from_json(cls, payload: dict[str, Any], path: Path) -> "FailureAlarm":
+        payload = dict(payload)
+        payload.pop("threshold", None)
+        if payload.get("calibration_balanced_accuracy") is None:
+            payload["calibration_balanced_accuracy"] = math.nan
+        return cls(**payload)
 
     @classmethod
-    def from_pretrained(cls, pretrained_name_or_path: str | Path) -> "FailureAlarm":
-        """Loads the alarm of a local checkpoint folder or of a Hugging Face Hub model repository."""
-        if Path(pretrained_name_or_path).exists():
-            return cls.load(pretrained_name_or_path)
-        from huggingface_hub import hf_hub_download
-
-        try:
-            path = hf_hub_download(str(pretrained_name_or_path), FAILURE_ALARM_FILENAME)
-        except Exception as e:  # a mistyped local path reaches the Hub as an invalid repo id
-            raise FileNotFoundError(
-                f"No {FAILURE_ALARM_FILENAME} in a local folder or Hub repo named {pretrained_name_or_path}; "
-                "create it with `ebvla-failure-report --calibrate_to=...`."
-            ) from e
-        return cls.load(path)
+    def expected_fields(cls) -> str:
+        return ", ".join(f.name for f in dataclasses.fields(cls))
 
 
 @dataclass(frozen=True)
@@ -176,7 +145,7 @@ class EnergyFailureMonitor:
 
     def __init__(self, alarm: FailureAlarm):
         self.alarm = alarm
-        self._histories: list[list[float]] = []
+        self._histories = EnvironmentHistories()  # each environment's energies so far
         self._decisions: list[FailureDecision | None] = []
 
     @classmethod
@@ -193,17 +162,11 @@ class EnergyFailureMonitor:
         if not isinstance(energies, (float, int, np.ndarray, Tensor, list, tuple)):
             energies = getattr(energies, SLOPE_ENERGIES[self.alarm.metric])
         values = as_array(energies)
-        if not self._histories:
-            self._histories = [[] for _ in values]
+        self._histories.append([float(value) for value in values])
+        if not self._decisions:
             self._decisions = [None] * len(values)
-        if values.size != len(self._histories):
-            raise ValueError(
-                f"Expected {len(self._histories)} energies (one per environment), got {values.size}."
-            )
         answers = []
-        for env, value in enumerate(values):
-            history = self._histories[env]
-            history.append(float(value))
+        for env, history in enumerate(self._histories):
             if len(history) == self.alarm.step:
                 slope = self.alarm.slope(history)
                 self._decisions[env] = FailureDecision(
@@ -219,4 +182,5 @@ class EnergyFailureMonitor:
 
     def reset(self) -> None:
         """Forgets the histories and decisions; call it when the environments reset."""
-        self._histories, self._decisions = [], []
+        self._histories.reset()
+        self._decisions = []

@@ -3,10 +3,9 @@
 After each refinement, the score of every chunk is compared to the threshold T = mu_v + k * sigma_v (Eq. 5)
 of the checkpoint's `ood_calibration.json`, with the one rule of `threshold.py`: only a score <= T is in
 distribution, so +inf (diverged refinement) and NaN are flagged. The score is the calibration's
-(`OODCalibration.chunk_score`): the final energy E(a^(K_inf), C) (the paper's, default), the phase energy,
-the context distance of the chunk's pooled context, which the policy then computes from the backbone pass
-that encoded the chunk's context, the larger of the standardized energy and context distance, or the context
-k-NN distance of the pooled context (its distance to the k-th nearest calibration context). `EBVLAConfig.ood_response` picks what happens to a flagged chunk:
+(`OODCalibration.chunk_score`, one of `scores.SCORES`: the final energy E(a^(K_inf), C) by default); a score
+that reads the chunk's pooled context has the policy compute it from the backbone pass that encoded the chunk's
+context. `EBVLAConfig.ood_response` picks what happens to a flagged chunk:
 
 - "continue": it is executed and a warning is logged (the default).
 - "hold": each of its H actions is replaced by the hold action; the next refinement checks again.
@@ -24,7 +23,6 @@ so that after the post-processor the robot receives exactly a zero delta, or its
 
 import logging
 import math
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -40,7 +38,7 @@ from lerobot.utils.constants import OBS_STATE, POLICY_PREPROCESSOR_DEFAULT_NAME
 from torch import Tensor
 
 from .calibration import OOD_CALIBRATION_FILENAME, OODCalibration
-from .threshold import exceeds
+from .threshold import OODDecision
 
 if TYPE_CHECKING:  # annotations only: run-time code reads the config's fields and imports nothing above it
     from ..configuration_ebvla import EBVLAConfig
@@ -48,37 +46,20 @@ if TYPE_CHECKING:  # annotations only: run-time code reads the config's fields a
 logger = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
-class OODResponseDecision:
-    """The response to one refined chunk per batch element, exposed as `policy.last_ood_decision`.
-
-    Attributes:
-        response: The configured `ood_response`.
-        threshold: The threshold T the chunk scores were compared to.
-        flagged: (B,) bool, the chunk score (the calibration's: final energy, phase energy, context
-            distance, energy and context, or context k-NN distance) exceeds T (or is not finite).
-        held: (B,) bool, the chunk was replaced by the hold action (flagged and `response == "hold"`).
-    """
-
-    response: str
-    threshold: float
-    flagged: Tensor
-    held: Tensor
+# The name `modeling_ebvla` and `serving` import: the response's decision is the one decision type.
+OODResponseDecision = OODDecision
 
 
 class EnergyOODError(RuntimeError):
     """Raised with `ood_response="raise"` when a refined chunk's score exceeds the OOD threshold.
 
     Attributes:
-        energy: The highest score (the calibration's `score`: final energy, phase energy, context distance,
-            energy and context, or context k-NN distance) among the flagged chunks.
+        energy: The highest score (the calibration's `score`) among the flagged chunks, NaN counted as +inf.
         threshold: The threshold T it exceeded.
         decision: The full per-batch-element decision.
     """
 
-    def __init__(
-        self, energy: float, threshold: float, decision: OODResponseDecision, score: str = "final_energy"
-    ):
+    def __init__(self, energy: float, threshold: float, decision: OODDecision, score: str = "final_energy"):
         super().__init__(
             f"EB-VLA refined a chunk with {score} {energy:.4g} above the OOD threshold {threshold:.4g} "
             "(`ood_response='raise'`): the observation looks out of distribution."
@@ -178,7 +159,7 @@ class EnergyOODResponse:
 
     @property
     def needs_context_features(self) -> bool:
-        """Whether each chunk's pooled context must come with it (a calibration of a `CONTEXT_SCORES` score)."""
+        """Whether each chunk's pooled context must come with it (the calibration's score reads it)."""
         return self.calibration.needs_context_features
 
     @property
@@ -203,35 +184,30 @@ class EnergyOODResponse:
         batch: dict[str, Tensor],
         chunk_index: int = 0,
         context_features: Tensor | None = None,
-    ) -> tuple[Tensor, OODResponseDecision]:
+    ) -> tuple[Tensor, OODDecision]:
         """Checks each chunk (B, H, action_dim) against T and continues, holds or raises.
 
-        `chunk_index` is the chunk's index in its episode, for a calibration whose score depends on it;
-        `context_features`, (B, D), the pooled context of each chunk's observation, for a context-distance, an
-        energy-and-context or a context k-NN calibration. Returns the chunks to execute (held ones replaced) and the decision.
+        `chunk_index` is the chunk's index in its episode, for a score that reads it; `context_features`,
+        (B, D), the pooled context of each chunk's observation, for a score that reads it. Returns the chunks to
+        execute (held ones replaced) and the decision.
         """
         response, threshold = self.config.ood_response, self.threshold
         energies = final_energy.detach().float().cpu().reshape(-1)
-        # The calibration's score: the final energy itself, its z-score at this chunk index (phase energy), the
-        # Mahalanobis distance of the chunk's context (context distance), or the larger of the last and the
-        # energy, each standardized (energy and context), or the distance of the chunk's context to its k-th
-        # nearest calibration context (context k-NN).
         scores = self.calibration.chunk_score(energies, chunk_index, context_features)
-        energies = torch.as_tensor(scores, dtype=torch.float32).reshape(-1)
-        flagged = torch.from_numpy(exceeds(energies, threshold))
-        held = flagged if response == "hold" else torch.zeros_like(flagged)
-        decision = OODResponseDecision(response, threshold, flagged, held)
+        decision = OODDecision.of(torch.as_tensor(scores, dtype=torch.float32), threshold, response)
+        flagged, held = decision.flagged, decision.held
         if not flagged.any():
             return actions, decision
         # NaN sorts as the highest: report it rather than a finite energy beside it.
-        energy = float(energies[flagged].nan_to_num(nan=math.inf).max())
+        energy = float(decision.scores[flagged].nan_to_num(nan=math.inf).max())
+        score = self.calibration.score.name
         if response == "raise":
-            raise EnergyOODError(energy, threshold, decision, self.calibration.score)
+            raise EnergyOODError(energy, threshold, decision, score)
         logger.warning(
             "EB-VLA: %d of %d chunks have a %s above the OOD threshold %.4g (highest %.4g): %s.",
             int(flagged.sum()),
             flagged.numel(),
-            self.calibration.score,
+            score,
             threshold,
             energy,
             "holding them" if response == "hold" else "executing them anyway (`ood_response='continue'`)",
@@ -253,7 +229,7 @@ def respond_to_energy(
     batch: dict[str, Tensor],
     chunk_index: int = 0,
     context_features: Tensor | None = None,
-) -> tuple[Tensor, OODResponseDecision | None]:
+) -> tuple[Tensor, OODDecision | None]:
     """The policy's entry point: applies `response`, or checks that none is needed without a calibration.
 
     `context_features` is the chunks' pooled context, (B, D), when `response.needs_context_features`.

@@ -97,3 +97,49 @@ def conformal_threshold(reference_scores: ArrayLike, alpha: float, what: str = "
     # 1-based rank; the tolerance keeps e.g. (19 + 1) * 0.95 at 19 despite 0.95's binary rounding.
     rank = math.ceil((n + 1) * (1.0 - alpha) - 1e-9)
     return math.inf if rank > n else float(finite[rank - 1])
+
+
+@dataclass(frozen=True)
+class OODDecision:
+    """The rule's verdict on B scores (B chunks, or B environments' rollouts so far) and the response to it.
+
+    The policy leaves one per refined chunk batch in `policy.last_ood_decision`; `EnergyOODMonitor` answers
+    one per chunk or rollout (B = 1).
+
+    Attributes:
+        scores: (B,) the scores checked: the calibration's chunk scores, or rollout scores.
+        threshold: The threshold T they were compared to.
+        flagged: (B,) bool, the score exceeds T or is not finite (`exceeds`).
+        held: (B,) bool, the chunk was replaced by the hold action (flagged and `response == "hold"`).
+        response: The policy's `ood_response` to the flagged chunks ("continue", "hold" or "raise"); None for
+            a decision that nothing acts on (the monitor's).
+    """
+
+    scores: Tensor
+    threshold: float
+    flagged: Tensor
+    held: Tensor
+    response: str | None = None
+
+    @classmethod
+    def of(cls, scores: ArrayLike | float, threshold: float, response: str | None = None) -> "OODDecision":
+        """Applies the rule to scores (kept in their dtype: a float32 chunk score is compared as it is)."""
+        scores = (scores if isinstance(scores, Tensor) else torch.from_numpy(as_array(scores))).reshape(-1)
+        flagged = torch.from_numpy(exceeds(scores, threshold))
+        held = flagged if response == "hold" else torch.zeros_like(flagged)
+        return cls(scores, float(threshold), flagged, held, response)
+
+    @property
+    def is_ood(self) -> bool:
+        """Whether any score was flagged."""
+        return bool(self.flagged.any())
+
+    @property
+    def in_distribution(self) -> bool:
+        """Whether every score is <= T (and finite)."""
+        return not self.is_ood
+
+    @property
+    def energy(self) -> float:
+        """The highest score checked (NaN if one is NaN); of one chunk or rollout, its score."""
+        return float(self.scores.max())

@@ -1,0 +1,371 @@
+"""The chunk scores a run-time OOD calibration can apply, one class each, and the registry that names them.
+
+A `ChunkScore` turns what the policy reports about a chunk (its final energy, its index in the episode, its
+pooled context) into components; a rollout's score aggregates each component over its chunks
+(`rollout_score`: mean, max, last or median) and combines the aggregates (`score_rollout`). The threshold
+T = mu_v + k sigma_v (Eq. 5) or the conformal one is then set on the vanilla rollouts' scores
+(`OODCalibration`). A score is fitted on vanilla rollouts (`VanillaRollouts`) and saved in
+`ood_calibration.json` (its JSON fields) and in safetensors files beside it (its side files).
+
+- "final_energy" (`FinalEnergy`, the paper's): E(a^(K_inf), C).
+- "phase_energy" (`PhaseEnergy`): the final energy against the vanilla energy at the same chunk index,
+  z_t = (E_t - mu_v[t]) / sigma_v[t] (`PhaseStatistics`): the energy's level follows the task's phase.
+- "context_distance" (`ContextDistance`): the Mahalanobis distance of the chunk's pooled last-block context
+  c = mean over tokens of C_L (`EBVLAPolicy.context_features`) from the vanilla contexts,
+  d(c) = sqrt((c - mu_c)^T P (c - mu_c)), P the inverse of the Ledoit-Wolf shrunk covariance
+  (`ContextStatistics`, saved in `ood_calibration_context.safetensors`).
+- "energy_and_context" (`EnergyAndContext`): the final energy and the context distance see different failures
+  (how well the action chain converged, what the policy sees); each is aggregated over the rollout,
+  standardized by the vanilla rollouts' mean and std (`CombinedStatistics`), and the larger counts,
+  s = max((E - mu_E) / sigma_E, (d - mu_d) / sigma_d). A single chunk's score is the same on that chunk alone.
+- "context_knn" (`ContextKNN`): the Euclidean distance of the chunk's pooled context, standardized per
+  dimension, to its k-th nearest standardized vanilla context, d_k(c) = || z(c) - z(c_(k)) ||
+  (`ContextNeighbours`, every calibration context saved in `ood_calibration_neighbours.safetensors`). Unlike
+  the Mahalanobis distance it assumes no Gaussian shape.
+
+A new score is one class here and one entry in `SCORES`: the calibration, its file, the monitors, the policy's
+`ood_response` and `ebvla-ood-report --score=<name>` find it there.
+"""
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Protocol, Self
+
+import numpy as np
+
+from .checkpoint_files import SideFile
+from .statistics import (
+    DEFAULT_KNN_K,
+    CombinedStatistics,
+    ContextNeighbours,
+    ContextStatistics,
+    PhaseStatistics,
+    energies_by_index,
+    float64,
+)
+from .threshold import ArrayLike, as_array
+
+SCORE_AGGREGATIONS = ("mean", "max", "last", "median")
+
+# The context statistics and neighbours, beside `ood_calibration.json`: D x D numbers are no JSON.
+CONTEXT_FILE = SideFile(
+    "context_statistics",
+    "ood_calibration_context.safetensors",
+    "context statistics",
+    ContextStatistics.from_bytes,
+    lambda s: {"dim": s.dim, "n_chunks": s.n_chunks},
+)
+NEIGHBOURS_FILE = SideFile(
+    "context_neighbours",
+    "ood_calibration_neighbours.safetensors",
+    "context neighbours",
+    ContextNeighbours.from_bytes,
+    lambda s: {"dim": s.dim, "n_chunks": s.n_chunks, "k": s.k},
+)
+
+
+def rollout_score(chunk_energies: ArrayLike, aggregation: str = "mean") -> float:
+    """Forms a rollout's anomaly score from the final energies (or other scores) of its chunks, in order.
+
+    Args:
+        chunk_energies: E(a^(K_inf), C) of each predicted chunk of the rollout.
+        aggregation: "mean" (default, every chunk counts equally), "max" (the least confident chunk),
+            "last" (the most recent chunk, what a streaming monitor sees) or "median" (robust to a few
+            outlying chunks). With "mean" and "max" one +inf chunk makes the score +inf.
+
+    Raises:
+        ValueError: No energies, or an unknown aggregation.
+    """
+    if aggregation not in SCORE_AGGREGATIONS:
+        raise ValueError(f"`aggregation` must be one of {SCORE_AGGREGATIONS}, got {aggregation!r}.")
+    energies = as_array(chunk_energies)
+    if energies.size == 0:
+        raise ValueError("A rollout score needs at least one chunk energy.")
+    reduce = {"mean": np.mean, "max": np.max, "last": lambda e: e[-1], "median": np.median}[aggregation]
+    return float(reduce(energies))
+
+
+@dataclass(frozen=True)
+class VanillaRollouts:
+    """What a score is fitted on: the chunks of vanilla calibration rollouts, one entry per rollout.
+
+    Args:
+        final_energies: Each rollout's chunk final energies, (N_r,), in chunk order.
+        chunk_indices: Each rollout's chunk indices in its episode, (N_r,).
+        context_features: Each rollout's pooled contexts, (N_r, D); None when they were not recorded.
+        aggregation: How the calibration aggregates a rollout's chunks (`rollout_score`).
+        knn_k: Which nearest vanilla context the context k-NN distance measures to.
+    """
+
+    final_energies: Sequence[np.ndarray]
+    chunk_indices: Sequence[np.ndarray]
+    context_features: Sequence[np.ndarray] | None = None
+    aggregation: str = "mean"
+    knn_k: int = DEFAULT_KNN_K
+
+    def __len__(self) -> int:
+        return len(self.final_energies)
+
+    def features(self, score: str) -> tuple[np.ndarray, np.ndarray]:
+        """Every chunk's pooled context, (N, D), and the rollout of each, (N,)."""
+        if self.context_features is None:
+            raise ValueError(
+                f"The {score} score is fitted on the vanilla rollouts' pooled contexts: record them "
+                "(`ebvla-eval --record_context_features=true`)."
+            )
+        rollout = np.concatenate([np.full(len(f), i) for i, f in enumerate(self.context_features)])
+        return np.concatenate([float64(f) for f in self.context_features]), rollout
+
+    def without(self, rollout: int) -> "VanillaRollouts":
+        """The same rollouts but one: what a calibration rollout is scored against (leave-one-out)."""
+
+        def others(values: Sequence | None) -> list | None:
+            return None if values is None else [v for i, v in enumerate(values) if i != rollout]
+
+        return VanillaRollouts(
+            others(self.final_energies),
+            others(self.chunk_indices),
+            others(self.context_features),
+            self.aggregation,
+            self.knn_k,
+        )
+
+
+class ChunkScore(Protocol):
+    """One OOD score: how a chunk becomes components, how a rollout's aggregated components combine, what it
+    fits on vanilla rollouts, and how it is saved.
+
+    The methods here are the defaults of a score with one component that fits and saves nothing; a score
+    class may subclass this protocol to inherit them.
+    """
+
+    # The name in `SCORES`, in `ood_calibration.json`'s `score` and in every report.
+    name: ClassVar[str]
+    # Which inputs beside the final energy `components` reads.
+    needs_chunk_index: ClassVar[bool] = False
+    needs_context_features: ClassVar[bool] = False
+    # Columns of `components`, each aggregated over a rollout before `combine`.
+    n_components: ClassVar[int] = 1
+    # Its plain JSON fields, and the statistics it saves beside the JSON (`to_json` gives them as objects).
+    json_fields: ClassVar[tuple[str, ...]] = ()
+    side_files: ClassVar[tuple[SideFile, ...]] = ()
+
+    @classmethod
+    def fit(cls, vanilla: VanillaRollouts) -> Self:
+        """Fits the score's statistics on vanilla rollouts."""
+        return cls()
+
+    def components(
+        self,
+        final_energy: np.ndarray,
+        chunk_index: ArrayLike | int | None,
+        context_features: ArrayLike | None,
+    ) -> np.ndarray:
+        """(B, n_components) from B chunks: final energies (B,), indices (an int or (B,)), contexts (B, D)
+        (or one (D,)). An input the score does not read may be None."""
+        ...
+
+    def combine(self, aggregates: np.ndarray) -> np.ndarray:
+        """(R,) scores from (R, n_components) components, each aggregated over a rollout (or one chunk's)."""
+        return aggregates[:, 0]
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON fields (`json_fields`) and the statistics of each side file, by its JSON field."""
+        return {}
+
+    @classmethod
+    def from_json(cls, fields: dict[str, Any]) -> Self:
+        """The score from what `to_json` gave, its side files read back (missing fields are absent or None)."""
+        return cls()
+
+
+def score_rollout(score: ChunkScore, components: ArrayLike, aggregation: str) -> float:
+    """The rollout score of (N, n_components) chunk components: each column aggregated, then combined.
+
+    Raises:
+        ValueError: `components` is not (N >= 1, n_components).
+    """
+    components = float64(components)
+    n = score.n_components
+    if components.ndim != 2 or components.shape[1] != n:
+        raise ValueError(
+            f"`components` of a {score.name} rollout must be (N, {n}), one row of `chunk_components` per "
+            f"chunk; got shape {components.shape}."
+        )
+    aggregates = np.array([[rollout_score(column, aggregation) for column in components.T]])
+    return float(score.combine(aggregates)[0])
+
+
+def _check_statistics(score: str, attribute: str, value: object, kind: type) -> None:
+    if value is None:
+        raise ValueError(f"`score={score!r}` needs `{attribute}` (`{kind.__name__}`).")
+    if not isinstance(value, kind):
+        raise ValueError(f"`{attribute}` must be `{kind.__name__}`, got {type(value).__name__}.")
+
+
+def _pair(fields: dict[str, Any], mean: str, std: str, score: str, kind: type) -> tuple:
+    """The (mean, std) JSON fields of a statistics object, which come together."""
+    values = fields.get(mean), fields.get(std)
+    if (values[0] is None) != (values[1] is None):
+        raise ValueError(f"`{mean}` and `{std}` come together: give both or neither.")
+    if values[0] is None:
+        raise ValueError(f"`score={score!r}` needs `{mean}` and `{std}` (`{kind.__name__}`).")
+    return values
+
+
+@dataclass(frozen=True)
+class FinalEnergy(ChunkScore):
+    """E(a^(K_inf), C), the paper's score."""
+
+    name = "final_energy"
+
+    def components(self, final_energy, chunk_index, context_features) -> np.ndarray:
+        return as_array(final_energy)[:, None]
+
+
+@dataclass(frozen=True)
+class PhaseEnergy(ChunkScore):
+    """(E_t - mu_v[t]) / sigma_v[t] at the chunk's 0-based index t in its episode."""
+
+    phase: PhaseStatistics
+
+    name = "phase_energy"
+    needs_chunk_index = True
+    json_fields = ("phase_mean", "phase_std")
+
+    def __post_init__(self):
+        _check_statistics(self.name, "phase", self.phase, PhaseStatistics)
+
+    @classmethod
+    def fit(cls, vanilla: VanillaRollouts) -> "PhaseEnergy":
+        series = zip(vanilla.final_energies, vanilla.chunk_indices, strict=True)
+        return cls(PhaseStatistics.fit([energies_by_index(e, t) for e, t in series]))
+
+    def components(self, final_energy, chunk_index, context_features) -> np.ndarray:
+        return self.phase.z(final_energy, chunk_index)[:, None]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"phase_mean": self.phase.mean, "phase_std": self.phase.std}
+
+    @classmethod
+    def from_json(cls, fields: dict[str, Any]) -> "PhaseEnergy":
+        return cls(PhaseStatistics(*_pair(fields, "phase_mean", "phase_std", cls.name, PhaseStatistics)))
+
+
+@dataclass(frozen=True)
+class ContextDistance(ChunkScore):
+    """The Mahalanobis distance d(c) of the chunk's pooled context from the vanilla contexts."""
+
+    # Saved beside the JSON, not compared by `==`.
+    context: ContextStatistics = field(compare=False)
+
+    name = "context_distance"
+    needs_context_features = True
+    side_files = (CONTEXT_FILE,)
+
+    def __post_init__(self):
+        _check_statistics(self.name, "context", self.context, ContextStatistics)
+
+    @classmethod
+    def fit(cls, vanilla: VanillaRollouts) -> "ContextDistance":
+        return cls(ContextStatistics.fit(vanilla.features(cls.name)[0]))
+
+    def components(self, final_energy, chunk_index, context_features) -> np.ndarray:
+        return self.context.distance(context_features)[:, None]
+
+    def to_json(self) -> dict[str, Any]:
+        return {CONTEXT_FILE.field: self.context}
+
+    @classmethod
+    def from_json(cls, fields: dict[str, Any]) -> "ContextDistance":
+        return cls(fields.get(CONTEXT_FILE.field))
+
+
+@dataclass(frozen=True)
+class EnergyAndContext(ChunkScore):
+    """max(z_E, z_d): the final energy and the context distance, each standardized by the vanilla rollouts'.
+
+    Its two components, E and d, are aggregated over a rollout apart and combined after.
+    """
+
+    context: ContextStatistics = field(compare=False)
+    combined: CombinedStatistics
+
+    name = "energy_and_context"
+    needs_context_features = True
+    n_components = 2
+    json_fields = ("combined_mean", "combined_std")
+    side_files = (CONTEXT_FILE,)
+
+    def __post_init__(self):
+        _check_statistics(self.name, "context", self.context, ContextStatistics)
+        _check_statistics(self.name, "combined", self.combined, CombinedStatistics)
+
+    @classmethod
+    def fit(cls, vanilla: VanillaRollouts) -> "EnergyAndContext":
+        """The context statistics of every vanilla chunk, and the standardization of the vanilla rollouts'
+        final energy and context distance, each rollout's distance measured without its own chunks (as the
+        report scores a calibration rollout)."""
+        features, rollout_of = vanilla.features(cls.name)
+        energies, distances = [], []
+        for i, chunk_energies in enumerate(vanilla.final_energies):
+            own = rollout_of == i
+            left_out = ContextStatistics.fit_without(features, own)
+            energies.append(rollout_score(chunk_energies, vanilla.aggregation))
+            distances.append(rollout_score(left_out.distance(features[own]), vanilla.aggregation))
+        return cls(ContextStatistics.fit(features), CombinedStatistics.fit(energies, distances))
+
+    def components(self, final_energy, chunk_index, context_features) -> np.ndarray:
+        return np.stack([as_array(final_energy), self.context.distance(context_features)], axis=1)
+
+    def combine(self, aggregates: np.ndarray) -> np.ndarray:
+        return self.combined.combine(aggregates[:, 0], aggregates[:, 1])
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            CONTEXT_FILE.field: self.context,
+            "combined_mean": self.combined.mean,
+            "combined_std": self.combined.std,
+        }
+
+    @classmethod
+    def from_json(cls, fields: dict[str, Any]) -> "EnergyAndContext":
+        context = fields.get(CONTEXT_FILE.field)
+        _check_statistics(cls.name, "context", context, ContextStatistics)
+        pair = _pair(fields, "combined_mean", "combined_std", cls.name, CombinedStatistics)
+        return cls(context, CombinedStatistics(*pair))
+
+
+@dataclass(frozen=True)
+class ContextKNN(ChunkScore):
+    """The distance of the chunk's standardized pooled context to its k-th nearest vanilla one."""
+
+    # Saved beside the JSON, not compared by `==`.
+    neighbours: ContextNeighbours = field(compare=False)
+
+    name = "context_knn"
+    needs_context_features = True
+    side_files = (NEIGHBOURS_FILE,)
+
+    def __post_init__(self):
+        _check_statistics(self.name, "neighbours", self.neighbours, ContextNeighbours)
+
+    @classmethod
+    def fit(cls, vanilla: VanillaRollouts) -> "ContextKNN":
+        return cls(ContextNeighbours.fit(vanilla.features(cls.name)[0], vanilla.knn_k))
+
+    def components(self, final_energy, chunk_index, context_features) -> np.ndarray:
+        return self.neighbours.distance(context_features)[:, None]
+
+    def to_json(self) -> dict[str, Any]:
+        return {NEIGHBOURS_FILE.field: self.neighbours}
+
+    @classmethod
+    def from_json(cls, fields: dict[str, Any]) -> "ContextKNN":
+        return cls(fields.get(NEIGHBOURS_FILE.field))
+
+
+# The registry: each score by its name.
+SCORES: dict[str, type[ChunkScore]] = {
+    score.name: score for score in (FinalEnergy, PhaseEnergy, ContextDistance, EnergyAndContext, ContextKNN)
+}

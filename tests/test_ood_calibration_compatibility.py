@@ -1,0 +1,54 @@
+"""Calibrations saved by earlier versions still load and score chunks as they did.
+
+Each folder of `tests/fixtures/ood_calibration_v0.1.0/` is one score's `ood_calibration.json` (with its side
+files) and `expected.json`: probe chunks and what the calibration gave on them when it was written
+(`make_ood_calibration_fixture.py`).
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lerobot_policy_ebvla.runtime import SCORES, EnergyOODMonitor, OODCalibration
+
+FIXTURES = sorted((Path(__file__).parent / "fixtures").glob("ood_calibration_v*/*"))
+
+
+@pytest.mark.parametrize("folder", FIXTURES, ids=[f"{f.parent.name}/{f.name}" for f in FIXTURES])
+def test_a_saved_calibration_loads_and_scores_chunks_as_it_did(folder):
+    expected = json.loads((folder / "expected.json").read_text())
+    energies, index, features = (np.array(v) for v in expected["probe"].values())
+    calibration = OODCalibration.load(folder)
+    assert calibration.score.name == folder.name
+    np.testing.assert_allclose(calibration.chunk_score(energies, index, features), expected["chunk_scores"])
+    assert calibration.chunk_score(energies[0], 0, features[0]) == pytest.approx(
+        expected["first_chunk_score"]
+    )
+    components = calibration.chunk_components(energies, index, features)
+    np.testing.assert_allclose(components, expected["chunk_components"])
+    assert calibration.score_rollout(components) == pytest.approx(expected["rollout_score"])
+    assert calibration.threshold == pytest.approx(expected["threshold"])
+    assert calibration.with_k(3.0).threshold == pytest.approx(expected["threshold_at_k_3"])
+
+
+@pytest.mark.parametrize("folder", FIXTURES, ids=[f"{f.parent.name}/{f.name}" for f in FIXTURES])
+def test_a_saved_calibration_saved_again_loads_the_same(folder, tmp_path):
+    calibration = OODCalibration.load(folder)
+    calibration.save(tmp_path)
+    again = OODCalibration.load(tmp_path)
+    assert again == calibration
+    probe = json.loads((folder / "expected.json").read_text())["probe"]
+    energies, index, features = (np.array(v) for v in probe.values())
+    monitor = EnergyOODMonitor(again)
+    decision = monitor.check_rollout(energies, features)
+    assert decision.energy == pytest.approx(
+        EnergyOODMonitor(calibration).check_rollout(energies, features).energy
+    )
+
+
+def test_there_is_a_fixture_of_every_score_of_v0_1_0():
+    names = {f.name for f in FIXTURES if f.parent.name == "ood_calibration_v0.1.0"}
+    assert names == {"final_energy", "phase_energy", "context_distance", "energy_and_context", "context_knn"}
+    assert names <= set(SCORES)
