@@ -70,6 +70,41 @@ RUNS = {
     ],
 }
 
+# The two-core protocol (docs/libero.md, "On two cores"). `ebvla_cpu` is the quickstart's light policy
+# (presets.LIGHT_POLICY: D=128, 4 heads, L=2, a 2D FFN, a 2-stage ResNet-18 from scratch, the contrastive term
+# and state dropout, which made it read its camera on MetaWorld) with both cameras at 96 px, one token per task
+# instruction and Table V's K_train 8-15; `diffusion_cpu` is LeRobot's Diffusion Policy with the CPU-sized
+# U-Net of the MetaWorld comparison (down_dims 128/256/512), the same 96 px cameras and 8-step chunks.
+EBVLA_CPU = [
+    "--policy.type=ebvla",
+    "--policy.backbone=resnet",
+    "--policy.resize_shape=[96,96]",
+    "--policy.vision_backbone_stages=2",
+    "--policy.task_instructions=[]",
+    "--policy.dim_model=128",
+    "--policy.n_heads=4",
+    "--policy.n_blocks=2",
+    "--policy.ffn_multiplier=2",
+    "--policy.state_dropout=0.5",
+    "--policy.energy_contrastive_weight=0.2",
+    "--policy.energy_contrastive_dtype=auto",
+    "--policy.optimizer_lr=5e-4",
+    "--policy.push_to_hub=false",
+]
+RUNS["ebvla_cpu"] = EBVLA_CPU
+RUNS["diffusion_cpu"] = [
+    "--policy.type=diffusion",
+    "--policy.pretrained_backbone_weights=null",
+    "--policy.resize_shape=[96,96]",
+    "--policy.crop_ratio=0.9",
+    "--policy.down_dims=[128,256,512]",
+    "--policy.n_obs_steps=1",
+    "--policy.horizon=8",
+    "--policy.n_action_steps=8",
+    "--policy.drop_n_last_frames=0",
+    "--policy.push_to_hub=false",
+]
+
 # Camera perturbations of LIBERO-Plus (Table III's), most informative first: severities 5 and 3 of both.
 CAMERA_CONDITIONS = (("pose", 5), ("fov", 5), ("pose", 3), ("fov", 3), ("pose", 1), ("fov", 1))
 
@@ -116,11 +151,14 @@ def record(
     parts: int = 1,
     max_steps: int | None = None,
     keep_failed: bool = False,
+    placement_seed: int | None = None,
 ) -> Path:
     """Records each task in `parts` processes (each from its own initial states), then aggregates every part
     into `<work>/data/all`.
 
-    `max_steps` and `keep_failed` are the recorder's (tiny test runs keep the expert's unfinished episodes)."""
+    `max_steps`, `keep_failed` and `placement_seed` are the recorder's (tiny test runs keep the expert's
+    unfinished episodes; with `placement_seed`, demonstrations start from freshly sampled placements, never
+    from the fixed initial states that evaluation uses)."""
     merged = work / "data" / "all"
     if (merged / "meta" / "info.json").exists():
         print(f"record: {merged} exists")
@@ -151,6 +189,8 @@ def record(
         ]
         if max_steps is not None:
             cmd.append(f"--max_steps={max_steps}")
+        if placement_seed is not None:
+            cmd.append(f"--placement_seed={placement_seed}")
         return run_logged(cmd, work / "logs" / f"record_{root.name}.log")
 
     start = time.time()
@@ -173,7 +213,12 @@ def record(
         roots=[work / "data" / f"task{task}_from{first}" for task, first in kept],
         aggr_root=merged,
     )
-    summary = {"image_size": image_size, "episodes_per_task": episodes_per_task, "tasks": {}}
+    summary = {
+        "image_size": image_size,
+        "episodes_per_task": episodes_per_task,
+        "placement_seed": placement_seed,
+        "tasks": {},
+    }
     for (task, _), report in sorted(reports.items()):
         name = next(iter(report["success_rate_per_task"]))
         entry = summary["tasks"].setdefault(
@@ -192,14 +237,18 @@ def record(
 
 def run_args(run: str, image_size: int) -> list[str]:
     """`RUNS[run]` for frames of `image_size` (Diffusion Policy crops 90% of them, 115 px of 128)."""
-    if run == "diffusion":
+    if run == "diffusion":  # `diffusion_cpu` resizes, then crops by `crop_ratio`
         crop = int(0.9 * image_size)
         return [*RUNS[run], f"--policy.crop_shape=[{crop},{crop}]"]
     return RUNS[run]
 
 
-def train_command(work: Path, run: str, steps: int, batch_size: int, device: str, workers: int) -> list[str]:
-    """`ebvla-train` (lerobot-train reading action chunks from their column) of `run`, or its resumption."""
+def train_command(
+    work: Path, run: str, steps: int, batch_size: int, device: str, workers: int, save_freq: int | None = None
+) -> list[str]:
+    """`ebvla-train` (lerobot-train reading action chunks from their column) of `run`, or its resumption.
+
+    `save_freq` (default: a tenth of `steps`) bounds what a training cut short loses."""
     out = work / "train" / run
     last = out / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
     if last.exists():
@@ -213,7 +262,7 @@ def train_command(work: Path, run: str, steps: int, batch_size: int, device: str
         f"--dataset.root={work / 'data' / 'all'}",
         f"--batch_size={batch_size}",
         f"--steps={steps}",
-        f"--save_freq={max(steps // 10, 1)}",
+        f"--save_freq={save_freq or max(steps // 10, 1)}",
         "--log_freq=100",
         f"--num_workers={workers}",
         "--seed=1000",
@@ -222,17 +271,30 @@ def train_command(work: Path, run: str, steps: int, batch_size: int, device: str
     ]
 
 
-def train(work: Path, runs: list[str], steps: int, batch_size: int, device: str, workers: int, detach: bool):
+def train(
+    work: Path,
+    runs: list[str],
+    steps: int,
+    batch_size: int,
+    device: str,
+    workers: int,
+    detach: bool,
+    until_s: float | None = None,
+    save_freq: int | None = None,
+    threads: int = 2,
+):
     """Trains `runs` side by side (each with `workers` loader processes); `detach` returns at once.
 
-    A detached training starts a session of its own, so it outlives the command that started it.
+    A detached training starts a session of its own, so it outlives the command that started it. `until_s`
+    stops the trainings after that many seconds (their last checkpoint stays; the next call resumes from it),
+    so that a long training runs in parts.
     """
     processes = []
     for run in runs:
         if (work / "train" / run / "DONE").exists():
             print(f"train: {run} done")
             continue
-        cmd = train_command(work, run, steps, batch_size, device, workers)
+        cmd = train_command(work, run, steps, batch_size, device, workers, save_freq)
         # Marks the run done only when the training exits 0.
         script = f'{subprocess.list2cmdline(cmd)} && touch "{work / "train" / run / "DONE"}"'
         log = work / "logs" / f"train_{run}.log"
@@ -242,14 +304,21 @@ def train(work: Path, runs: list[str], steps: int, batch_size: int, device: str,
                 ["bash", "-c", script],
                 stdout=open(log, "a"),  # noqa: SIM115 (the child keeps it open)
                 stderr=subprocess.STDOUT,
-                env=child_env() | {"OMP_NUM_THREADS": "2"},
+                env=child_env() | {"OMP_NUM_THREADS": str(threads)},
                 start_new_session=True,
             )
         )
         print(f"train: {run} started (pid {processes[-1].pid}), log {log}")
-    if not detach:
-        for process in processes:
+    if detach:
+        return
+    stop_at = None if until_s is None else time.time() + until_s
+    for process in processes:
+        try:
+            process.wait(timeout=None if stop_at is None else max(stop_at - time.time(), 0))
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, signal.SIGTERM)
             process.wait()
+            print(f"train: stopped after {until_s:.0f} s (pid {process.pid}); the next call resumes")
 
 
 def stop_training(work: Path) -> None:
@@ -284,11 +353,24 @@ class EvalJob:
 
 
 def eval_jobs(
-    runs: list[str], tasks: list[int], vanilla: int, perturbed: int, conditions=CAMERA_CONDITIONS
+    runs: list[str],
+    tasks: list[int],
+    vanilla: int,
+    perturbed: int,
+    conditions=CAMERA_CONDITIONS,
+    calibration: int | None = None,
 ) -> list[EvalJob]:
     """The evaluation queue, most needed first: vanilla calibration and held-out rollouts of every run, then
-    the camera perturbations of the `ebvla` runs in the order of `conditions`."""
-    half = vanilla // 2
+    the camera perturbations of the `ebvla` runs in the order of `conditions`.
+
+    Without `calibration`, initial states [0, vanilla / 2) calibrate, [vanilla / 2, vanilla) are held out and
+    the perturbed rollouts start from the calibration's states. With it, states [0, calibration) calibrate,
+    `vanilla` held-out rollouts follow them, and the perturbed rollouts start from the held-out states, so that
+    a perturbed rollout and a held-out vanilla one differ only by the perturbation.
+    """
+    half = vanilla // 2 if calibration is None else calibration
+    heldout = vanilla - half if calibration is None else vanilla
+    perturbed_first = 0 if calibration is None else calibration
     ebvla_runs = [run for run in runs if run.startswith("ebvla")]
     other_runs = [run for run in runs if run not in ebvla_runs]
 
@@ -298,14 +380,14 @@ def eval_jobs(
             for task in tasks
             for job in (
                 EvalJob(run, "vanilla_calib", task, 0, half, 1000),
-                EvalJob(run, "vanilla_heldout", task, half, vanilla - half, 2000),
+                EvalJob(run, "vanilla_heldout", task, half, heldout, 2000),
             )
         ]
 
     def camera_jobs(perturbation: str, severity: int) -> list[EvalJob]:
         condition = f"{perturbation}{severity}"
         return [
-            EvalJob(run, condition, task, 0, perturbed, 3000, perturbation, severity)
+            EvalJob(run, condition, task, perturbed_first, perturbed, 3000, perturbation, severity)
             for run in ebvla_runs
             for task in tasks
         ]
@@ -427,6 +509,95 @@ def pack(work: Path, archive: Path) -> None:
     print(f"pack: {archive} ({archive.stat().st_size / 2**20:.1f} MiB)")
 
 
+def save_results(work: Path, results: Path) -> None:
+    """Copies what the next session needs to go on, and what a table is recomputed from, into `results` (a
+    folder to commit): the recording summaries, each run's last checkpoint with its optimizer state (resume),
+    `DONE` markers, eval infos, gzip records with their context features, camera checks, reports, timings.
+
+    The frames are not saved: `record` with the same `--placement_seed` makes the same dataset again.
+    """
+    from lerobot_policy_ebvla.monitoring.records import (
+        GZIP_SUFFIX,
+        read_energy_records,
+        records_file_in,
+        write_energy_records,
+    )
+
+    results.mkdir(parents=True, exist_ok=True)
+    small = ["recording_summary.json", "success.json", "timings.jsonl", "eval_status.json"]
+    small += [str(p.relative_to(work)) for p in work.glob("eval/*/camera_check.json")]
+    small += [str(p.relative_to(work)) for p in work.glob("eval/*/*/task*/eval_info.json")]
+    small += [str(p.relative_to(work)) for p in work.glob("train/*/DONE")]
+    small += [str(p.relative_to(work)) for p in work.glob("reports/**/*") if p.is_file()]
+    for name in small:
+        if (work / name).is_file():
+            (results / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(work / name, results / name)
+    # Under a name of their own: restored into data/, a piece's report would mark it recorded without its frames.
+    for report in work.glob("data/*/meta/recording_report.json"):
+        target = results / "recording_reports" / f"{report.parents[1].name}.json"
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(report, target)
+    for info in work.glob("eval/*/*/task*/eval_info.json"):
+        source = records_file_in(info.parent)
+        target = results / info.parent.relative_to(work) / "energy_records.jsonl.gz"
+        if source is not None and not target.exists():
+            records = read_energy_records(source)
+            if source.name.endswith(GZIP_SUFFIX):
+                shutil.copyfile(source, target)
+                features = source.with_name(source.name.replace(".jsonl.gz", ".features.npy.gz"))
+                if features.exists():
+                    shutil.copyfile(features, target.with_name(features.name))
+            else:
+                write_energy_records(target, records)
+    for run_dir in sorted((work / "train").glob("*")):
+        last = run_dir / "checkpoints" / "last"
+        if not (last / "pretrained_model" / "model.safetensors").exists():
+            continue
+        target = results / "train" / run_dir.name / "last"
+        shutil.rmtree(target, ignore_errors=True)
+        shutil.copytree(last.resolve(), target)
+    print(f"save: {results}")
+
+
+def restore_results(results: Path, work: Path) -> None:
+    """The reverse of `save_results`: puts what `results` holds into `work` where `work` lacks it, so that every
+    stage resumes (training from the saved checkpoint, evaluation after the jobs already done)."""
+    for path in sorted(results.rglob("*")):
+        relative = path.relative_to(results)
+        if not path.is_file() or relative.parts[0] == "train" and "last" in relative.parts:
+            continue
+        target = work / relative
+        if not target.exists():
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(path, target)
+    for last in sorted(results.glob("train/*/last")):
+        checkpoints = work / "train" / last.parent.name / "checkpoints"
+        if (checkpoints / "last").exists():
+            continue
+        step = json.loads((last / "training_state" / "training_step.json").read_text())["step"]
+        shutil.copytree(last, checkpoints / f"{step:06d}")
+        (checkpoints / "last").symlink_to(f"{step:06d}")
+        # LeRobot resumes from the config the checkpoint names; it must point at this work folder.
+        config = checkpoints / f"{step:06d}" / "pretrained_model" / "train_config.json"
+        train_config = json.loads(config.read_text())
+        train_config["output_dir"] = str(work / "train" / last.parent.name)
+        train_config["dataset"]["root"] = str(work / "data" / "all")
+        config.write_text(json.dumps(train_config, indent=4))
+    print(f"restore: {results} -> {work}")
+
+
+def log_timing(work: Path, stage: str, seconds: float, args: list[str]) -> None:
+    """Appends a stage's wall time to `<work>/timings.jsonl` (the protocol's costs, stage by stage)."""
+    row = {
+        "stage": stage,
+        "seconds": round(seconds, 1),
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+    }
+    with open(work / "timings.jsonl", "a") as out:
+        out.write(json.dumps({**row, "args": args, "cpus": os.cpu_count()}) + "\n")
+
+
 def success_table(work: Path) -> dict:
     """Success per run, condition and task from lerobot-eval's `eval_info.json` files."""
     table: dict = {}
@@ -488,7 +659,9 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("stage", choices=["record", "train", "stop", "eval", "pack", "report"])
+    parser.add_argument(
+        "stage", choices=["record", "train", "stop", "eval", "pack", "report", "save", "restore"]
+    )
     parser.add_argument("--work", type=Path, default=Path("outputs/libero_pipeline"))
     parser.add_argument("--tasks", type=int, nargs="+", default=list(range(10)))
     parser.add_argument("--episodes_per_task", type=int, default=22, help="expert attempts per task")
@@ -500,6 +673,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--keep_failed", action="store_true", help="record: keep the expert's failed episodes"
     )
+    parser.add_argument(
+        "--placement_seed",
+        type=int,
+        default=None,
+        help="record: start demonstrations from placements sampled with this seed (+ attempt), not from the "
+        "fixed initial states evaluation uses",
+    )
     parser.add_argument("--jobs", type=int, default=10, help="processes side by side (record, eval)")
     parser.add_argument("--runs", nargs="+", choices=list(RUNS), default=["ebvla_paper", "diffusion"])
     parser.add_argument("--steps", type=int, default=8000)
@@ -507,6 +687,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--workers", type=int, default=5, help="loader processes per training")
     parser.add_argument("--device", default="cuda")
     parser.add_argument("--detach", action="store_true", help="train: return while the trainings run on")
+    parser.add_argument(
+        "--train_until_s", type=float, default=None, help="train: stop after this long (resume next call)"
+    )
+    parser.add_argument("--save_freq", type=int, default=None, help="train: steps between checkpoints")
+    parser.add_argument("--threads", type=int, default=2, help="train: torch threads per training")
+    parser.add_argument(
+        "--calibration",
+        type=int,
+        default=None,
+        help="eval: calibration episodes per task (states [0, N)); then --vanilla held-out ones and the "
+        "perturbed ones start from the held-out states. Default: --vanilla is split in half",
+    )
     parser.add_argument(
         "--vanilla", type=int, default=20, help="vanilla episodes per task and run (half calibrate)"
     )
@@ -524,9 +716,18 @@ def main(argv: list[str] | None = None) -> None:
         "--episode_length", type=int, default=None, help="eval: steps per episode (LeRobot's 280)"
     )
     parser.add_argument("--archive", type=Path, default=None, help="pack: the archive to write")
+    parser.add_argument(
+        "--results", type=Path, default=None, help="save / restore: the folder of committed products"
+    )
     args = parser.parse_args(argv)
     work = args.work.resolve()
-    if args.stage == "record":
+    work.mkdir(parents=True, exist_ok=True)
+    start = time.time()
+    if args.stage == "save":
+        save_results(work, args.results.resolve())
+    elif args.stage == "restore":
+        restore_results(args.results.resolve(), work)
+    elif args.stage == "record":
         record(
             work,
             args.tasks,
@@ -536,9 +737,21 @@ def main(argv: list[str] | None = None) -> None:
             args.parts,
             args.max_steps,
             args.keep_failed,
+            args.placement_seed,
         )
     elif args.stage == "train":
-        train(work, args.runs, args.steps, args.batch_size, args.device, args.workers, args.detach)
+        train(
+            work,
+            args.runs,
+            args.steps,
+            args.batch_size,
+            args.device,
+            args.workers,
+            args.detach,
+            args.train_until_s,
+            args.save_freq,
+            args.threads,
+        )
     elif args.stage == "stop":
         stop_training(work)
     elif args.stage == "eval":
@@ -547,7 +760,7 @@ def main(argv: list[str] | None = None) -> None:
             if run.startswith("ebvla"):
                 camera_check(work, run)
         conditions = [(c.split(":")[0], int(c.split(":")[1])) for c in args.conditions]
-        jobs = eval_jobs(args.runs, args.tasks, args.vanilla, args.perturbed, conditions)
+        jobs = eval_jobs(args.runs, args.tasks, args.vanilla, args.perturbed, conditions, args.calibration)
         remaining = args.deadline_s - (time.time() - start)
         statuses = evaluate(work, jobs, args.device, args.jobs, remaining, args.episode_length)
         (work / "eval_status.json").write_text(json.dumps(statuses, indent=1))
@@ -555,6 +768,8 @@ def main(argv: list[str] | None = None) -> None:
         pack(work, args.archive or work / "libero_results.tar.gz")
     else:
         report(work, args.runs)
+    if args.stage in ("record", "train", "eval", "report"):
+        log_timing(work, args.stage, time.time() - start, argv if argv is not None else sys.argv[1:])
 
 
 if __name__ == "__main__":

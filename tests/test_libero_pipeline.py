@@ -214,6 +214,137 @@ def test_pack_keeps_records_logs_and_ebvla_checkpoints_and_leaves_out_data_frame
     assert names == set(kept) | checkpoint
 
 
+def test_with_a_calibration_count_held_out_and_perturbed_rollouts_share_the_states_after_it():
+    jobs = {
+        job.condition: job
+        for job in pipeline.eval_jobs(["ebvla_cpu"], [2], 20, 5, (("pose", 5),), calibration=10)
+    }
+    assert (jobs["vanilla_calib"].first, jobs["vanilla_calib"].n) == (0, 10)
+    assert (jobs["vanilla_heldout"].first, jobs["vanilla_heldout"].n) == (10, 20)
+    assert (jobs["pose5"].first, jobs["pose5"].n) == (10, 5)
+
+
+def test_cpu_runs_resize_their_cameras_and_diffusion_crops_by_ratio():
+    for run in ("ebvla_cpu", "diffusion_cpu"):
+        assert "--policy.resize_shape=[96,96]" in pipeline.run_args(run, 128)
+    assert pipeline.run_args("diffusion_cpu", 128) == pipeline.RUNS["diffusion_cpu"]
+    # The paper's MCMC: ebvla_cpu leaves Table V's K_train 8-15 and K_inf 15 at their defaults.
+    assert not [arg for arg in pipeline.RUNS["ebvla_cpu"] if "mcmc_steps" in arg]
+
+
+def test_training_cut_at_its_deadline_is_not_marked_done(work, monkeypatch):
+    monkeypatch.setattr(pipeline, "train_command", lambda *args: ["sleep", "60"])
+    pipeline.train(work, ["ebvla_cpu"], 100, 8, "cpu", 0, detach=False, until_s=1.0)
+    assert not (work / "train" / "ebvla_cpu" / "DONE").exists()
+    # A training that finishes (lerobot-train makes its output folder) is.
+    output_dir = work / "train" / "ebvla_cpu"
+    monkeypatch.setattr(pipeline, "train_command", lambda *args: ["mkdir", "-p", str(output_dir)])
+    pipeline.train(work, ["ebvla_cpu"], 100, 8, "cpu", 0, detach=False, until_s=30.0)
+    assert (output_dir / "DONE").exists()
+
+
+def saved_run(work: Path, step: int) -> Path:
+    """A work folder with a checkpoint at `step` (LeRobot's layout) and one finished evaluation job."""
+    from lerobot_policy_ebvla.monitoring.records import EnergyRecord, write_energy_records
+
+    checkpoints = work / "train" / "ebvla_cpu" / "checkpoints"
+    model = checkpoints / f"{step:06d}" / "pretrained_model"
+    write_json(
+        model / "train_config.json", {"output_dir": "/elsewhere", "dataset": {"root": "/elsewhere/data"}}
+    )
+    (model / "model.safetensors").write_bytes(b"weights")
+    write_json(checkpoints / f"{step:06d}" / "training_state" / "training_step.json", {"step": step})
+    (checkpoints / "last").symlink_to(f"{step:06d}")
+    job = work / "eval" / "ebvla_cpu" / "vanilla_heldout" / "task2"
+    write_json(job / "eval_info.json", {"per_task": []})
+    records = [
+        EnergyRecord(
+            episode_index=0,
+            chunk_index=i,
+            env_step=8 * i,
+            initial_energy=1.0,
+            final_energy=0.5,
+            success=True,
+            task="pick up the salad dressing and place it in the basket",
+            seed=2000,
+        )
+        for i in range(3)
+    ]
+    write_energy_records(job / "energy_records.jsonl", records)
+    return work
+
+
+def test_saved_results_restore_a_resumable_training_and_skip_finished_jobs(tmp_path):
+    from lerobot_policy_ebvla.monitoring.records import read_energy_records
+
+    first = saved_run(tmp_path / "first", 1500)
+    write_json(first / "recording_summary.json", {"image_size": 128, "episodes_per_task": 44, "tasks": {}})
+    write_json(first / "data" / "task2_from0" / "meta" / "recording_report.json", {"n_kept": 22})
+    results = tmp_path / "results"
+    pipeline.save_results(first, results)
+    assert json.loads((results / "recording_reports" / "task2_from0.json").read_text()) == {"n_kept": 22}
+    # Records go in compressed; the frames and the full checkpoint tree do not.
+    assert (results / "eval/ebvla_cpu/vanilla_heldout/task2/energy_records.jsonl.gz").exists()
+    assert not (results / "eval/ebvla_cpu/vanilla_heldout/task2/energy_records.jsonl").exists()
+    assert (results / "train/ebvla_cpu/last/pretrained_model/model.safetensors").exists()
+
+    second = tmp_path / "second"
+    pipeline.restore_results(results, second)
+    config = second / "train/ebvla_cpu/checkpoints/last/pretrained_model/train_config.json"
+    assert json.loads(config.read_text())["output_dir"] == str(second / "train" / "ebvla_cpu")
+    assert json.loads(config.read_text())["dataset"]["root"] == str(second / "data" / "all")
+    assert (second / "train/ebvla_cpu/checkpoints/last").resolve().name == "001500"
+    assert pipeline.train_command(second, "ebvla_cpu", 3000, 16, "cpu", 0)[1:] == [
+        f"--config_path={config}",
+        "--resume=true",
+        "--steps=3000",
+    ]
+    # The frames are not restored, so neither is what would mark their piece recorded.
+    assert not (second / "data").exists()
+    job = second / "eval/ebvla_cpu/vanilla_heldout/task2"
+    assert (job / "eval_info.json").exists()
+    assert [r.chunk_index for r in read_energy_records(job / "energy_records.jsonl.gz")] == [0, 1, 2]
+    statuses = pipeline.evaluate(
+        second, [pipeline.EvalJob("ebvla_cpu", "vanilla_heldout", 2, 10, 20, 2000)], "cpu", 1, 60
+    )
+    assert statuses == {"ebvla_cpu/vanilla_heldout/task2": "done before"}
+
+
+def test_placement_seed_turns_the_fixed_initial_states_off():
+    from lerobot_policy_ebvla.recording.libero import RecordLiberoConfig
+
+    assert RecordLiberoConfig().env.init_states
+    assert not RecordLiberoConfig(placement_seed=100000).env.init_states
+    with pytest.raises(ValueError, match="`placement_seed` must be >= 0"):
+        RecordLiberoConfig(placement_seed=-1)
+
+
+@requires_libero
+@pytest.mark.slow
+def test_sampled_placements_repeat_with_their_seed_and_are_none_of_the_fixed_initial_states(monkeypatch):
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    from lerobot.envs.libero import get_task_init_states
+
+    from lerobot_policy_ebvla.lerobot_private import get_libero_suite
+
+    cfg = LiberoEBVLAEnv(task_ids=[2], init_states=False, observation_height=32, observation_width=32)
+    vec_env = cfg.create_envs(n_envs=1)["libero_object"][2]
+    env = vec_env.envs[0]
+    try:
+        scenes = []
+        for seed in (100000, 100000, 100001):
+            env.reset(seed=seed)
+            scenes.append(env._env.sim.get_state().flatten().copy())
+        fixed = np.asarray(get_task_init_states(get_libero_suite("libero_object"), 2))
+    finally:
+        vec_env.close()
+    np.testing.assert_array_equal(scenes[0], scenes[1])
+    assert not np.allclose(scenes[0], scenes[2])
+    # Objects (the state past the robot's joints) differ from every one of LIBERO's fixed initial states.
+    n = min(fixed.shape[1], scenes[0].size)
+    assert np.abs(fixed[:, 10:n] - scenes[0][10:n]).max(axis=1).min() > 1e-3
+
+
 # The library options the pipeline uses.
 
 

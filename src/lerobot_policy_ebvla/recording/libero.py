@@ -6,7 +6,9 @@ information no policy sees), and drives LIBERO's own controller (OSC_POSE, delta
 gripper -1 open / +1 closed) through waypoints: above the object, down to it, close, lift, over the basket,
 down, open. Episodes run in LeRobot's LIBERO env (through `--env.type=libero_ebvla`, so perturbations are the same
 options as in evaluation), starting from LIBERO's fixed initial states (attempt i of a task uses state i, or
-state `env.first_init_state` + i).
+state `env.first_init_state` + i), or, with `placement_seed`, from object placements LIBERO samples afresh from
+the task's BDDL regions (attempt i resets with seed `placement_seed` + `env.first_init_state` + i): scenes that
+are never among the 50 fixed initial states on which policies are evaluated.
 
 The dataset has the features of `HuggingFaceVLA/libero` as LeRobot's LIBERO env and docs define them, so a policy
 trained on it takes the same inputs as one trained on the real dataset, and evaluates with
@@ -96,6 +98,11 @@ class RecordLiberoConfig(RecordingConfig):
     episodes_per_task: int = 10
     # Steps after which an attempt counts as failed; None: LeRobot's limit for the suite (280 for libero_object).
     max_steps: int | None = None
+    # Start each attempt from object placements LIBERO samples from the task's regions, reset with seed
+    # `placement_seed` + `env.first_init_state` + i, instead of from its fixed initial state i. Demonstrations
+    # recorded so never share a scene with an evaluation, which starts from the fixed states (LeRobot's env
+    # starts episode i at state i). None: the fixed initial states.
+    placement_seed: int | None = None
 
     def __post_init__(self):
         super().__post_init__()
@@ -111,6 +118,11 @@ class RecordLiberoConfig(RecordingConfig):
         self.env.observation_height = self.env.observation_width = self.image_size
         if self.max_steps is not None and self.max_steps < 1:
             raise ValueError(f"`max_steps` must be >= 1 or None, got {self.max_steps}.")
+        if self.placement_seed is not None:
+            if self.placement_seed < 0:
+                raise ValueError(f"`placement_seed` must be >= 0 or None, got {self.placement_seed}.")
+            # LeRobot's env then leaves the placements LIBERO's reset sampled.
+            self.env.init_states = False
 
 
 def dataset_features(use_videos: bool, image_size: int = IMAGE_SIZE) -> dict[str, dict]:
@@ -263,9 +275,12 @@ def _add_batch_dim(tree: Any) -> Any:
     return np.asarray(tree)[None]
 
 
-def record_expert_episode(env: Any, dataset: Any, max_steps: int) -> tuple[bool, int]:
-    """Rolls the expert out once from the env's next initial state, adding every frame to the episode buffer."""
-    observation, _ = env.reset()
+def record_expert_episode(
+    env: Any, dataset: Any, max_steps: int, seed: int | None = None
+) -> tuple[bool, int]:
+    """Rolls the expert out once from the env's next initial state (or, for an env without fixed initial
+    states, from the placements its reset with `seed` samples), adding every frame to the episode buffer."""
+    observation, _ = env.reset(seed=seed)
     expert = LiberoObjectExpert(env)
     success, n_steps = False, 0
     while n_steps < max_steps and not success:
@@ -280,18 +295,33 @@ def record_expert_episode(env: Any, dataset: Any, max_steps: int) -> tuple[bool,
 
 
 def expert_episodes(
-    envs: dict[int, Any], episodes_per_task: int, max_steps: int, dataset: Any, first_init_state: int = 0
+    envs: dict[int, Any],
+    episodes_per_task: int,
+    max_steps: int,
+    dataset: Any,
+    first_init_state: int = 0,
+    placement_seed: int | None = None,
 ) -> Generator[Episode, None, None]:
-    """The episodes to attempt, task by task; each task's vector env is closed once its episodes are recorded."""
+    """The episodes to attempt, task by task; each task's vector env is closed once its episodes are recorded.
+
+    Attempt i starts from the fixed initial state `first_init_state` + i, or with `placement_seed`, from the
+    placements sampled with seed `placement_seed` + `first_init_state` + i.
+    """
     for task_id, vec_env in envs.items():
         env = vec_env.envs[0]
         try:
-            for state in range(first_init_state, first_init_state + episodes_per_task):
+            for attempt in range(first_init_state, first_init_state + episodes_per_task):
+                if placement_seed is None:
+                    start, seed = {"task_id": task_id, "initial_state": attempt}, None
+                    where = f"initial state {attempt}"
+                else:
+                    seed = placement_seed + attempt
+                    start, where = {"task_id": task_id, "placement_seed": seed}, f"placements of seed {seed}"
                 yield Episode(
                     task=env.task,
-                    start={"task_id": task_id, "initial_state": state},
-                    label=f"task {task_id} ({env.task}) initial state {state}",
-                    rollout=partial(record_expert_episode, env, dataset, max_steps),
+                    start=start,
+                    label=f"task {task_id} ({env.task}) {where}",
+                    rollout=partial(record_expert_episode, env, dataset, max_steps, seed),
                 )
         finally:
             vec_env.close()
@@ -317,7 +347,9 @@ def record_libero(cfg: RecordLiberoConfig) -> dict:
     )
     episodes = record_episodes(
         dataset,
-        expert_episodes(envs, cfg.episodes_per_task, max_steps, dataset, cfg.env.first_init_state),
+        expert_episodes(
+            envs, cfg.episodes_per_task, max_steps, dataset, cfg.env.first_init_state, cfg.placement_seed
+        ),
         cfg.keep_failed,
     )
     report = {
@@ -330,6 +362,7 @@ def record_libero(cfg: RecordLiberoConfig) -> dict:
             "perturbation_severity": cfg.env.perturbation_severity,
             "first_init_state": cfg.env.first_init_state,
         },
+        "placement_seed": cfg.placement_seed,
         "image_size": cfg.image_size,
         "max_steps": max_steps,
         "use_videos": cfg.use_videos,
