@@ -1,35 +1,47 @@
 #!/usr/bin/env bash
-# benchmarks/libero_pipeline.py on a lent GPU machine, in calls of at most 10 minutes (issue 21).
+# The GPU jobs on a lent GPU machine (issues 21, 35), in device calls of at most 10 minutes.
 #
-# The machine has torch but no LeRobot, no LIBERO and no package index; `benchmarks/libero_gpu_bundle.sh`
-# (run here first) puts what it lacks into three carried folders, too large for one call together (64 MiB):
-#   call 1: bash benchmarks/libero_gpu_slices.sh unpack   carry [.gl, .carry]     (LIBERO-Object's assets, robosuite)
-#   call 2: bash benchmarks/libero_gpu_slices.sh unpack   carry [.gl, .carry_av]  (PyAV: LeRobot's dataset writer
-#           probes its video encoder even for PNG frames)
-#   call 3: bash benchmarks/libero_gpu_slices.sh start    carry [.gl, .whl]       (wheels; starts the driver)
-#   call 4+: bash benchmarks/libero_gpu_slices.sh poll    (waits up to POLL_S, copies the products to $OUT)
-# Each call must follow the last within the 30 s the machine stays warm. The driver runs detached (its own
-# session), so it lives across calls: record, train until TRAIN_UNTIL_S after its start (or both runs done),
-# evaluate until EVAL_UNTIL_S, packing its products after each stage and every minute of training into
-# /tmp/libero_out (copied to $OUT by every call). On 2026-11-24 the transfer calls and the start took about two
-# minutes of device time and the recording almost seven: set TRAIN_UNTIL_S and EVAL_UNTIL_S (seconds from the
-# driver's start) so that the last poll returns inside the session's device time. STEPS is lerobot-train's
-# --steps (its cosine schedule scales to it); a run stopped at TRAIN_UNTIL_S is evaluated at its last checkpoint.
+# The machine has torch but no LeRobot, no LIBERO and no package index. `bash benchmarks/libero_gpu_bundle.sh`
+# (run here first; tests/test_gpu_bundle.py proves such a bundle complete) leaves what it lacks in
+# .gpu_bundle/part1 ... partN, each carried by one call (64 MiB per call with the working tree):
+#   calls 1..N-1: bash benchmarks/libero_gpu_slices.sh unpack         carry [.gpu_bundle/partK]
+#   call N:       bash benchmarks/libero_gpu_slices.sh start          carry [.gpu_bundle/partN]
+#   then:         bash benchmarks/libero_gpu_slices.sh poll           (waits up to POLL_S, copies products to $OUT)
+#   or, after start: bash benchmarks/libero_gpu_slices.sh vlm_bench   (the latency job, docs/vlm_backbone.md)
+# Each call must follow the last within the 30 s the machine stays warm. `unpack` copies its part to the
+# machine's disk; `start` copies the last, joins and checks the files (SHA-256), installs the wheels into a venv
+# beside the machine's own packages with pip and no index (`benchmarks/gpu_bundle.py install`), unpacks the
+# optional data and checkpoints into the work folder, extracts the EGL libraries, links LIBERO's assets, checks the
+# imports and starts the driver. JOB=libero (the default) records, trains and evaluates; JOB=none only installs.
+#
+# The driver runs detached (its own session), so it lives across calls: record (skipped when the bundle brought
+# the data), train until TRAIN_UNTIL_S after its start (or both runs done; a run with a bundled checkpoint
+# resumes), evaluate until EVAL_UNTIL_S, packing its products after each stage and every minute of training into
+# /tmp/libero_out (copied to $OUT by every call). STEPS is lerobot-train's --steps (its cosine schedule scales to
+# it); a run stopped at TRAIN_UNTIL_S is evaluated at its last checkpoint. The minutes: docs/libero.md.
 set -uo pipefail
-SITE=/tmp/site
+BUNDLE=/tmp/gpu_bundle
+VENV=/tmp/venv
 WORK=/tmp/libero_work
 PRODUCTS=/tmp/libero_out
 DRIVER=/tmp/libero_driver
-export PYTHONPATH=$SITE PATH="$SITE/bin:$PATH" MUJOCO_GL=egl LIBERO_CONFIG_PATH=$SITE/libero_config
+PY=$VENV/bin/python
+export MUJOCO_GL=egl LIBERO_CONFIG_PATH=$VENV/libero_config HF_HUB_OFFLINE=1 PYTHONUNBUFFERED=1
 NVIDIA_EGL=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
 [ -f "$NVIDIA_EGL" ] && export __EGL_VENDOR_LIBRARY_FILENAMES=$NVIDIA_EGL
-: "${TRAIN_UNTIL_S:=900}" "${EVAL_UNTIL_S:=1440}" "${STEPS:=5000}" "${POLL_S:=560}"
+: "${TRAIN_UNTIL_S:=900}" "${EVAL_UNTIL_S:=1380}" "${STEPS:=5000}" "${POLL_S:=560}" "${JOB:=libero}"
 
-gl_libraries() { for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; }
+copy_part() {  # the carried part(s) of this call onto the machine's disk
+  mkdir -p $BUNDLE
+  for part in .gpu_bundle/part*/; do
+    [ -f "$part/manifest.json" ] && cp -r "$part". $BUNDLE/ && echo "unpacked $part"
+  done
+  du -sh $BUNDLE
+}
 
 pack() {  # the archive of records and logs, and the light ebvla checkpoint in parts under 16 MiB
   mkdir -p "$PRODUCTS.tmp"
-  python3 "$DRIVER/libero_pipeline.py" pack --work=$WORK --archive="$PRODUCTS.tmp/libero_results.tar.gz" >/dev/null
+  $PY "$DRIVER/libero_pipeline.py" pack --work=$WORK --archive="$PRODUCTS.tmp/libero_results.tar.gz" >/dev/null
   ckpt=$WORK/train/ebvla_paper/checkpoints/last/pretrained_model
   if [ -f "$ckpt/model.safetensors" ]; then
     tar -C "$ckpt" -czhf - . | split -b 15M - "$PRODUCTS.tmp/ebvla_paper_ckpt.tgz.part"
@@ -51,37 +63,35 @@ status() {
 }
 
 case "${1:-}" in
-  unpack)  # whichever of the two large parts this call carries
-    gl_libraries
-    mkdir -p $SITE
-    [ -f .carry/site.tar.xz ] && tar -C $SITE -xJf .carry/site.tar.xz
-    ls .carry_av/*.whl >/dev/null 2>&1 && python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir \
-        --upgrade --target $SITE .carry_av/*.whl
-    du -sh $SITE
+  unpack)
+    copy_part
     nvidia-smi --query-gpu=name,driver_version --format=csv,noheader; nproc; python3 --version ;;
   start)
-    gl_libraries
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target $SITE .whl/*.whl || exit 1
-    ebvla-install-libero-assets || exit 1
-    python3 -c "import lerobot, robosuite, libero, mujoco, lerobot_policy_ebvla; print('imports ok')" || exit 1
+    copy_part
+    python3 benchmarks/gpu_bundle.py install --bundle=$BUNDLE --venv=$VENV --work=$WORK || exit 1
+    for f in $BUNDLE/gl/*.deb; do [ -f "$f" ] && dpkg -x "$f" /; done; ldconfig
+    $VENV/bin/ebvla-install-libero-assets || exit 1
+    $PY -c "import lerobot, robosuite, libero, mujoco, av, lerobot_policy_ebvla; print('imports ok')" || exit 1
+    [ "$JOB" = libero ] || exit 0
     mkdir -p $DRIVER $WORK && cp benchmarks/libero_pipeline.py benchmarks/libero_gpu_slices.sh $DRIVER/
     setsid nohup bash $DRIVER/libero_gpu_slices.sh driver >>$WORK/driver.log 2>&1 < /dev/null &
-    POLL_S=420 bash "$0" poll ;;
+    POLL_S=${START_POLL_S:-420} bash "$0" poll ;;
   driver)
     start=$(date +%s)
     cd $DRIVER
     # 20 recorders side by side on the 16 cores: one round instead of two (402 s for 16 + 4 on 2026-11-24).
-    python3 libero_pipeline.py record --work=$WORK --episodes_per_task=20 --parts=2 --jobs=20 --image_size=128
+    # Skipped when the bundle brought a recorded dataset (data/all).
+    $PY libero_pipeline.py record --work=$WORK --episodes_per_task=20 --parts=2 --jobs=20 --image_size=128
     echo "recorded after $(($(date +%s) - start)) s"; pack
-    python3 libero_pipeline.py train --work=$WORK --runs ebvla_paper diffusion --steps=$STEPS --batch_size=32 \
+    $PY libero_pipeline.py train --work=$WORK --runs ebvla_paper diffusion --steps=$STEPS --batch_size=32 \
         --workers=6 --device=cuda --detach
     while [ $(($(date +%s) - start)) -lt "$TRAIN_UNTIL_S" ]; do
       [ -f $WORK/train/ebvla_paper/DONE ] && [ -f $WORK/train/diffusion/DONE ] && break
       sleep 60; pack
     done
-    python3 libero_pipeline.py stop --work=$WORK; sleep 5
+    $PY libero_pipeline.py stop --work=$WORK; sleep 5
     echo "training stopped after $(($(date +%s) - start)) s"; pack
-    python3 libero_pipeline.py eval --work=$WORK --runs ebvla_paper diffusion --jobs=14 --device=cuda \
+    $PY libero_pipeline.py eval --work=$WORK --runs ebvla_paper diffusion --jobs=14 --device=cuda \
         --vanilla=20 --perturbed=5 --deadline_s=$((EVAL_UNTIL_S - ($(date +%s) - start)))
     pack; echo "driver done after $(($(date +%s) - start)) s" ;;
   poll)
@@ -90,5 +100,12 @@ case "${1:-}" in
       sleep 20
     done
     status; cp $PRODUCTS/* "$OUT"/ 2>/dev/null; ls -la "$OUT" ;;
-  *) echo "usage: $0 unpack|start|poll (driver: internal)"; exit 2 ;;
+  vlm_bench)  # one slice of the latency job: the same call again resumes (--skip-existing); JSONs to $OUT
+    out=/tmp/vlm_bench/${BENCH_NAME:-compile_modes}
+    # shellcheck disable=SC2086
+    timeout 540 $PY benchmarks/vlm_gpu_bench.py ${BENCH_ARGS:---train-head-steps 300 --batch-sizes 1 8 32 \
+        --train-steps 6 --chunks 20 --profile --compile-modes off reduce-overhead default max-autotune} \
+        --out-dir=$out --skip-existing --budget-s=${BUDGET_S:-420}
+    $PY benchmarks/vlm_gpu_bench.py --table=/tmp/vlm_bench; tar -C /tmp/vlm_bench -czf "$OUT"/vlm_bench.tgz . ;;
+  *) echo "usage: $0 unpack|start|poll|vlm_bench (driver: internal)"; exit 2 ;;
 esac
