@@ -45,7 +45,6 @@ before). `--single_column_queries` reads the action chunks as the quickstart tra
 """
 
 import argparse
-import contextlib
 import json
 import logging
 import platform
@@ -56,7 +55,7 @@ from pathlib import Path
 
 import torch
 
-from lerobot_policy_ebvla.pipelines.column_queries import single_column_delta_queries
+from lerobot_policy_ebvla.pipelines.column_queries import read_delta_rows_from_columns
 from lerobot_policy_ebvla.presets import LIGHT_POLICY, light_policy_config
 
 PARTS = ("data", "preprocess", "forward", "backward", "optimizer")
@@ -198,6 +197,8 @@ def build_row(name: str, args: argparse.Namespace) -> Row:
     )
     train_cfg.validate()
     dataset = make_dataset(train_cfg)
+    if args.single_column_queries:
+        read_delta_rows_from_columns(dataset)
     policy = make_policy(train_cfg.policy, ds_meta=dataset.meta)
     if name.startswith("diffusion"):
         from lerobot_policy_ebvla.backbone_resnet import keep_resnet_stages
@@ -327,8 +328,7 @@ def main(argv=None) -> dict:
     if args.threads:
         torch.set_num_threads(args.threads)
     record_if_missing(args.dataset, args.image_size, args.episodes, args.use_videos)
-    with single_column_delta_queries() if args.single_column_queries else contextlib.nullcontext():
-        results = time_rows(args)
+    results = time_rows(args)
     print_table(results)
     report = {
         "command_args": vars(args) | {"dataset": str(args.dataset), "json": str(args.json)},

@@ -25,6 +25,8 @@ CORE = {
     "backbone_vlm",
     "processor_ebvla",
     "modeling_ebvla",
+    "compile_ebvla",
+    "rtc_ebvla",
 }
 # What each part may import from the package (besides itself). The package's own __init__ is the facade.
 ALLOWED = {

@@ -15,8 +15,9 @@ from lerobot.configs import PreTrainedConfig
 from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS
 from torch.utils._pytree import tree_flatten, tree_unflatten
 
-from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy, modeling_ebvla
-from lerobot_policy_ebvla.modeling_ebvla import EBVLA, compile_static
+from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy, compile_ebvla
+from lerobot_policy_ebvla.compile_ebvla import compile_static
+from lerobot_policy_ebvla.modeling_ebvla import EBVLA
 
 from .conftest import tiny_batch, tiny_config
 from .test_backbone_vlm import vlm_config, write_tiny_language_model
@@ -60,9 +61,9 @@ def refinement(model: EBVLA, batch: dict, seed: int = 0):
 
 
 def clear_compiled():
-    modeling_ebvla.compiled_head_energy.cache_clear()
-    modeling_ebvla.compiled_context_encoder.cache_clear()
-    modeling_ebvla.effective_compile_mode.cache_clear()
+    compile_ebvla.compiled_head_energy.cache_clear()
+    compile_ebvla.compiled_context_encoder.cache_clear()
+    compile_ebvla.effective_compile_mode.cache_clear()
 
 
 @pytest.fixture(scope="module")
@@ -139,9 +140,9 @@ def replaying(fn):
 @pytest.fixture
 def replayed_graphs(monkeypatch):
     """The compiled encoder and energy replaced by stand-ins that overwrite their outputs at every call."""
-    encoder, energy = replaying(EBVLA.encode_context), replaying(modeling_ebvla.head_energy)
-    monkeypatch.setattr(modeling_ebvla, "compiled_context_encoder", lambda mode: encoder)
-    monkeypatch.setattr(modeling_ebvla, "compiled_head_energy", lambda mode: energy)
+    encoder, energy = replaying(EBVLA.encode_context), replaying(compile_ebvla.head_energy)
+    monkeypatch.setattr(compile_ebvla, "compiled_context_encoder", lambda mode: encoder)
+    monkeypatch.setattr(compile_ebvla, "compiled_head_energy", lambda mode: energy)
 
 
 def test_outputs_of_a_replayed_graph_are_copied_out(eager, replayed_graphs):
@@ -211,7 +212,7 @@ def test_without_cuda_a_graph_mode_runs_inductor_without_graphs(eager, monkeypat
     clear_compiled()  # built once per mode and process: build them here
     try:
         batch = tiny_batch(eager.config, batch_size=BATCH_SIZE, seed=11, with_action=False)
-        with caplog.at_level(logging.WARNING, logger=modeling_ebvla.__name__):
+        with caplog.at_level(logging.WARNING, logger=compile_ebvla.__name__):
             got = chunk(make_policy(compile_mode=mode), batch)
     finally:
         clear_compiled()  # no later test may get the aot_eager graphs
@@ -227,13 +228,13 @@ def test_on_cuda_a_graph_mode_keeps_its_graphs(eager, monkeypatch):
     """The CUDA-graph path (parameters marked static, outputs copied out) run on CPU through `aot_eager`."""
     modes = aot_eager_compiles(monkeypatch)
     clear_compiled()
-    monkeypatch.setattr(modeling_ebvla, "effective_compile_mode", lambda mode, device_type: mode)
+    monkeypatch.setattr(compile_ebvla, "effective_compile_mode", lambda mode, device_type: mode)
     try:
         batch = tiny_batch(eager.config, batch_size=BATCH_SIZE, seed=13, with_action=False)
         got = chunk(make_policy(compile_mode="reduce-overhead"), batch)
     finally:
-        modeling_ebvla.compiled_head_energy.cache_clear()
-        modeling_ebvla.compiled_context_encoder.cache_clear()
+        compile_ebvla.compiled_head_energy.cache_clear()
+        compile_ebvla.compiled_context_encoder.cache_clear()
     assert modes == ["reduce-overhead", "reduce-overhead"]
     for got_tensor, expected in zip(got, chunk(eager, batch), strict=True):
         torch.testing.assert_close(got_tensor, expected, **TOL)
@@ -247,7 +248,7 @@ def test_an_unknown_compile_mode_is_rejected():
 def test_a_mode_this_torch_does_not_know_is_rejected_naming_the_field(monkeypatch):
     monkeypatch.setattr(torch._inductor, "list_mode_options", lambda: {"default": {}, "reduce-overhead": {}})
     with pytest.raises(ValueError, match="`compile_mode='max-autotune'` is not a mode of torch"):
-        compile_static(modeling_ebvla.head_energy, "max-autotune")
+        compile_static(compile_ebvla.head_energy, "max-autotune")
 
 
 @pytest.mark.parametrize(

@@ -1,6 +1,7 @@
 """EBVLAPolicy on the light backbone: training loss, inference, energies, save/load, input checks."""
 
 import math
+import re
 
 import pytest
 import torch
@@ -197,6 +198,26 @@ def test_bad_input_gets_an_error_naming_the_key(tiny_policy, mutate, message):
     mutate(batch)
     with pytest.raises(ValueError, match=message):
         tiny_policy.forward(batch)
+
+
+@pytest.mark.parametrize("entry", ["select_action", "forward"])
+def test_a_uint8_image_gets_an_error_naming_the_key_the_dtype_and_what_is_expected(tiny_policy, entry):
+    batch = tiny_batch(tiny_policy.config, with_action=entry == "forward")
+    batch["observation.images.top"] = (255 * batch["observation.images.top"]).to(torch.uint8)
+    message = (
+        r"Camera `observation.images.top` has dtype torch.uint8; the policy expects float images in \[0, 1\]"
+    )
+    with pytest.raises(ValueError, match=message):
+        getattr(tiny_policy, entry)(batch)
+
+
+@pytest.mark.parametrize("entry", ["select_action", "forward"])
+def test_a_state_of_another_batch_size_than_the_image_gets_an_error_naming_both(tiny_policy, entry):
+    batch = tiny_batch(tiny_policy.config, with_action=entry == "forward")
+    batch["observation.state"] = torch.randn(3, 4)
+    message = "same batch size B. Got `observation.images.top` 2, `observation.state` 3."
+    with pytest.raises(ValueError, match=re.escape(message)):
+        getattr(tiny_policy, entry)(batch)
 
 
 def test_training_randomness_is_restored_with_the_weights(tiny_policy, tmp_path):

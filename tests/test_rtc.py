@@ -10,7 +10,7 @@ from lerobot.policies.rtc.configuration_rtc import RTCConfig
 
 from lerobot_policy_ebvla import EBVLAPolicy
 from lerobot_policy_ebvla import modeling_ebvla as modeling
-from lerobot_policy_ebvla.mcmc import refine_actions, sample_initial_actions
+from lerobot_policy_ebvla.mcmc import RTCPrefix, refine_actions, sample_initial_actions
 from tests.conftest import tiny_batch, tiny_config
 from tests.test_mcmc import TARGET, quadratic
 
@@ -40,7 +40,11 @@ def test_one_step_holds_the_first_d_actions_and_pulls_the_overlap_by_min_1_alpha
     a0, prefix = torch.randn(2, 4, 2), torch.randn(2, 4, 2)
     weights = torch.tensor([1.0, 0.5, 0.25, 0.0])
     result = refine_actions(
-        quadratic, a0, [0.2], **MCMC, prefix=prefix, held_steps=1, prefix_weights=weights, guidance_weight=5.0
+        quadratic,
+        a0,
+        [0.2],
+        **MCMC,
+        prefix=RTCPrefix(prefix, held_steps=1, weights=weights, guidance_weight=5.0),
     )
     start = torch.cat([prefix[:, :1], a0[:, 1:]], dim=1)  # a^(0) already holds the prefix
     e = quadratic(start)

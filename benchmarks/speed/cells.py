@@ -15,7 +15,7 @@ from torch import Tensor, nn
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from lerobot_policy_ebvla import EBVLAPolicy
-from lerobot_policy_ebvla.modeling_ebvla import head_energy
+from lerobot_policy_ebvla.compile_ebvla import head_energy
 
 from .inputs import Scene
 from .timing import Cell
@@ -110,7 +110,7 @@ def frozen_parameters(module: nn.Module):
 
 
 class DetachedParamsHead(nn.Module):
-    """The energy head evaluated with detached parameters in eager mode (`modeling_ebvla.head_energy`).
+    """The energy head evaluated with detached parameters in eager mode (`compile_ebvla.head_energy`).
 
     Autograd then records only the path from the actions. This is the energy `compile_mode` compiles, timed
     here uncompiled to tell the two effects apart.

@@ -6,7 +6,9 @@ run time (`OODCalibration`, `EnergyOODMonitor`, `EnergyOODError`) are importable
 analysis lives in `lerobot_policy_ebvla.monitoring` and is not imported by the policy.
 """
 
-from . import envs  # noqa: F401  (registers `--env.type=metaworld_ebvla` and `libero_ebvla`; imports no simulator)
+import importlib.metadata
+import warnings
+
 from .configuration_ebvla import EBVLAConfig
 from .modeling_ebvla import EBVLAPolicy, EnergyReadout
 from .presets import LIGHT_POLICY, light_policy_config
@@ -19,6 +21,18 @@ from .runtime import (
     OODCalibration,
     OODResponseDecision,
 )
+
+# The env types register after the policy, and apart from it: a LeRobot release that moved a name they import
+# loses the envs only, with this warning, while `--policy.type=ebvla` stays registered (LeRobot's plugin loader
+# would only log the error). The private LeRobot names they use are looked up when an env is built.
+try:
+    from . import envs  # noqa: F401  (registers `--env.type=metaworld_ebvla` and `libero_ebvla`; imports no simulator)
+except ImportError as error:
+    warnings.warn(
+        f"lerobot_policy_ebvla: the env types metaworld_ebvla and libero_ebvla are not registered, as LeRobot "
+        f"{importlib.metadata.version('lerobot')} fails to import them: {error}",
+        stacklevel=2,
+    )
 
 __all__ = [
     "LIGHT_POLICY",

@@ -151,34 +151,17 @@ class EBVLAConfig(PreTrainedConfig):
             energy (energy as a verifier). 1 is the paper.
         early_stop_tol: Stop refining once no action moves more than this in one step. None (the paper)
             runs all K_inf steps.
-        compile_mode: torch.compile the inference chain of every chunk (`select_action`,
-            `predict_action_chunk`): the context encoding (backbone forward and the head's per-block keys and
-            values) and the energy's forward and grad_a backward at each of the K_inf MCMC steps (with the
-            head's parameters detached, so no weight gradient is computed). The sampling loop around them (noise,
-            clip, step, clamp, RTC guidance) and the final-energy forward stay eager; training is never
+        compile_mode: torch.compile the inference chain of every chunk (`compile_ebvla.py`): the context
+            encoding and the energy's forward and grad_a backward at each MCMC step; training is never
             compiled. "off" (the default) runs eagerly; "default" (inductor), "max-autotune" and
             "max-autotune-no-cudagraphs" are torch.compile's modes; "reduce-overhead" and "max-autotune"
-            replay the compiled code in CUDA graphs on a CUDA device, reading the parameters in place. Shapes
-            are static: each batch size (times `num_restarts` for the energy) compiles on its first chunk, and
-            dynamo keeps 8 of them per process (`torch._dynamo.config.recompile_limit`; further batch sizes run
-            eagerly), so warm up with one chunk at every batch size you deploy. The light backbone's task
-            tokens (`task_instructions`) are looked up by string: each new combination of instructions in a
-            batch compiles the encoding again. Start-up per batch size on a 2-core CPU with an empty inductor
-            cache: about 25 s for the smallest light test policy, 30-50 s for a tiny VLM (whose encoding
-            compiles into 4 graphs: transformers' hidden-state capture breaks dynamo's graph at the language
-            model); inductor's on-disk cache makes later processes start in seconds. The full-size VLM on a
-            GPU is not measured yet. Without CUDA the graph modes cannot apply and run their no-graph form
-            ("reduce-overhead" as "default", "max-autotune" as "max-autotune-no-cudagraphs", with a warning).
-            Everything the compiled code returns is copied out, so a later replay never overwrites an earlier
-            chunk's energies or `last_energy`. Actions and energies equal eager mode up to float rounding
-            (within 1e-5 in fp32; tests/test_compile_mode.py); measured gains: docs/benchmarks_speed.md (CPU)
-            and docs/vlm_backbone.md (H100).
-        compile_refinement: Deprecated, read only from configs saved before `compile_mode`: True maps to
-            `compile_mode=compile_refinement_mode` (it compiled the MCMC steps' energy only; the context
-            encoding is now compiled too), False to leaving `compile_mode` as it is, with a FutureWarning.
-            Both fields are then reset to None. A `compile_mode` other than "off" that differs from the
-            mapped mode is an error.
-        compile_refinement_mode: Deprecated: the mode of `compile_refinement` ("default" when None).
+            replay CUDA graphs on a CUDA device and run their no-graph form elsewhere, with a warning. Shapes
+            are static: each batch size compiles on its first chunk, and dynamo keeps 8 of them per process
+            (`torch._dynamo.config.recompile_limit`), so warm up with one chunk at every batch size you deploy;
+            each new combination of the light backbone's `task_instructions` in a batch compiles the encoding
+            again. Actions and energies equal eager mode up to float rounding (within 1e-5 in fp32;
+            tests/test_compile_mode.py). Compile times and gains: docs/benchmarks_speed.md (CPU) and
+            docs/vlm_backbone.md (H100).
         rtc_config: LeRobot's real-time chunking (`RTCConfig`), which `lerobot-rollout --inference.type=rtc`
             sets from `--inference.rtc.*`. When set and enabled, `predict_action_chunk(batch, inference_delay=d,
             prev_chunk_left_over=abar)` refines the chunk as inpainting (`mcmc.py`): the first d actions are
@@ -187,8 +170,8 @@ class EBVLAConfig(PreTrainedConfig):
             lambda = `max_guidance_weight` (each MCMC step closes a fraction min(1, alpha lambda w_t) of the
             gap). None (the default) or `enabled=False` refines every chunk from scratch.
         ood_response: What the policy does with a refined chunk whose score (the calibration's: the final
-            energy by default, or the phase energy or context distance) exceeds the OOD threshold T of the
-            checkpoint's `ood_calibration.json` (see `runtime/response.py`): "continue"
+            energy by default, or another score of the registry `runtime.scores.SCORES`) exceeds the OOD
+            threshold T of the checkpoint's `ood_calibration.json` (see `runtime/response.py`): "continue"
             executes it and logs a warning (the default; without a calibration nothing is checked), "hold"
             executes `hold_action` instead, "raise" raises `EnergyOODError`.
         hold_action: The action a held chunk repeats, required with `ood_response="hold"` because it depends
@@ -207,6 +190,12 @@ class EBVLAConfig(PreTrainedConfig):
         scheduler_warmup_steps: Linear warm-up steps of the cosine schedule.
         scheduler_decay_steps: Cosine decay steps.
         scheduler_decay_lr: Learning rate at the end of the decay.
+        compile_refinement: Deprecated, read only from configs saved before `compile_mode`: True maps to
+            `compile_mode=compile_refinement_mode` (it compiled the MCMC steps' energy only; the context
+            encoding is now compiled too), False to leaving `compile_mode` as it is, with a FutureWarning.
+            Both fields are then reset to None. A `compile_mode` other than "off" that differs from the
+            mapped mode is an error.
+        compile_refinement_mode: Deprecated: the mode of `compile_refinement` ("default" when None).
 
     Every field is checked in `__post_init__`, which raises a ValueError naming it.
     """
@@ -303,9 +292,6 @@ class EBVLAConfig(PreTrainedConfig):
     num_restarts: int = 1
     early_stop_tol: float | None = None
     compile_mode: str = "off"
-    # Deprecated: mapped to `compile_mode` (configs saved before it).
-    compile_refinement: bool | None = None
-    compile_refinement_mode: str | None = None
     rtc_config: RTCConfig | None = None
 
     # Deployment.
@@ -325,58 +311,82 @@ class EBVLAConfig(PreTrainedConfig):
     scheduler_decay_steps: int = 30_000
     scheduler_decay_lr: float = 1e-5
 
+    # Deprecated: declared only so that configs saved before `compile_mode` load; read into it, then cleared.
+    compile_refinement: bool | None = None
+    compile_refinement_mode: str | None = None
+
     def __post_init__(self):
         super().__post_init__()
-        if self.backbone not in BACKBONES:
-            raise ValueError(f"`backbone` must be one of {BACKBONES}. Got {self.backbone!r}.")
+        self._validate_structure()
+        self._validate_light_backbone()
+        self._validate_vlm_backbone()
+        self._validate_energy_head()
+        self._validate_mcmc()
+        self._validate_training_signal()
+        self._map_deprecated_compile_fields()
+        self._validate_inference_options()
+        self._validate_deployment()
+
+    def _validate_structure(self) -> None:
+        _check_one_of(self, "backbone", BACKBONES)
         if self.n_obs_steps != 1:
             raise ValueError(
                 f"`n_obs_steps` must be 1: EB-VLA conditions on one observation. Got {self.n_obs_steps}."
             )
-        if self.chunk_size < 1:
-            raise ValueError(f"`chunk_size` must be >= 1. Got {self.chunk_size}.")
+        _check_at_least(self, 1, "chunk_size")
         if not 1 <= self.n_action_steps <= self.chunk_size:
             raise ValueError(
                 f"`n_action_steps` must be in [1, chunk_size={self.chunk_size}]. Got {self.n_action_steps}."
             )
+
+    def _validate_light_backbone(self) -> None:
+        _check_fraction(self, "state_dropout")
+        _check_one_of(self, "camera_tokens", CAMERA_TOKENS)
+        if self.vision_backbone_stages not in (1, 2, 3, 4):
+            raise ValueError(
+                f"`vision_backbone_stages` must be 1, 2, 3 or 4 (ResNet stages kept). Got {self.vision_backbone_stages}."
+            )
+        if self.use_group_norm and self.pretrained_backbone_weights:
+            raise ValueError(
+                "`use_group_norm=True` would discard the BatchNorm statistics of "
+                f"`pretrained_backbone_weights={self.pretrained_backbone_weights!r}`: set one of them off."
+            )
+
+    def _validate_vlm_backbone(self) -> None:
+        _check_at_least(
+            self, 1, "num_latent_tokens", "lora_rank", "tokenizer_max_length", "num_context_layers"
+        )
+        if self.context_layers is not None and len(self.context_layers) != self.n_blocks:
+            raise ValueError(
+                f"`context_layers` needs one hidden-state index per head block (n_blocks={self.n_blocks}). "
+                f"Got {self.context_layers}."
+            )
+        if self.context_layers is not None and min(self.context_layers) < 0:
+            raise ValueError(
+                f"`context_layers` are hidden-state indices (0 is the embedding output). Got {self.context_layers}."
+            )
+        _check_one_of(self, "frozen_weights_dtype", FROZEN_WEIGHTS_DTYPES)
+        if self.vision_image_size < 14:
+            raise ValueError(f"`vision_image_size` must be >= 14 (one patch). Got {self.vision_image_size}.")
+        _check_positive(self, "lora_alpha")
+        _check_fraction(self, "lora_dropout")
+        if not self.lora_target_modules:
+            raise ValueError("`lora_target_modules` must name at least one language-model module.")
+
+    def _validate_energy_head(self) -> None:
+        _check_at_least(self, 1, "n_blocks", "n_heads", "ffn_multiplier")
         if self.dim_model % self.n_heads != 0 or (self.dim_model // self.n_heads) % 2 != 0:
             raise ValueError(
                 f"`dim_model` ({self.dim_model}) must be divisible by `n_heads` ({self.n_heads}) into an even "
                 "head size (RoPE rotates pairs of channels)."
             )
-        for name in (
-            "n_blocks",
-            "n_heads",
-            "ffn_multiplier",
-            "inference_mcmc_steps",
-            "num_restarts",
-            "num_latent_tokens",
-            "lora_rank",
-            "tokenizer_max_length",
-        ):
-            if getattr(self, name) < 1:
-                raise ValueError(f"`{name}` must be >= 1. Got {getattr(self, name)}.")
-        for name in (
-            "energy_temperature",
-            "grad_clip",
-            "action_clamp",
-            "inference_step_size",
-            "init_action_std",
-        ):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"`{name}` must be > 0. Got {getattr(self, name)}.")
-        if self.langevin_noise_std < 0:
-            raise ValueError(f"`langevin_noise_std` must be >= 0. Got {self.langevin_noise_std}.")
-        if not 0 <= self.state_dropout < 1:
-            raise ValueError(f"`state_dropout` must be in [0, 1). Got {self.state_dropout}.")
-        if self.camera_tokens not in CAMERA_TOKENS:
-            raise ValueError(f"`camera_tokens` must be one of {CAMERA_TOKENS}. Got {self.camera_tokens!r}.")
-        if self.vision_backbone_stages not in (1, 2, 3, 4):
-            raise ValueError(
-                f"`vision_backbone_stages` must be 1, 2, 3 or 4 (ResNet stages kept). Got {self.vision_backbone_stages}."
-            )
-        if not 0 <= self.dropout < 1:
-            raise ValueError(f"`dropout` must be in [0, 1). Got {self.dropout}.")
+        _check_fraction(self, "dropout")
+
+    def _validate_mcmc(self) -> None:
+        _check_positive(self, "energy_temperature", "grad_clip", "action_clamp", "inference_step_size")
+        _check_positive(self, "init_action_std")
+        _check_at_least(self, 0, "langevin_noise_std")
+        _check_at_least(self, 1, "inference_mcmc_steps")
         alpha_min, alpha_max = self.train_step_size_range
         if not 0 < alpha_min <= alpha_max:
             raise ValueError(
@@ -387,19 +397,10 @@ class EBVLAConfig(PreTrainedConfig):
             raise ValueError(
                 f"`train_mcmc_steps_range` must satisfy 1 <= K_min <= K_max. Got {self.train_mcmc_steps_range}."
             )
-        if self.train_step_size_sampling not in STEP_SIZE_SAMPLINGS:
-            raise ValueError(
-                f"`train_step_size_sampling` must be one of {STEP_SIZE_SAMPLINGS}. "
-                f"Got {self.train_step_size_sampling!r}."
-            )
-        if self.energy_contrastive_weight < 0:
-            raise ValueError(
-                f"`energy_contrastive_weight` must be >= 0. Got {self.energy_contrastive_weight}."
-            )
-        if self.energy_contrastive_negatives < 0:
-            raise ValueError(
-                f"`energy_contrastive_negatives` must be >= 0. Got {self.energy_contrastive_negatives}."
-            )
+
+    def _validate_training_signal(self) -> None:
+        _check_one_of(self, "train_step_size_sampling", STEP_SIZE_SAMPLINGS)
+        _check_at_least(self, 0, "energy_contrastive_weight", "energy_contrastive_negatives")
         if self.energy_contrastive_mismatched is not None and self.energy_contrastive_mismatched < 0:
             raise ValueError(
                 "`energy_contrastive_mismatched` must be >= 0 or None (all of the batch's other chunks). Got "
@@ -410,53 +411,21 @@ class EBVLAConfig(PreTrainedConfig):
                 "`energy_contrastive_anchors` must be >= 1 or None (every observation of the batch). Got "
                 f"{self.energy_contrastive_anchors}."
             )
-        if self.energy_contrastive_dtype not in CONTRASTIVE_DTYPES:
-            raise ValueError(
-                f"`energy_contrastive_dtype` must be one of {CONTRASTIVE_DTYPES}. Got "
-                f"{self.energy_contrastive_dtype!r}."
-            )
-        if not self.energy_contrastive_temperature > 0:
-            raise ValueError(
-                f"`energy_contrastive_temperature` must be > 0. Got {self.energy_contrastive_temperature}."
-            )
-        if not self.energy_contrastive_noise_std > 0:
-            raise ValueError(
-                f"`energy_contrastive_noise_std` must be > 0. Got {self.energy_contrastive_noise_std}."
-            )
+        _check_one_of(self, "energy_contrastive_dtype", CONTRASTIVE_DTYPES)
+        _check_positive(self, "energy_contrastive_temperature", "energy_contrastive_noise_std")
+
+    def _validate_inference_options(self) -> None:
+        _check_at_least(self, 1, "num_restarts")
         if self.early_stop_tol is not None and self.early_stop_tol <= 0:
             raise ValueError(f"`early_stop_tol` must be > 0 or None. Got {self.early_stop_tol}.")
-        if self.context_layers is not None and len(self.context_layers) != self.n_blocks:
-            raise ValueError(
-                f"`context_layers` needs one hidden-state index per head block (n_blocks={self.n_blocks}). "
-                f"Got {self.context_layers}."
-            )
-        if self.context_layers is not None and min(self.context_layers) < 0:
-            raise ValueError(
-                f"`context_layers` are hidden-state indices (0 is the embedding output). Got {self.context_layers}."
-            )
-        if self.num_context_layers < 1:
-            raise ValueError(f"`num_context_layers` must be >= 1. Got {self.num_context_layers}.")
-        if self.frozen_weights_dtype not in FROZEN_WEIGHTS_DTYPES:
-            raise ValueError(
-                f"`frozen_weights_dtype` must be one of {FROZEN_WEIGHTS_DTYPES}. Got {self.frozen_weights_dtype!r}."
-            )
-        if self.vision_image_size < 14:
-            raise ValueError(f"`vision_image_size` must be >= 14 (one patch). Got {self.vision_image_size}.")
-        if not self.lora_alpha > 0:
-            raise ValueError(f"`lora_alpha` must be > 0. Got {self.lora_alpha}.")
-        if not 0 <= self.lora_dropout < 1:
-            raise ValueError(f"`lora_dropout` must be in [0, 1). Got {self.lora_dropout}.")
-        if not self.lora_target_modules:
-            raise ValueError("`lora_target_modules` must name at least one language-model module.")
-        self._map_deprecated_compile_fields()
-        if self.compile_mode not in COMPILE_MODES:
-            raise ValueError(f"`compile_mode` must be one of {COMPILE_MODES}. Got {self.compile_mode!r}.")
+        _check_one_of(self, "compile_mode", COMPILE_MODES)
         if self.rtc_config is not None and self.rtc_config.execution_horizon < 1:
             raise ValueError(
                 f"`rtc_config.execution_horizon` must be >= 1. Got {self.rtc_config.execution_horizon}."
             )
-        if self.ood_response not in OOD_RESPONSES:
-            raise ValueError(f"`ood_response` must be one of {OOD_RESPONSES}. Got {self.ood_response!r}.")
+
+    def _validate_deployment(self) -> None:
+        _check_one_of(self, "ood_response", OOD_RESPONSES)
         if self.hold_action is not None and self.hold_action not in HOLD_ACTIONS:
             raise ValueError(
                 f"`hold_action` must be one of {HOLD_ACTIONS} or None. Got {self.hold_action!r}."
@@ -471,11 +440,6 @@ class EBVLAConfig(PreTrainedConfig):
         if self.ood_threshold_k is not None and not 0 <= self.ood_threshold_k < float("inf"):
             raise ValueError(
                 f"`ood_threshold_k` must be finite and >= 0, or None. Got {self.ood_threshold_k}."
-            )
-        if self.use_group_norm and self.pretrained_backbone_weights:
-            raise ValueError(
-                "`use_group_norm=True` would discard the BatchNorm statistics of "
-                f"`pretrained_backbone_weights={self.pretrained_backbone_weights!r}`: set one of them off."
             )
 
     def _map_deprecated_compile_fields(self) -> None:
@@ -611,3 +575,26 @@ def _names(features: dict[str, dict], key: str) -> list[str] | None:
     if isinstance(names, dict):  # {"motors": [...]} in some datasets
         names = next(iter(names.values()), None)
     return None if names is None else [str(n) for n in names]
+
+
+def _check_at_least(config: EBVLAConfig, minimum: int, *names: str) -> None:
+    for name in names:
+        if getattr(config, name) < minimum:
+            raise ValueError(f"`{name}` must be >= {minimum}. Got {getattr(config, name)}.")
+
+
+def _check_positive(config: EBVLAConfig, *names: str) -> None:
+    for name in names:
+        if not getattr(config, name) > 0:
+            raise ValueError(f"`{name}` must be > 0. Got {getattr(config, name)}.")
+
+
+def _check_fraction(config: EBVLAConfig, *names: str) -> None:
+    for name in names:
+        if not 0 <= getattr(config, name) < 1:
+            raise ValueError(f"`{name}` must be in [0, 1). Got {getattr(config, name)}.")
+
+
+def _check_one_of(config: EBVLAConfig, name: str, choices: tuple[str, ...]) -> None:
+    if getattr(config, name) not in choices:
+        raise ValueError(f"`{name}` must be one of {choices}. Got {getattr(config, name)!r}.")

@@ -43,6 +43,25 @@ EnergyFn = Callable[[Tensor], Tensor]
 
 
 @dataclass
+class RTCPrefix:
+    """The previous chunk's leftover that real-time chunking inpaints (the `prefix` of `refine_actions`).
+
+    Attributes:
+        actions: abar, (B, H, d_a): the leftover aligned with this chunk's timesteps (entries where the weights
+            are 0 and t >= d are not read).
+        held_steps: d: the first d actions are abar's in a^(0) and after every step.
+        weights: w_t, (H,) or (B, H), in [0, 1]: LeRobot's prefix-attention schedule, 0 past the guided overlap;
+            None holds only.
+        guidance_weight: lambda of the pull towards abar.
+    """
+
+    actions: Tensor
+    held_steps: int
+    weights: Tensor | None = None
+    guidance_weight: float = 0.0
+
+
+@dataclass
 class RefinementResult:
     """What `refine_actions` returns.
 
@@ -87,10 +106,7 @@ def refine_actions(
     create_graph: bool = False,
     early_stop_tol: float | None = None,
     straight_through_clip: bool = False,
-    prefix: Tensor | None = None,
-    held_steps: int = 0,
-    prefix_weights: Tensor | None = None,
-    guidance_weight: float = 0.0,
+    prefix: RTCPrefix | None = None,
 ) -> RefinementResult:
     """Runs len(step_sizes) energy-scaled gradient steps (Eq. 2-3) from `initial_actions`.
 
@@ -108,27 +124,25 @@ def refine_actions(
         early_stop_tol: Stop once no action entry moved more than this in a step. None runs every step.
         straight_through_clip: With `create_graph`, differentiate the clip as the identity (same forward
             values); without it the clip passes no gradient wherever |g| > c.
-        prefix: RTC's abar, (B, H, d_a): the previous chunk's unexecuted actions, aligned with this chunk's
-            timesteps (entries where the weights are 0 and t >= d are not read). None refines from scratch.
-        held_steps: RTC's d: the first d actions are abar's in a^(0) and after every step.
-        prefix_weights: RTC's w_t, (H,) or (B, H), in [0, 1]; None with a prefix holds only.
-        guidance_weight: RTC's lambda of the pull towards abar.
+        prefix: RTC's previous chunk to inpaint: abar, d, w_t and lambda (`RTCPrefix`). None refines from
+            scratch.
 
     Returns:
         The refined chunk, the energy seen at every step and which chunks diverged.
     """
     a = initial_actions.detach()
+    abar = None
     if prefix is not None:
-        if prefix.shape != a.shape or not 0 <= held_steps <= a.shape[1]:
+        if prefix.actions.shape != a.shape or not 0 <= prefix.held_steps <= a.shape[1]:
             raise ValueError(
-                f"`prefix` must have the chunk's shape {tuple(a.shape)} and `held_steps` be in [0, {a.shape[1]}]. "
-                f"Got {tuple(prefix.shape)} and {held_steps}."
+                f"`prefix.actions` must have the chunk's shape {tuple(a.shape)} and `prefix.held_steps` be in "
+                f"[0, {a.shape[1]}]. Got {tuple(prefix.actions.shape)} and {prefix.held_steps}."
             )
-        prefix = prefix.detach().to(a.dtype)
-        held = (torch.arange(a.shape[1], device=a.device) < held_steps).unsqueeze(-1)  # (H, 1)
-        weights = torch.zeros(a.shape[1], device=a.device) if prefix_weights is None else prefix_weights
+        abar, guidance_weight = prefix.actions.detach().to(a.dtype), prefix.guidance_weight
+        held = (torch.arange(a.shape[1], device=a.device) < prefix.held_steps).unsqueeze(-1)  # (H, 1)
+        weights = torch.zeros(a.shape[1], device=a.device) if prefix.weights is None else prefix.weights
         weights = weights.to(a.device, a.dtype).unsqueeze(-1)  # w_t, (H, 1) or (B, H, 1)
-        a = torch.where(held, prefix, a)
+        a = torch.where(held, abar, a)
     diverged = torch.zeros(a.shape[0], dtype=torch.bool, device=a.device)
     step_energies = []
     for alpha in step_sizes:
@@ -147,9 +161,9 @@ def refine_actions(
                 clipped = grad + (clipped - grad).detach()
             step = alpha * torch.exp(e / temperature).unsqueeze(-1) * clipped
             updated = (a - step).clamp(-action_clamp, action_clamp)
-            if prefix is not None:
+            if abar is not None:
                 pull = (alpha * guidance_weight * weights).clamp(max=1.0)
-                updated = torch.where(held, prefix, updated - pull * (updated - prefix))
+                updated = torch.where(held, abar, updated - pull * (updated - abar))
             finite = torch.isfinite(energy) & torch.isfinite(grad).flatten(1).all(dim=1)
             finite &= torch.isfinite(updated).flatten(1).all(dim=1)
             # A chunk whose energy or gradient went non-finite keeps its last finite iterate.

@@ -22,18 +22,18 @@ import torch
 from huggingface_hub.constants import CONFIG_NAME, SAFETENSORS_SINGLE_FILE
 from lerobot.configs import PreTrainedConfig
 from lerobot.policies.pretrained import PreTrainedPolicy
-from lerobot.policies.rtc.modeling_rtc import RTCProcessor
 from lerobot.utils.constants import ACTION, OBS_STATE
 from safetensors import SafetensorError
 from torch import Tensor, nn
-from torch.func import functional_call
 from torch.nn.attention import SDPBackend, sdpa_kernel
 from torch.utils.hooks import RemovableHandle
 
 from .backbone_resnet import EBVLAResNetBackbone
+from .compile_ebvla import compiled_context, compiled_energy_fn
 from .configuration_ebvla import EBVLAConfig
 from .energy_head import ContextKV, EBVLAEnergyHead
-from .mcmc import EnergyFn, RefinementResult, refine_actions, sample_initial_actions
+from .mcmc import EnergyFn, RefinementResult, RTCPrefix, refine_actions, sample_initial_actions
+from .rtc_ebvla import rtc_prefix
 from .runtime.response import EnergyOODResponse, OODResponseDecision, respond_to_energy
 
 logger = logging.getLogger(__name__)
@@ -53,23 +53,6 @@ class EnergyReadout:
 
     initial_energy: Tensor
     final_energy: Tensor
-
-
-@dataclass
-class RTCPrefix:
-    """The previous chunk's leftover that real-time chunking inpaints (`rtc_prefix`, `mcmc.refine_actions`).
-
-    Attributes:
-        actions: abar, (B, chunk_size, action_dim): the leftover from timestep 0, zero past its end.
-        held_steps: d: the actions held at abar.
-        weights: w_t, (chunk_size,): LeRobot's prefix-attention schedule, 0 past the guided overlap.
-        guidance_weight: lambda of the pull towards abar.
-    """
-
-    actions: Tensor
-    held_steps: int
-    weights: Tensor
-    guidance_weight: float
 
 
 # hook(policy, batch, readout, decision), called after each refined chunk the policy returns.
@@ -378,14 +361,6 @@ class EBVLA(nn.Module):
         prefix: RTCPrefix | None = None,
     ) -> RefinementResult:
         cfg = self.config
-        rtc = {}
-        if prefix is not None:
-            rtc = {
-                "prefix": prefix.actions,
-                "held_steps": prefix.held_steps,
-                "prefix_weights": prefix.weights,
-                "guidance_weight": prefix.guidance_weight,
-            }
         return refine_actions(
             energy_fn or (lambda a: self.head(a, kv)),
             initial_actions,
@@ -398,7 +373,7 @@ class EBVLA(nn.Module):
             create_graph=create_graph,
             early_stop_tol=early_stop_tol,
             straight_through_clip=straight_through_clip,
-            **rtc,
+            prefix=prefix,
         )
 
     def _initial_actions(
@@ -417,34 +392,16 @@ class EBVLA(nn.Module):
     def _inference_context(
         self, batch: dict[str, Tensor], return_features: bool = False
     ) -> ContextKV | tuple[ContextKV, Tensor]:
-        """`encode_context` for the inference chain: eager, or compiled in `compile_mode` and copied out."""
+        """`encode_context` for the inference chain: eager, or compiled in `compile_mode` (`compile_ebvla.py`)."""
         if self.config.compile_mode == "off":
             return self.encode_context(batch, return_features)
-        mode = effective_compile_mode(self.config.compile_mode, self.head.energy_out.weight.device.type)
-        encoded = compiled_context_encoder(mode)(self, batch, return_features)
-        kv, features = encoded if return_features else (encoded, None)
-        # A CUDA-graph replay reuses its output buffers: the next chunk would overwrite this chunk's outputs.
-        kv = [(k.clone(), v.clone()) for k, v in kv]
-        return (kv, features.clone()) if return_features else kv
+        return compiled_context(self, batch, return_features)
 
     def _inference_energy_fn(self, kv: ContextKV) -> EnergyFn:
         """The energy of the inference MCMC steps: the head itself, or its compiled graph (`compile_mode`)."""
         if self.config.compile_mode == "off":
             return lambda a: self.head(a, kv)
-        # Detached parameters: the compiled backward then computes grad_a only. With parameters that require
-        # grad, AOTAutograd's backward would also compute every weight gradient (the eager engine skips them).
-        params = {name: p.detach() for name, p in self.head.named_parameters()}
-        params.update(self.head.named_buffers())
-        mode = effective_compile_mode(self.config.compile_mode, kv[0][0].device.type)
-        if mode in CUDA_GRAPH_MODES:
-            for tensor in params.values():
-                # The parameters never move, so CUDA graphs read them in place instead of copying every weight
-                # into the graph's input buffers at each replay.
-                torch._dynamo.mark_static_address(tensor)
-        energy = compiled_head_energy(mode)
-        # A CUDA-graph replay overwrites the buffers of the previous one: the step energies kept in
-        # `RefinementResult` (and `last_energy`) must be copies.
-        return lambda a: energy(self.head, params, a, kv).clone()
+        return compiled_energy_fn(self.head, kv, self.config.compile_mode)
 
     def generate_actions(
         self,
@@ -627,56 +584,6 @@ def native_bf16(device_type: str) -> bool:
     return False
 
 
-def head_energy(head: EBVLAEnergyHead, params: dict[str, Tensor], actions: Tensor, kv: ContextKV) -> Tensor:
-    """Per-timestep energies of `actions` under `kv`, with `params` in place of the head's own."""
-    return functional_call(head, params, (actions, kv))
-
-
-# torch.compile's modes that replay the compiled code in CUDA graphs, and what runs in their place without CUDA.
-CUDA_GRAPH_MODES = {"reduce-overhead": "default", "max-autotune": "max-autotune-no-cudagraphs"}
-
-
-@functools.cache
-def effective_compile_mode(mode: str, device_type: str) -> str:
-    """`compile_mode` as it runs on `device_type`: CUDA graphs need CUDA; elsewhere a graph mode runs its
-    no-graph form (inductor alone), with a warning once per process."""
-    if mode not in CUDA_GRAPH_MODES or device_type == "cuda":
-        return mode
-    logger.warning(
-        "`compile_mode=%r` replays CUDA graphs, which a %s device has not: it runs as %r (inductor without "
-        "graphs).",
-        mode,
-        device_type,
-        CUDA_GRAPH_MODES[mode],
-    )
-    return CUDA_GRAPH_MODES[mode]
-
-
-def compile_static(fn: Callable, mode: str) -> Callable:
-    """`fn` under torch.compile in `mode` ("default": inductor's default), one graph per input shape."""
-    from torch._inductor import list_mode_options
-
-    if mode != "default" and mode not in list_mode_options():
-        raise ValueError(
-            f"`compile_mode={mode!r}` is not a mode of torch {torch.__version__}'s torch.compile, which knows "
-            f"{sorted(list_mode_options())}: choose one of them or 'off'."
-        )
-    return torch.compile(fn, dynamic=False, mode=None if mode == "default" else mode)
-
-
-@functools.cache
-def compiled_head_energy(mode: str = "default"):
-    """`head_energy` compiled in `mode`, built once per process and mode (`compile_mode`)."""
-    return compile_static(head_energy, mode)
-
-
-@functools.cache
-def compiled_context_encoder(mode: str = "default"):
-    """`EBVLA.encode_context(model, batch)` compiled in `mode`, built once per process and mode (`compile_mode`):
-    the backbone forward and the head's per-block keys and values, one graph per batch size."""
-    return compile_static(EBVLA.encode_context, mode)
-
-
 def _load_saved_config(pretrained_name_or_path: str | Path, **kwargs) -> PreTrainedConfig:
     """The saved config; a value its checks reject is reported with the file and the field, which draccus's
     own "Couldn't instantiate class" message leaves out."""
@@ -704,7 +611,8 @@ def make_backbone(config: EBVLAConfig) -> nn.Module:
 
 
 def validate_observation(batch: dict[str, Tensor], config: EBVLAConfig) -> None:
-    """Raises a ValueError naming the key when a camera or the state is missing, misshapen or non-finite."""
+    """Raises a ValueError naming the key when a camera or the state is missing, misshapen, non-finite, of the
+    wrong dtype, or of another batch size than the rest of the observation."""
     resizes = config.backbone == "vlm" or config.resize_shape is not None
     for key, feature in config.image_features.items():
         if key not in batch:
@@ -713,6 +621,12 @@ def validate_observation(batch: dict[str, Tensor], config: EBVLAConfig) -> None:
                 f"the batch has keys {sorted(batch)}. Rename cameras with the pre-processor's rename map."
             )
         image = batch[key]
+        if not image.is_floating_point():
+            raise ValueError(
+                f"Camera `{key}` has dtype {image.dtype}; the policy expects float images in [0, 1], as LeRobot's "
+                "datasets and envs give them (lerobot-train divides uint8 frames by 255). Convert with "
+                "`image.float() / 255`."
+            )
         expected = (
             f"(B, {feature.shape[0]}, H, W)" if resizes else f"(B, {', '.join(map(str, feature.shape))})"
         )
@@ -730,64 +644,11 @@ def validate_observation(batch: dict[str, Tensor], config: EBVLAConfig) -> None:
         if state.ndim != 2 or state.shape[1] != config.state_dim:
             raise ValueError(f"`{OBS_STATE}` must be (B, {config.state_dim}). Got {tuple(state.shape)}.")
         _check_finite(state, OBS_STATE)
-
-
-def rtc_prefix(
-    config: EBVLAConfig,
-    batch_size: int,
-    inference_delay: int | None,
-    prev_chunk_left_over: Tensor | None,
-    execution_horizon: int | None = None,
-) -> RTCPrefix | None:
-    """The leftover to inpaint, from the arguments `lerobot-rollout --inference.type=rtc` passes.
-
-    None when there is nothing to inpaint: no leftover (the first chunk), an empty one, or RTC disabled in
-    `config.rtc_config` (LeRobot then appends chunks instead of replacing them). The overlap is
-    min(execution_horizon, leftover length, chunk_size) steps, the length without the rows of zeros LeRobot's
-    engine pads a short leftover with; d is capped at it, as LeRobot's schedule does.
-    Raises a ValueError naming the argument that does not fit the config.
-    """
-    if prev_chunk_left_over is None:
-        return None
-    rtc = config.rtc_config
-    if rtc is None:
-        raise ValueError(
-            "`prev_chunk_left_over` was given but `rtc_config` is None: set `rtc_config` "
-            "(lerobot-rollout --inference.type=rtc does) to refine chunks by real-time chunking."
-        )
-    if not rtc.enabled:
-        return None
-    if inference_delay is not None and not 0 <= inference_delay <= config.chunk_size:
-        raise ValueError(
-            f"`inference_delay` must be in [0, chunk_size={config.chunk_size}] control steps. Got "
-            f"{inference_delay}: the chunk would arrive after all its actions were due."
-        )
-    if execution_horizon is not None and execution_horizon < 1:
-        raise ValueError(f"`execution_horizon` must be >= 1. Got {execution_horizon}.")
-    leftover = prev_chunk_left_over
-    if leftover.ndim == 2:
-        leftover = leftover.unsqueeze(0)
-    if (
-        leftover.ndim != 3
-        or leftover.shape[0] not in (1, batch_size)
-        or leftover.shape[2] != config.action_dim
-    ):
-        raise ValueError(
-            f"`prev_chunk_left_over` must be (B={batch_size}, n, action_dim={config.action_dim}) or "
-            f"(n, {config.action_dim}). Got {tuple(prev_chunk_left_over.shape)}."
-        )
-    _check_finite(leftover, "prev_chunk_left_over")
-    # LeRobot's RTC engine pads a leftover shorter than `execution_horizon` with rows of zeros: not actions.
-    rows = leftover.ne(0).any(dim=2).any(dim=0).nonzero()
-    length = int(rows[-1]) + 1 if len(rows) else 0
-    horizon = min(execution_horizon or rtc.execution_horizon, length, config.chunk_size)
-    if horizon == 0:
-        return None
-    actions = leftover.new_zeros(batch_size, config.chunk_size, config.action_dim, dtype=torch.float32)
-    actions[:, :horizon] = leftover[:, :horizon]
-    held_steps = min(inference_delay or 0, horizon)
-    weights = RTCProcessor(rtc).get_prefix_weights(held_steps, horizon, config.chunk_size)
-    return RTCPrefix(actions, held_steps, weights.to(actions.device), rtc.max_guidance_weight)
+    inputs = [*config.image_features, *([OBS_STATE] if config.state_dim is not None else [])]
+    sizes = {key: batch[key].shape[0] for key in inputs}
+    if len(set(sizes.values())) > 1:
+        found = ", ".join(f"`{key}` {size}" for key, size in sizes.items())
+        raise ValueError(f"Every input of an observation batch needs the same batch size B. Got {found}.")
 
 
 def validate_actions(batch: dict[str, Tensor], config: EBVLAConfig) -> None:

@@ -103,13 +103,11 @@ class MetaworldEBVLAEnv(LeRobotMetaworldEnvConfig):
         }
 
     def create_envs(self, n_envs: int, use_async_envs: bool = False):
-        from .metaworld import create_metaworld_ebvla_envs
-
         if self.task is None:
             raise ValueError("MetaWorld requires a task to be specified")
+        env_cls = make_vec_env_cls(use_async_envs, n_envs)
+        from .metaworld import create_metaworld_ebvla_envs
+
         return create_metaworld_ebvla_envs(
-            task=self.task,
-            n_envs=n_envs,
-            gym_kwargs=self.gym_kwargs,
-            env_cls=make_vec_env_cls(use_async_envs, n_envs),
+            task=self.task, n_envs=n_envs, gym_kwargs=self.gym_kwargs, env_cls=env_cls
         )

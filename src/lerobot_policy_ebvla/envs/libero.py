@@ -28,7 +28,7 @@ from lerobot.envs.libero import LiberoEnv
 from lerobot.envs.utils import parse_camera_names
 from scipy.spatial.transform import Rotation
 
-from ..lerobot_private import LazyAsyncVectorEnv, get_libero_suite, select_libero_task_ids
+from ..lerobot_private import get_libero_suite, lazy_async_vector_env, select_libero_task_ids
 from .lighting import LIGHT_INTENSITY_PERTURBATIONS, perturb_light_intensity
 from .perturbations import MAX_SEVERITY, check_libero_perturbation
 
@@ -246,7 +246,7 @@ def create_libero_ebvla_envs(
                 for episode_index in range(n_envs)
             ]
             if is_async:
-                envs[suite_name][task_id] = LazyAsyncVectorEnv(env_fns)
+                envs[suite_name][task_id] = lazy_async_vector_env(env_fns)
             elif env_cls is gym.vector.SyncVectorEnv:
                 # As LeRobot's LIBERO envs: the terminal observation is returned, the reset comes next step.
                 envs[suite_name][task_id] = gym.vector.SyncVectorEnv(

@@ -70,6 +70,7 @@ class LiberoEBVLAEnv(LeRobotLiberoEnvConfig):
             raise ValueError(
                 "LIBERO requires a task (suite) to be specified, e.g. `--env.task=libero_object`."
             )
+        env_cls = make_vec_env_cls(use_async_envs, n_envs)
         require_libero_ready()
         from .libero import create_libero_ebvla_envs
 
@@ -79,7 +80,7 @@ class LiberoEBVLAEnv(LeRobotLiberoEnvConfig):
             gym_kwargs=self.gym_kwargs,
             camera_name=self.camera_name,
             init_states=self.init_states,
-            env_cls=make_vec_env_cls(use_async_envs, n_envs),
+            env_cls=env_cls,
             control_mode=self.control_mode,
             episode_length=self.episode_length,
             camera_name_mapping=self.camera_name_mapping,

@@ -26,7 +26,7 @@ import mujoco
 import numpy as np
 from lerobot.envs.metaworld import DIFFICULTY_TO_TASKS, MetaworldEnv
 
-from ..lerobot_private import LazyAsyncVectorEnv
+from ..lerobot_private import lazy_async_vector_env
 from .lighting import LIGHT_INTENSITY_PERTURBATIONS, perturb_light_intensity
 from .perturbations import CAMERA_PERTURBATIONS, MAX_SEVERITY, check_perturbation
 
@@ -388,5 +388,5 @@ def create_metaworld_ebvla_envs(
             env_fns = [partial(MetaworldEBVLAGymEnv, task=task_name, **gym_kwargs) for _ in range(n_envs)]
             # LeRobot's lazy async env only starts its worker processes when the task is evaluated.
             is_async = env_cls is gym.vector.AsyncVectorEnv
-            envs[group][task_id] = LazyAsyncVectorEnv(env_fns) if is_async else env_cls(env_fns)
+            envs[group][task_id] = lazy_async_vector_env(env_fns) if is_async else env_cls(env_fns)
     return envs

@@ -4,8 +4,8 @@ It takes lerobot-train's arguments and runs LeRobot's own `lerobot-train` inside
 `pipelines.column_queries.single_column_delta_queries`. On a dataset that stores its frames as images, LeRobot
 0.6.1's loader decodes the frames of every row of a sample's action chunk to read the actions (LeRobot issue
 #4392, fixed upstream after 0.6.1); here each chunk is read from the action column alone, with the same items.
-Any policy type trains the same way; on a video dataset it changes nothing. Loader workers inherit it (they are
-forked from this process).
+Any policy type trains the same way; on a video dataset it changes nothing. Only the datasets lerobot-train
+builds read this way, and their loader workers too (each dataset object carries it).
 
 Example:
 
