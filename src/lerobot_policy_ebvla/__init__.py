@@ -19,7 +19,7 @@ from .runtime import (
     EnergyOODMonitor,
     EnergyOODResponse,
     OODCalibration,
-    OODResponseDecision,
+    OODDecision,
 )
 
 # The env types register after the policy, and apart from it: a LeRobot release that moved a name they import
@@ -44,7 +44,7 @@ __all__ = [
     "EnergyOODResponse",
     "EnergyReadout",
     "OODCalibration",
-    "OODResponseDecision",
+    "OODDecision",
     "light_policy_config",
     "make_ebvla_pre_post_processors",
 ]

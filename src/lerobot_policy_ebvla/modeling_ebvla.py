@@ -34,7 +34,8 @@ from .configuration_ebvla import EBVLAConfig
 from .energy_head import ContextKV, EBVLAEnergyHead
 from .mcmc import EnergyFn, RefinementResult, RTCPrefix, refine_actions, sample_initial_actions
 from .rtc_ebvla import rtc_prefix
-from .runtime.response import EnergyOODResponse, OODResponseDecision, respond_to_energy
+from .runtime.response import EnergyOODResponse, respond_to_energy
+from .runtime.threshold import OODDecision
 
 logger = logging.getLogger(__name__)
 
@@ -56,7 +57,7 @@ class EnergyReadout:
 
 
 # hook(policy, batch, readout, decision), called after each refined chunk the policy returns.
-ChunkHook = Callable[["EBVLAPolicy", dict[str, Tensor], EnergyReadout, OODResponseDecision | None], None]
+ChunkHook = Callable[["EBVLAPolicy", dict[str, Tensor], EnergyReadout, OODDecision | None], None]
 
 
 class EBVLAPolicy(PreTrainedPolicy):
@@ -162,7 +163,7 @@ class EBVLAPolicy(PreTrainedPolicy):
         """Clears the action queue and the episode's chunk count; call it on `env.reset()`."""
         self._action_queue: deque[Tensor] = deque(maxlen=self.config.n_action_steps)
         self.last_energy: EnergyReadout | None = None
-        self.last_ood_decision: OODResponseDecision | None = None
+        self.last_ood_decision: OODDecision | None = None
         # Index of the next chunk in the episode: a phase-aware OOD calibration compares each chunk's energy
         # with the vanilla energies at the same index.
         self.chunk_index = 0

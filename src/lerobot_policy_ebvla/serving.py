@@ -20,7 +20,7 @@ from lerobot.async_inference.policy_server import PolicyServer
 from lerobot.transport import services_pb2_grpc  # type: ignore
 
 from .modeling_ebvla import EnergyReadout
-from .runtime import EnergyOODError, OODResponseDecision
+from .runtime import EnergyOODError, OODDecision
 
 POLICY_TYPE = "ebvla"
 # How many served chunks `served_chunks` keeps, so that a server running for days keeps bounded memory.
@@ -92,7 +92,7 @@ class EBVLAPolicyServer(PolicyServer):
         self._record(observation_t.get_timestep(), self.policy.last_energy, self.policy.last_ood_decision)
         return chunk
 
-    def _record(self, timestep: int, readout: EnergyReadout, decision: OODResponseDecision | None) -> None:
+    def _record(self, timestep: int, readout: EnergyReadout, decision: OODDecision | None) -> None:
         # The client sends one observation at a time: batch element 0 is its chunk.
         served = ServedChunk(
             timestep=timestep,

@@ -22,7 +22,7 @@ Nothing here imports the analysis (`monitoring/`), matplotlib or a simulator.
 from .calibration import OOD_CALIBRATION_FILENAME, OODCalibration
 from .failure_alarm import FAILURE_ALARM_FILENAME, EnergyFailureMonitor, FailureAlarm, FailureDecision
 from .monitor import EnergyOODMonitor
-from .response import EnergyOODError, EnergyOODResponse, HoldAction, OODResponseDecision, respond_to_energy
+from .response import EnergyOODError, EnergyOODResponse, HoldAction, respond_to_energy
 from .scores import SCORES, ChunkScore, VanillaRollouts, rollout_score
 from .statistics import PhaseStatistics
 from .threshold import MeanStd, OODDecision, conformal_threshold, exceeds, mean_std_threshold
@@ -42,7 +42,6 @@ __all__ = [
     "MeanStd",
     "OODCalibration",
     "OODDecision",
-    "OODResponseDecision",
     "PhaseStatistics",
     "VanillaRollouts",
     "conformal_threshold",

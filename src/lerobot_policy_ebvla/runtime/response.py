@@ -46,10 +46,6 @@ if TYPE_CHECKING:  # annotations only: run-time code reads the config's fields a
 logger = logging.getLogger(__name__)
 
 
-# The name `modeling_ebvla` and `serving` import: the response's decision is the one decision type.
-OODResponseDecision = OODDecision
-
-
 class EnergyOODError(RuntimeError):
     """Raised with `ood_response="raise"` when a refined chunk's score exceeds the OOD threshold.
 
