@@ -5,7 +5,7 @@ perturbations: docs/metaworld.md), then one held-out `ebvla-ood-report` over all
 rollouts of two seed ranges are evaluated too: the first (`--calibration_seed`) calibrates, the second
 (`--seed`) is the report's negatives. A condition whose folder already holds its records is not evaluated
 again, so an interrupted sweep resumes. `--record_context_features` also records each chunk's pooled backbone
-context, so that the report adds the context-distance (`mahalanobis`) score beside the energies.
+context, so that the report adds the context scores (`context_distance`, `context_knn`) beside the energies.
 
     MUJOCO_GL=egl python benchmarks/metaworld_perturbation_sweep.py --checkpoint=<pretrained_model folder> \\
         --output_dir=outputs/metaworld_sweep --tasks=button-press-v3 --episodes=5
@@ -82,7 +82,7 @@ def main() -> None:
         "--record_context_features",
         action="store_true",
         help="Also record each chunk's pooled backbone context (`ebvla-eval --record_context_features=true`): "
-        "the OOD report then adds the context-distance (mahalanobis) score. Off by default.",
+        "the OOD report then adds the context scores (context_distance, context_knn). Off by default.",
     )
     args = parser.parse_args()
 

@@ -99,8 +99,8 @@ def test_ood_report_prints_the_held_out_tables_with_intervals_and_baselines(reco
     assert whole_episode.count("| Multiplier |") == 3  # all perturbations, and each severity
     # Every baseline sits beside the final energy in the AUROC table and in every Table III.
     assert (
-        "| Condition | Episodes | final_energy | phase_energy | initial_energy | restart_spread "
-        "| context_distance | context_knn |" in out
+        "| Condition | Episodes | final_energy | final_energy_two_sided | phase_energy | phase_energy_two_sided "
+        "| initial_energy | restart_spread | context_distance | context_knn |" in out
     )
     assert whole_episode.count("Bal. Acc. context_knn") == 3
     assert whole_episode.count("conf. α=5.0%") == 3
@@ -173,7 +173,9 @@ def test_ood_report_without_baseline_data_reports_the_energies_only(tmp_path, ca
     ood_report.main(ood_args(calibration, vanilla, ood, tmp_path / "out"))
     out = capsys.readouterr().out
     assert (
-        "| Condition | Episodes | final_energy | phase_energy | initial_energy |\n" in out
+        "| Condition | Episodes | final_energy | final_energy_two_sided | phase_energy | phase_energy_two_sided "
+        "| initial_energy |\n"
+        in out
         and "knn" not in out
     )
 
@@ -181,7 +183,12 @@ def test_ood_report_without_baseline_data_reports_the_energies_only(tmp_path, ca
 def test_ood_report_calibrates_a_checkpoint_on_the_calibration_rollouts(record_dirs, tmp_path):
     checkpoint = tmp_path / "pretrained_model"
     checkpoint.mkdir()
-    args = [*ood_args(*record_dirs, tmp_path / "out"), f"--calibrate_to={checkpoint}", "--k=0.5"]
+    args = [
+        *ood_args(*record_dirs, tmp_path / "out"),
+        f"--calibrate_to={checkpoint}",
+        "--k=0.5",
+        "--score=final_energy",
+    ]
     ood_report.main([*args, "--threshold_rule=conformal", "--false_alarm_rate=0.1"])
     calibration = OODCalibration.load(checkpoint)
     assert calibration.k == 0.5 and calibration.n_rollouts == 12 and 4.5 < calibration.mu_v < 5.5

@@ -104,7 +104,9 @@ def test_the_report_scores_and_saves_a_registered_score_it_has_no_line_for(regis
     assert calibration.sigma_v == pytest.approx(np.std(left_out))
     assert f"| {PooledEnergyZ.name} | 8 | {calibration.mu_v:.4g} | {calibration.sigma_v:.4g} |" in report
     auroc_header = report.split("## AUROC")[1].split("\n\n")[1].splitlines()[0]
-    assert auroc_header.endswith(f"| {PooledEnergyZ.name} | energy_and_context | energy_and_context_sum |")
+    assert auroc_header.endswith(
+        f"| energy_and_context_sum | energy_two_sided_and_context_knn | {PooledEnergyZ.name} |"
+    )
 
 
 def test_a_registered_score_is_saved_loaded_and_monitored_as_the_report_scores_it(

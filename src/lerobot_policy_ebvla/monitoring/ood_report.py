@@ -5,8 +5,10 @@ record files and writes `ood_report.md`, the figures `roc_curve.png`, `roc_basel
 `energy_histogram.png`, and on request the checkpoint's `ood_calibration.json`. Its sections: the protocol and
 calibration, energy vs success drop per condition, AUROC with bootstrap 95% intervals per score, the same
 AUROCs over each episode's first k chunks beside the whole episode's, each score's AUROC of failed against
-successful rollouts, Table III per condition in the paper's layout with every score's balanced accuracy beside
-it, and Table III again over the first k chunks.
+successful rollouts, a summary of every score (pooled AUROC, its worst and inverted conditions, the conditions
+that cut success, failed vs successful, and the alarm rate at T = mu_v + k sigma_v beside each AUROC), Table III
+per condition in the paper's layout with every score's balanced accuracy beside it, and Table III again over the
+first k chunks. Each two-sided score sits beside its one-sided form.
 
 With context features, the scores include the combinations of the final energy and the context distance
 (`baselines.COMBINED_SCORES`), rollout scores standardized on the calibration rollouts aggregated the same way
@@ -33,7 +35,15 @@ from .baselines import (
     registered_scores,
     vanilla_rollouts,
 )
-from .metrics import BinaryRates, auroc, format_auroc, markdown_table, percent, roc_curve
+from .metrics import (
+    BinaryRates,
+    auroc,
+    bootstrap_auroc_interval,
+    format_auroc,
+    markdown_table,
+    percent,
+    roc_curve,
+)
 from .ood import (
     TABLE_III_MULTIPLIERS,
     format_balanced_accuracy_table,
@@ -53,6 +63,14 @@ from .scores import (
 logger = logging.getLogger(__name__)
 
 ALL_CONDITIONS = "all perturbations"
+# The score `--calibrate_to` saves without `--score`: the best held out on the MetaWorld sweep of every
+# perturbation (benchmarks/results/metaworld_two_sided_scores/summary.md): the highest pooled AUROC over the
+# first 3 chunks among the scores no condition is confidently inverted for (its bootstrap 95% interval wholly
+# below 0.5). It reads the pooled context; records without it get the best energy-only score by the same rule.
+DEFAULT_SCORE = "context_knn"
+DEFAULT_ENERGY_SCORE = "phase_energy_two_sided"
+# A condition "cuts success" when its success rate is this many points below the held-out vanilla rollouts'.
+SUCCESS_CUT_POINTS = 20.0
 
 
 @dataclass
@@ -99,16 +117,23 @@ class OODReportConfig:
     # Table III once more over each episode's first k chunks, thresholds from the calibration rollouts' first
     # k chunks; 0 leaves it out.
     table_iii_first_chunks: int = 3
+    # The score summary's early window: every score over each episode's first k chunks beside the whole episode.
+    summary_first_chunks: int = 3
     # Write ood_calibration.json (`score`, fitted on `calibration`) into this pretrained_model folder.
     calibrate_to: Path | None = None
-    # The chunk score the saved calibration is of, a name of `runtime.scores.SCORES` and a row of the report:
-    # final_energy (the paper's), phase_energy (the final energy against the calibration rollouts' final
-    # energy at the same chunk index), context_distance (the chunk's pooled context against the calibration
-    # contexts; needs records with context features), energy_and_context (the larger of the final energy and
-    # the context distance, each standardized on the calibration rollouts; needs them too) or context_knn (the
-    # chunk's standardized pooled context against its knn_k-th nearest calibration context; needs them too,
-    # and saves every calibration context beside the JSON).
-    score: str = "final_energy"
+    # The chunk score the saved calibration is of, a name of `runtime.scores.SCORES` and a row of the report.
+    # None (default): context_knn, the best held out on the MetaWorld sweep (pooled first-3-chunk AUROC 0.842,
+    # no condition confidently inverted; the final energy 0.585, confidently inverted under dim light), or
+    # phase_energy_two_sided when the records have no context features. final_energy is the paper's score;
+    # phase_energy the final energy against the calibration rollouts' at the same chunk index;
+    # final_energy_two_sided and phase_energy_two_sided their |z|, high on either side of the vanilla band;
+    # context_distance the chunk's pooled context against the calibration contexts (Mahalanobis);
+    # energy_and_context the larger of the final energy and the context distance, each standardized on the
+    # calibration rollouts; context_knn the chunk's standardized pooled context against its knn_k-th nearest
+    # calibration context (saves every calibration context beside the JSON); energy_two_sided_and_context_knn
+    # the larger of the two-sided phase energy and the context k-NN distance, standardized. The context scores
+    # need records with context features.
+    score: str | None = None
     # k saved in the calibration.
     k: float = 1.0
     # Threshold the policy's monitor applies from the saved calibration: mean_std (Eq. 5) or conformal.
@@ -124,8 +149,10 @@ class OODReportConfig:
             raise ValueError(
                 f"`threshold_rule` must be one of {THRESHOLD_RULES}, got {self.threshold_rule!r}."
             )
-        if self.score not in SCORES:
+        if self.score is not None and self.score not in SCORES:
             raise ValueError(f"`score` must be one of {tuple(SCORES)}, got {self.score!r}.")
+        if self.summary_first_chunks < 1:
+            raise ValueError(f"`summary_first_chunks` must be >= 1, got {self.summary_first_chunks}.")
         if any(k < 1 for k in self.first_chunks) or self.table_iii_first_chunks < 0:
             raise ValueError(
                 f"`first_chunks` must be >= 1 and `table_iii_first_chunks` >= 0, got {self.first_chunks} "
@@ -223,10 +250,11 @@ def write_ood_report(cfg: OODReportConfig) -> str:
     has_features = all(name in chunk_names for name in FEATURE_SCORES)
     can_combine = all(name in chunk_names for name in COMBINED_FROM)
     registered = [n for n in registered_scores() if has_features or not SCORES[n].needs_context_features]
-    names = [*chunk_names, *registered, *(COMBINED_SCORES if can_combine else ())]
-    if cfg.score not in names:
+    names = _beside_one_sided([*chunk_names, *(COMBINED_SCORES if can_combine else ()), *registered])
+    saved_score = cfg.score or (DEFAULT_SCORE if has_features else DEFAULT_ENERGY_SCORE)
+    if saved_score not in names:
         raise ValueError(
-            f"`--score={cfg.score}` needs the context feature of every chunk of every set: record them with "
+            f"`--score={saved_score}` needs the context feature of every chunk of every set: record them with "
             "`ebvla-eval --record_context_features=true`."
         )
     reference = fit_score_reference(calibration_set, cfg.knn_k, has_features, registered, cfg.aggregation)
@@ -270,7 +298,12 @@ def write_ood_report(cfg: OODReportConfig) -> str:
         )
 
     scored: dict[int | None, _Scored] = {}
-    for first_chunks in [None, *cfg.first_chunks, cfg.table_iii_first_chunks or None]:
+    for first_chunks in [
+        None,
+        *cfg.first_chunks,
+        cfg.table_iii_first_chunks or None,
+        cfg.summary_first_chunks,
+    ]:
         if first_chunks not in scored:
             scored[first_chunks] = _Scored(
                 {name: scores(vanilla_chunks, name, first_chunks) for name in names},
@@ -302,13 +335,22 @@ def write_ood_report(cfg: OODReportConfig) -> str:
         "## Calibration\n\n"
         + _calibration_table(fits, negatives, cfg)
         + _conformal_note(fits, cfg)
-        + _saved_score_note(cfg),
+        + _saved_score_note(cfg, saved_score),
         "## Energy vs success drop (final energy)\n\n"
         + _success_table(vanilla, conditions, fits, negatives, positives, cfg),
         "## AUROC [bootstrap 95% interval] by score\n\n"
         + _auroc_table(conditions, names, negatives, positives, cfg),
         _first_chunks_section(scored, vanilla, conditions, names, cfg),
         _outcome_section(scored, vanilla, ood, names, cfg),
+        _summary_section(
+            scored,
+            {None: fits, cfg.summary_first_chunks: {n: fit(n, cfg.summary_first_chunks) for n in names}},
+            vanilla,
+            ood,
+            conditions,
+            names,
+            cfg,
+        ),
         *_table_iii_sections("Table III", fits, scored[None], vanilla, conditions, names, cfg),
     ]
     if cfg.table_iii_first_chunks:
@@ -331,15 +373,31 @@ def write_ood_report(cfg: OODReportConfig) -> str:
         # The run-time monitor scores chunks against a score fitted on every calibration rollout; mu_v and
         # sigma_v are the report's: the calibration rollouts' scores, leave-one-episode-out where the score
         # is fitted on them, as a new rollout's would be.
-        score = SCORES[cfg.score].fit(vanilla_rollouts(calibration_set, cfg.aggregation, cfg.knn_k))
-        calibration = dataclasses.replace(fits[cfg.score], score=score)
+        score = SCORES[saved_score].fit(vanilla_rollouts(calibration_set, cfg.aggregation, cfg.knn_k))
+        calibration = dataclasses.replace(fits[saved_score], score=score)
         path = calibration.save(cfg.calibrate_to, overwrite=cfg.overwrite_calibration)
-        logger.info(f"Saved the OOD calibration ({cfg.score}, T = {calibration.threshold:.3f}) to {path}")
+        logger.info(f"Saved the OOD calibration ({saved_score}, T = {calibration.threshold:.3f}) to {path}")
     return report
 
 
-def _saved_score_note(cfg: OODReportConfig) -> str:
-    """Which table rows the calibration saved by this report is, for the scores the report names otherwise."""
+def _beside_one_sided(names: list[str]) -> list[str]:
+    """The scores in order, each two-sided score ("<name>_two_sided") moved right after its one-sided form."""
+    ordered = [n for n in names if not (n.endswith("_two_sided") and n.removesuffix("_two_sided") in names)]
+    for name in names:
+        if name not in ordered:
+            ordered.insert(ordered.index(name.removesuffix("_two_sided")) + 1, name)
+    return ordered
+
+
+def _saved_score_note(cfg: OODReportConfig, saved_score: str) -> str:
+    """Which score a calibration saved by this report is of, and which table rows it is."""
+    default = ""
+    if cfg.score is None and cfg.calibrate_to is not None:
+        default = f"\n\nWithout `--score`, `--calibrate_to` saves `{saved_score}`: " + (
+            f"`{DEFAULT_SCORE}`, the best held out on the MetaWorld sweep (docs/monitoring.md)."
+            if saved_score == DEFAULT_SCORE
+            else f"these records have no context features, so the best energy-only score, not `{DEFAULT_SCORE}`."
+        )
     what = {
         "context_distance": "of every table: the same features, fit and leave-one-episode-out calibration scores.",
         "context_knn": f"of every table (k = {cfg.knn_k}): the same features, standardization and "
@@ -347,11 +405,11 @@ def _saved_score_note(cfg: OODReportConfig) -> str:
         "energy_and_context": "of the whole-episode tables: the final energy and the `context_distance` "
         "score, standardized by the calibration rollouts' mean and std of each, and their max.",
     }
-    if cfg.score not in what:
-        return ""
-    return (
-        f"\n\n`--score={cfg.score}`, the score a calibration saved by this report has `ood_response` act on, is "
-        f"the `{cfg.score}` score {what[cfg.score]}"
+    if saved_score not in what:
+        return default
+    return default + (
+        f"\n\n`--score={saved_score}`, the score a calibration saved by this report has `ood_response` act on, is "
+        f"the `{saved_score}` score {what[saved_score]}"
     )
 
 
@@ -421,6 +479,96 @@ def _outcome_section(scored, vanilla, ood, names, cfg) -> str:
         ]
         lines.append(
             f"### {title}: {int(failed.sum())} of {failed.size} failed\n\n" + markdown_table(headers, rows)
+        )
+    return "\n\n".join(lines)
+
+
+def _summary_section(scored, fits, vanilla, ood, conditions, names, cfg) -> str:
+    """Every score in one row: pooled AUROC with the alarm rates at T = mu_v + k sigma_v, its worst condition,
+    its inverted conditions, the conditions that cut success, failed vs successful; then each condition's AUROC
+    with its alarm rate, over the first chunks and the whole episode."""
+    w = cfg.summary_first_chunks
+    windows = (w, None)
+    vanilla_success = _success_rate(vanilla)
+    single = {c: e for c, e in conditions.items() if c != ALL_CONDITIONS}
+    cutting = [
+        c for c, e in single.items() if 100 * (vanilla_success - _success_rate(e)) >= SUCCESS_CUT_POINTS
+    ]
+    failed = np.array([not e[0].success for e in [*vanilla.values(), *ood.values()]], dtype=bool)
+
+    def threshold(k, name):
+        return fits[k][name].with_k(cfg.k).threshold
+
+    def alarms(k, name, scores):
+        return percent(BinaryRates.from_scores([], scores, threshold(k, name)).tpr, 0)
+
+    def per_condition(k, name):
+        negatives = scored[k].negatives[name]
+        return {
+            c: (auroc(negatives, scored[k].positives[c][name]), scored[k].positives[c][name]) for c in single
+        }
+
+    def inverted(k, name):
+        negatives, listed = scored[k].negatives[name], []
+        for c, (area, positives) in per_condition(k, name).items():
+            if area < 0.5:
+                confident = (
+                    bootstrap_auroc_interval(negatives, positives, cfg.n_bootstrap, seed=cfg.seed)[1] < 0.5
+                )
+                listed.append(f"{c} {area:.2f}{'!' if confident else ''}")
+        return ", ".join(listed) or "none"
+
+    rows = []
+    for name in names:
+        row = [name]
+        for k in windows:
+            negatives, pooled = scored[k].negatives[name], scored[k].positives[ALL_CONDITIONS][name]
+            row += [
+                _interval(negatives, pooled, cfg),
+                f"{alarms(k, name, negatives)} / {alarms(k, name, pooled)}",
+            ]
+        worst, (area, _) = min(per_condition(w, name).items(), key=lambda item: item[1][0])
+        row += [f"{worst} {area:.3f}", inverted(w, name), inverted(None, name)]
+        negatives = scored[w].negatives[name]
+        if cutting:
+            positives = np.concatenate([scored[w].positives[c][name] for c in cutting])
+            lowest = min(auroc(negatives, scored[w].positives[c][name]) for c in cutting)
+            row.append(f"{_interval(negatives, positives, cfg)}, min {lowest:.3f}")
+        else:
+            row.append("no such condition")
+        together = np.concatenate([scored[w].negatives[name], scored[w].positives[ALL_CONDITIONS][name]])
+        row.append(
+            _interval(together[~failed], together[failed], cfg) if 0 < failed.sum() < failed.size else "n/a"
+        )
+        rows.append(row)
+    first, whole = _chunks_label(w), _chunks_label(None)
+    headers = ["Score", f"Pooled, {first}", "Alarms v / s", f"Pooled, {whole}", "Alarms v / s"]
+    headers += [f"Worst, {first}", f"Inverted, {first}", f"Inverted, {whole}"]
+    headers += [f"Success-cutting, {first}", f"Failed vs successful, {first}"]
+    lines = [
+        "## Score summary\n\n"
+        f"Held-out vanilla rollouts (negatives): {len(vanilla)}, success {_successes(vanilla)}; perturbed "
+        f"(positives): {len(ood)} in {len(single)} conditions. AUROC [bootstrap 95% interval]. Alarms v / s: the "
+        f"share of held-out vanilla / perturbed rollouts above T = mu_v + {cfg.k:g} sigma_v, fitted on the "
+        "calibration rollouts over the same chunks. Inverted: conditions with AUROC < 0.5, `!` where the interval "
+        f"lies wholly below 0.5 (confidently wrong). Success-cutting: the conditions {SUCCESS_CUT_POINTS:g}+ "
+        f"points below vanilla's success ({', '.join(cutting) or 'none'}) pooled, and the lowest of them. Failed vs "
+        f"successful: every held-out rollout, {int(failed.sum())} of {failed.size} failed.",
+        markdown_table(headers, rows),
+    ]
+    for k in windows:
+        table = [
+            ["held-out vanilla: alarms", len(vanilla), *(alarms(k, n, scored[k].negatives[n]) for n in names)]
+        ]
+        for c, episodes in single.items():
+            cells = []
+            for n in names:
+                area, positives = per_condition(k, n)[c]
+                cells.append(f"{area:.3f} ({alarms(k, n, positives)})")
+            table.append([c, len(episodes), *cells])
+        lines.append(
+            f"### Each condition, {_chunks_label(k)} (AUROC, alarm rate at T)\n\n"
+            + markdown_table(["Condition", "Episodes", *names], table)
         )
     return "\n\n".join(lines)
 

@@ -23,6 +23,16 @@ T = mu_v + k sigma_v (Eq. 5) or the conformal one is then set on the vanilla rol
   (`ContextNeighbours`, every calibration context saved in `ood_calibration_neighbours.safetensors`). Unlike
   the Mahalanobis distance it assumes no Gaussian shape.
 
+Two-sided forms. A shift can lower the final energy below vanilla's (a dimmer light, another colour: the energy
+is then confidently wrong, issue 32), so each energy score also has a form that flags a rollout on either side of
+the vanilla band, |z| of the rollout's aggregated z (a typicality test, Nalisnick et al. 2019):
+
+- "final_energy_two_sided" (`FinalEnergyTwoSided`): |E - mu_E| / sigma_E, mu_E and sigma_E of every vanilla
+  chunk's final energy.
+- "phase_energy_two_sided" (`PhaseEnergyTwoSided`): |z_t| of the phase energy.
+- "energy_two_sided_and_context_knn" (`EnergyTwoSidedAndContextKNN`): the two-sided phase energy and the
+  context k-NN distance, each standardized by the vanilla rollouts' mean and std, and the larger counts.
+
 A new score is one class here and one entry in `SCORES`: the calibration, its file, the monitors, the policy's
 `ood_response` and `ebvla-ood-report --score=<name>` find it there.
 """
@@ -36,6 +46,7 @@ import numpy as np
 from .checkpoint_files import SideFile
 from .statistics import (
     DEFAULT_KNN_K,
+    MIN_SIGMA,
     CombinedStatistics,
     ContextNeighbours,
     ContextStatistics,
@@ -365,7 +376,141 @@ class ContextKNN(ChunkScore):
         return cls(fields.get(NEIGHBOURS_FILE.field))
 
 
+@dataclass(frozen=True)
+class FinalEnergyTwoSided(ChunkScore):
+    """|E - mu_E| / sigma_E of a rollout's aggregated final energy, mu_E and sigma_E of every vanilla chunk's:
+    high when the energy leaves the vanilla band on either side."""
+
+    mean: float
+    std: float
+
+    name = "final_energy_two_sided"
+    json_fields = ("energy_mean", "energy_std")
+
+    def __post_init__(self):
+        if not (np.isfinite(self.mean) and np.isfinite(self.std) and self.std > 0):
+            raise ValueError(
+                f"`energy_mean` and `energy_std` must be finite, std > 0; got {self.mean}, {self.std}."
+            )
+
+    @classmethod
+    def fit(cls, vanilla: VanillaRollouts) -> "FinalEnergyTwoSided":
+        energies = np.concatenate([float64(e) for e in vanilla.final_energies])
+        energies = energies[np.isfinite(energies)]
+        if energies.size == 0:
+            raise ValueError(f"The {cls.name} score needs a finite vanilla final energy.")
+        return cls(float(energies.mean()), max(float(energies.std()), MIN_SIGMA))
+
+    def components(self, final_energy, chunk_index, context_features) -> np.ndarray:
+        return ((as_array(final_energy) - self.mean) / self.std)[:, None]
+
+    def combine(self, aggregates: np.ndarray) -> np.ndarray:
+        return np.abs(aggregates[:, 0])
+
+    def to_json(self) -> dict[str, Any]:
+        return {"energy_mean": self.mean, "energy_std": self.std}
+
+    @classmethod
+    def from_json(cls, fields: dict[str, Any]) -> "FinalEnergyTwoSided":
+        return cls(*_pair(fields, "energy_mean", "energy_std", cls.name, cls))
+
+
+@dataclass(frozen=True)
+class PhaseEnergyTwoSided(PhaseEnergy):
+    """|z_t| of the phase energy: the rollout's aggregated z against the vanilla energy at the same chunk
+    indices, on either side."""
+
+    name = "phase_energy_two_sided"
+
+    def combine(self, aggregates: np.ndarray) -> np.ndarray:
+        return np.abs(aggregates[:, 0])
+
+
+@dataclass(frozen=True)
+class EnergyTwoSidedAndContextKNN(ChunkScore):
+    """max(z_|phase|, z_knn): the two-sided phase energy and the context k-NN distance, each standardized by
+    the vanilla rollouts' mean and std (`CombinedStatistics`, in that order).
+
+    Its two components, the phase energy's signed z_t and the k-NN distance, are aggregated over a rollout
+    apart; the first is then made two-sided, both are standardized and the larger counts.
+    """
+
+    phase: PhaseStatistics
+    neighbours: ContextNeighbours = field(compare=False)
+    combined: CombinedStatistics
+
+    name = "energy_two_sided_and_context_knn"
+    needs_chunk_index = True
+    needs_context_features = True
+    n_components = 2
+    json_fields = ("phase_mean", "phase_std", "combined_mean", "combined_std")
+    side_files = (NEIGHBOURS_FILE,)
+
+    def __post_init__(self):
+        _check_statistics(self.name, "phase", self.phase, PhaseStatistics)
+        _check_statistics(self.name, "neighbours", self.neighbours, ContextNeighbours)
+        _check_statistics(self.name, "combined", self.combined, CombinedStatistics)
+
+    @classmethod
+    def fit(cls, vanilla: VanillaRollouts) -> "EnergyTwoSidedAndContextKNN":
+        """The phase statistics and neighbours of every vanilla rollout, and the standardization of the vanilla
+        rollouts' two scores, each rollout scored against the others (as the report scores a calibration
+        rollout)."""
+        features, rollout_of = vanilla.features(cls.name)
+        neighbours = ContextNeighbours.fit(features, vanilla.knn_k)
+        series = [
+            energies_by_index(e, t)
+            for e, t in zip(vanilla.final_energies, vanilla.chunk_indices, strict=True)
+        ]
+        energies, distances = [], []
+        for i, (chunk_energies, indices) in enumerate(
+            zip(vanilla.final_energies, vanilla.chunk_indices, strict=True)
+        ):
+            others = [s for j, s in enumerate(series) if j != i] or series
+            z = PhaseStatistics.fit(others).z(chunk_energies, indices)
+            energies.append(abs(rollout_score(z, vanilla.aggregation)))
+            own = rollout_of == i
+            distances.append(
+                rollout_score(neighbours.distance(features[own], excluded=own), vanilla.aggregation)
+            )
+        return cls(PhaseStatistics.fit(series), neighbours, CombinedStatistics.fit(energies, distances))
+
+    def components(self, final_energy, chunk_index, context_features) -> np.ndarray:
+        z = self.phase.z(final_energy, chunk_index)
+        return np.stack([z, self.neighbours.distance(context_features)], axis=1)
+
+    def combine(self, aggregates: np.ndarray) -> np.ndarray:
+        return self.combined.combine(np.abs(aggregates[:, 0]), aggregates[:, 1])
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "phase_mean": self.phase.mean,
+            "phase_std": self.phase.std,
+            NEIGHBOURS_FILE.field: self.neighbours,
+            "combined_mean": self.combined.mean,
+            "combined_std": self.combined.std,
+        }
+
+    @classmethod
+    def from_json(cls, fields: dict[str, Any]) -> "EnergyTwoSidedAndContextKNN":
+        phase = PhaseStatistics(*_pair(fields, "phase_mean", "phase_std", cls.name, PhaseStatistics))
+        combined = CombinedStatistics(
+            *_pair(fields, "combined_mean", "combined_std", cls.name, CombinedStatistics)
+        )
+        return cls(phase, fields.get(NEIGHBOURS_FILE.field), combined)
+
+
 # The registry: each score by its name.
 SCORES: dict[str, type[ChunkScore]] = {
-    score.name: score for score in (FinalEnergy, PhaseEnergy, ContextDistance, EnergyAndContext, ContextKNN)
+    score.name: score
+    for score in (
+        FinalEnergy,
+        PhaseEnergy,
+        ContextDistance,
+        EnergyAndContext,
+        ContextKNN,
+        FinalEnergyTwoSided,
+        PhaseEnergyTwoSided,
+        EnergyTwoSidedAndContextKNN,
+    )
 }

@@ -1,0 +1,171 @@
+"""Two-sided scores: a shift that lowers the energy below vanilla's is flagged, and the report's safe default.
+
+A shift can make the final energy fall below vanilla's (issue 32: dim light, another colour), so the one-sided
+energy is confidently wrong there. The two-sided forms flag a rollout on either side of the vanilla band.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from lerobot_policy_ebvla.monitoring.ood_report import (
+    DEFAULT_ENERGY_SCORE,
+    DEFAULT_SCORE,
+    OODReportConfig,
+    write_ood_report,
+)
+from lerobot_policy_ebvla.runtime import SCORES, EnergyOODMonitor, OODCalibration, VanillaRollouts
+from lerobot_policy_ebvla.runtime.scores import (
+    EnergyTwoSidedAndContextKNN,
+    FinalEnergy,
+    FinalEnergyTwoSided,
+    PhaseEnergy,
+    PhaseEnergyTwoSided,
+    score_rollout,
+)
+
+from .conftest import context_rollouts, write_records
+
+N_CHUNKS, DIM = 6, 4
+
+
+def vanilla(n=12, seed=0) -> VanillaRollouts:
+    """Vanilla rollouts whose final energy falls with the task's phase (5, 4.8, ...) and whose contexts are
+    standard normal."""
+    rng = np.random.default_rng(seed)
+    phase = 5.0 - 0.2 * np.arange(N_CHUNKS)
+    return VanillaRollouts(
+        [phase + rng.normal(0, 0.1, N_CHUNKS) for _ in range(n)],
+        [np.arange(N_CHUNKS) for _ in range(n)],
+        [rng.normal(0, 1, (N_CHUNKS, DIM)) for _ in range(n)],
+    )
+
+
+def calibrated(score_class, rollouts: VanillaRollouts) -> OODCalibration:
+    """The calibration of a score on the vanilla rollouts (each scored by the score fitted without it)."""
+    scores = []
+    for i in range(len(rollouts)):
+        score = score_class.fit(rollouts.without(i))
+        components = score.components(
+            rollouts.final_energies[i], rollouts.chunk_indices[i], rollouts.context_features[i]
+        )
+        scores.append(score_rollout(score, components, "mean"))
+    return OODCalibration.fit(scores, score=score_class.fit(rollouts))
+
+
+def rollout_score(calibration: OODCalibration, energies, features=None) -> float:
+    features = np.zeros((len(energies), DIM)) if features is None else features
+    components = calibration.chunk_components(np.asarray(energies), np.arange(len(energies)), features)
+    return calibration.score_rollout(components)
+
+
+@pytest.mark.parametrize(
+    ("one_sided", "two_sided"), [(FinalEnergy, FinalEnergyTwoSided), (PhaseEnergy, PhaseEnergyTwoSided)]
+)
+def test_an_energy_below_vanilla_scores_high_two_sided_and_low_one_sided(one_sided, two_sided):
+    rollouts = vanilla()
+    below = np.full(N_CHUNKS, 3.0)  # every chunk's energy well under vanilla's
+    one, two = calibrated(one_sided, rollouts), calibrated(two_sided, rollouts)
+    assert rollout_score(one, below) < one.threshold
+    assert rollout_score(two, below) > two.threshold
+    held_out = vanilla(seed=1).final_energies[0]
+    assert rollout_score(two, held_out) < rollout_score(two, below)
+
+
+@pytest.mark.parametrize("two_sided", [FinalEnergyTwoSided, PhaseEnergyTwoSided])
+def test_a_two_sided_score_flags_an_energy_above_vanilla_as_the_one_sided_does(two_sided):
+    calibration = calibrated(two_sided, vanilla())
+    assert rollout_score(calibration, np.full(N_CHUNKS, 7.0)) > calibration.threshold
+
+
+def test_the_two_sided_phase_energy_is_the_magnitude_of_the_phase_energy():
+    rollouts = vanilla()
+    one, two = PhaseEnergy.fit(rollouts), PhaseEnergyTwoSided.fit(rollouts)
+    energies = np.array([4.0, 5.5, 3.0])
+    z = one.components(energies, np.arange(3), None)
+    assert two.components(energies, np.arange(3), None) == pytest.approx(z)
+    assert score_rollout(two, z, "mean") == pytest.approx(abs(z.mean()))
+
+
+def test_the_energy_and_context_knn_flags_a_low_energy_and_a_far_context():
+    calibration = calibrated(EnergyTwoSidedAndContextKNN, vanilla())
+    typical = vanilla(seed=2)
+    energies, features = typical.final_energies[0], typical.context_features[0]
+    assert rollout_score(calibration, energies, features) < calibration.threshold
+    assert rollout_score(calibration, np.full(N_CHUNKS, 3.0), features) > calibration.threshold
+    assert rollout_score(calibration, energies, features + 6.0) > calibration.threshold
+
+
+@pytest.mark.parametrize(
+    "score_class", [FinalEnergyTwoSided, PhaseEnergyTwoSided, EnergyTwoSidedAndContextKNN]
+)
+def test_a_two_sided_calibration_is_saved_and_loaded_back_and_monitors_the_same(score_class, tmp_path):
+    assert SCORES[score_class.name] is score_class
+    calibration = calibrated(score_class, vanilla())
+    calibration.save(tmp_path)
+    loaded = OODCalibration.load(tmp_path)
+    assert loaded == calibration and type(loaded.score) is score_class
+    energies = np.full(N_CHUNKS, 3.0)
+    features = np.ones((N_CHUNKS, DIM))
+    expected = rollout_score(calibration, energies, features)
+    decision = EnergyOODMonitor(loaded).check_rollout(energies, context_features=features)
+    assert decision.energy == pytest.approx(expected) and decision.is_ood
+
+
+@pytest.fixture(scope="module")
+def record_dirs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("records")
+    return (
+        write_records(root / "calibration", context_rollouts(8, seed=10)),
+        write_records(root / "vanilla", context_rollouts(8, seed=11)),
+        write_records(root / "ood", context_rollouts(8, 1, "dim", energy=4.0)),
+    )
+
+
+def report(record_dirs, out, **options) -> tuple[str, OODCalibration]:
+    calibration, held_out, ood = record_dirs
+    (out / "pretrained_model").mkdir(parents=True)
+    cfg = OODReportConfig(
+        calibration=[calibration],
+        vanilla=[held_out],
+        ood=[ood],
+        output_dir=out / "report",
+        n_bootstrap=20,
+        calibrate_to=out / "pretrained_model",
+        **options,
+    )
+    return write_ood_report(cfg), OODCalibration.load(out / "pretrained_model")
+
+
+def test_the_report_sets_each_two_sided_score_beside_its_one_sided_form(record_dirs, tmp_path):
+    text, _ = report(record_dirs, tmp_path)
+    header = text.split("## AUROC")[1].split("\n\n")[1].splitlines()[0]
+    assert "| final_energy | final_energy_two_sided | phase_energy | phase_energy_two_sided |" in header
+    # An energy below vanilla's: inverted one-sided (with `!`, its interval wholly below 0.5), high two-sided.
+    summary = text.split("## Score summary")[1].split("\n## ")[0]
+    row = {line.split(" | ")[0].strip("| "): line for line in summary.splitlines() if line.startswith("| ")}
+    assert "dim 1 0.00!" in row["final_energy"]
+    assert row["final_energy_two_sided"].split(" | ")[1].startswith("1.000")
+
+
+def test_without_a_score_the_report_saves_the_safe_default(record_dirs, tmp_path):
+    text, calibration = report(record_dirs, tmp_path)
+    assert calibration.score.name == DEFAULT_SCORE == "context_knn"
+    assert f"Without `--score`, `--calibrate_to` saves `{DEFAULT_SCORE}`" in text
+
+
+def test_without_context_features_the_default_is_the_best_energy_only_score(record_dirs, tmp_path):
+    from lerobot_policy_ebvla.monitoring.records import read_energy_records
+
+    bare = []
+    for i, folder in enumerate(record_dirs):
+        records = [dataclasses.replace(r, context_feature=None) for r in read_energy_records(folder)]
+        bare.append(write_records(tmp_path / f"bare{i}", records))
+    _, calibration = report(bare, tmp_path / "out")
+    assert calibration.score.name == DEFAULT_ENERGY_SCORE == "phase_energy_two_sided"
+
+
+def test_the_papers_final_energy_stays_available(record_dirs, tmp_path):
+    _, calibration = report(record_dirs, tmp_path, score="final_energy")
+    assert calibration.score == FinalEnergy()
