@@ -169,8 +169,9 @@ class EBVLAConfig(PreTrainedConfig):
             towards it with LeRobot's `prefix_attention_schedule` weights w_t and guidance weight
             lambda = `max_guidance_weight` (each MCMC step closes a fraction min(1, alpha lambda w_t) of the
             gap). None (the default) or `enabled=False` refines every chunk from scratch.
-        ood_response: What the policy does with a refined chunk whose score (the calibration's: the final
-            energy by default, or another score of the registry `runtime.scores.SCORES`) exceeds the OOD
+        ood_response: What the policy does with a refined chunk whose score (the calibration's, one of the
+            registry `runtime.scores.SCORES`: `context_knn` as `ebvla-ood-report --calibrate_to` saves it
+            without `--score`, `final_energy` for the paper's) exceeds the OOD
             threshold T of the checkpoint's `ood_calibration.json` (see `runtime/response.py`): "continue"
             executes it and logs a warning (the default; without a calibration nothing is checked), "hold"
             executes `hold_action` instead, "raise" raises `EnergyOODError`.

@@ -38,8 +38,6 @@ from .baselines import (
 from .metrics import (
     BinaryRates,
     auroc,
-    bootstrap_auroc_interval,
-    format_auroc,
     markdown_table,
     percent,
     roc_curve,
@@ -53,6 +51,14 @@ from .ood import (
 from .plots import plot_roc, plot_score_histograms
 from .protocol import check_held_out
 from .records import load_episodes, resolve_record_files
+from .score_summary import (
+    ALL_CONDITIONS,
+    auroc_interval,
+    chunks_label,
+    success_rate,
+    successes,
+    summary_section,
+)
 from .scores import (
     aggregate_episodes,
     combined_rollout_scores,
@@ -62,15 +68,12 @@ from .scores import (
 
 logger = logging.getLogger(__name__)
 
-ALL_CONDITIONS = "all perturbations"
 # The score `--calibrate_to` saves without `--score`: the best held out on the MetaWorld sweep of every
 # perturbation (benchmarks/results/metaworld_two_sided_scores/summary.md): the highest pooled AUROC over the
 # first 3 chunks among the scores no condition is confidently inverted for (its bootstrap 95% interval wholly
 # below 0.5). It reads the pooled context; records without it get the best energy-only score by the same rule.
 DEFAULT_SCORE = "context_knn"
 DEFAULT_ENERGY_SCORE = "phase_energy_two_sided"
-# A condition "cuts success" when its success rate is this many points below the held-out vanilla rollouts'.
-SUCCESS_CUT_POINTS = 20.0
 
 
 @dataclass
@@ -168,31 +171,12 @@ def _condition_name(perturbation: str, severity: float) -> str:
     return f"{perturbation} {severity:g}" if perturbation != "none" else "unperturbed (from --ood)"
 
 
-def _success_rate(episodes: dict) -> float:
-    return float(np.mean([e[0].success for e in episodes.values()])) if episodes else float("nan")
-
-
-def _successes(episodes: dict) -> str:
-    n_success = sum(e[0].success for e in episodes.values())
-    return f"{n_success}/{len(episodes)} ({percent(_success_rate(episodes))})"
-
-
-def _interval(negatives: np.ndarray, positives: np.ndarray, cfg: OODReportConfig) -> str:
-    return format_auroc(negatives, positives, cfg.n_bootstrap, cfg.seed)
-
-
 @dataclass
 class _Scored:
     """Every score of the held-out rollouts over the same chunks: negatives, and positives per condition."""
 
     negatives: dict[str, np.ndarray]
     positives: dict[str, dict[str, np.ndarray]]
-
-
-def _chunks_label(first_chunks: int | None) -> str:
-    if first_chunks is None:
-        return "whole episode"
-    return f"first {first_chunks} chunk{'s' if first_chunks > 1 else ''}"
 
 
 def _check_vanilla_only(flag: str, episodes: dict) -> None:
@@ -342,7 +326,7 @@ def write_ood_report(cfg: OODReportConfig) -> str:
         + _auroc_table(conditions, names, negatives, positives, cfg),
         _first_chunks_section(scored, vanilla, conditions, names, cfg),
         _outcome_section(scored, vanilla, ood, names, cfg),
-        _summary_section(
+        summary_section(
             scored,
             {None: fits, cfg.summary_first_chunks: {n: fit(n, cfg.summary_first_chunks) for n in names}},
             vanilla,
@@ -420,22 +404,22 @@ def _first_chunks_section(scored, vanilla, conditions, names, cfg) -> str:
         "Every score over each episode's first k chunks only (an episode shorter than k uses all its "
         "chunks): what a monitor has seen k chunks into an episode, before a failure that follows the "
         "condition. "
-        f"Held-out vanilla rollouts (the negatives): {len(vanilla)}, success {_successes(vanilla)}."
+        f"Held-out vanilla rollouts (the negatives): {len(vanilla)}, success {successes(vanilla)}."
     ]
-    headers = ["Score", *(_chunks_label(k) for k in lengths), _chunks_label(None)]
+    headers = ["Score", *(chunks_label(k) for k in lengths), chunks_label(None)]
     for condition, episodes in conditions.items():
         rows = [
             [
                 name,
                 *(
-                    _interval(scored[k].negatives[name], scored[k].positives[condition][name], cfg)
+                    auroc_interval(scored[k].negatives[name], scored[k].positives[condition][name], cfg)
                     for k in [*lengths, None]
                 ),
             ]
             for name in names
         ]
         lines.append(
-            f"### {condition}: {len(episodes)} perturbed rollouts, success {_successes(episodes)}\n\n"
+            f"### {condition}: {len(episodes)} perturbed rollouts, success {successes(episodes)}\n\n"
             + markdown_table(headers, rows)
         )
     return "\n\n".join(lines)
@@ -462,7 +446,7 @@ def _outcome_section(scored, vanilla, ood, names, cfg) -> str:
         "score that flags the perturbations with the most failures ranks failures high even if it knows "
         "nothing of failure within a condition: the vanilla set alone is the cleaner test."
     ]
-    headers = ["Score", *(_chunks_label(k) for k in lengths), _chunks_label(None)]
+    headers = ["Score", *(chunks_label(k) for k in lengths), chunks_label(None)]
     for title, (failed, of) in sets.items():
         if failed.all() or not failed.any():
             lines.append(f"### {title}: {int(failed.sum())} of {failed.size} failed, no AUROC")
@@ -471,7 +455,7 @@ def _outcome_section(scored, vanilla, ood, names, cfg) -> str:
             [
                 name,
                 *(
-                    _interval(of(scored[k], name)[~failed], of(scored[k], name)[failed], cfg)
+                    auroc_interval(of(scored[k], name)[~failed], of(scored[k], name)[failed], cfg)
                     for k in [*lengths, None]
                 ),
             ]
@@ -479,96 +463,6 @@ def _outcome_section(scored, vanilla, ood, names, cfg) -> str:
         ]
         lines.append(
             f"### {title}: {int(failed.sum())} of {failed.size} failed\n\n" + markdown_table(headers, rows)
-        )
-    return "\n\n".join(lines)
-
-
-def _summary_section(scored, fits, vanilla, ood, conditions, names, cfg) -> str:
-    """Every score in one row: pooled AUROC with the alarm rates at T = mu_v + k sigma_v, its worst condition,
-    its inverted conditions, the conditions that cut success, failed vs successful; then each condition's AUROC
-    with its alarm rate, over the first chunks and the whole episode."""
-    w = cfg.summary_first_chunks
-    windows = (w, None)
-    vanilla_success = _success_rate(vanilla)
-    single = {c: e for c, e in conditions.items() if c != ALL_CONDITIONS}
-    cutting = [
-        c for c, e in single.items() if 100 * (vanilla_success - _success_rate(e)) >= SUCCESS_CUT_POINTS
-    ]
-    failed = np.array([not e[0].success for e in [*vanilla.values(), *ood.values()]], dtype=bool)
-
-    def threshold(k, name):
-        return fits[k][name].with_k(cfg.k).threshold
-
-    def alarms(k, name, scores):
-        return percent(BinaryRates.from_scores([], scores, threshold(k, name)).tpr, 0)
-
-    def per_condition(k, name):
-        negatives = scored[k].negatives[name]
-        return {
-            c: (auroc(negatives, scored[k].positives[c][name]), scored[k].positives[c][name]) for c in single
-        }
-
-    def inverted(k, name):
-        negatives, listed = scored[k].negatives[name], []
-        for c, (area, positives) in per_condition(k, name).items():
-            if area < 0.5:
-                confident = (
-                    bootstrap_auroc_interval(negatives, positives, cfg.n_bootstrap, seed=cfg.seed)[1] < 0.5
-                )
-                listed.append(f"{c} {area:.2f}{'!' if confident else ''}")
-        return ", ".join(listed) or "none"
-
-    rows = []
-    for name in names:
-        row = [name]
-        for k in windows:
-            negatives, pooled = scored[k].negatives[name], scored[k].positives[ALL_CONDITIONS][name]
-            row += [
-                _interval(negatives, pooled, cfg),
-                f"{alarms(k, name, negatives)} / {alarms(k, name, pooled)}",
-            ]
-        worst, (area, _) = min(per_condition(w, name).items(), key=lambda item: item[1][0])
-        row += [f"{worst} {area:.3f}", inverted(w, name), inverted(None, name)]
-        negatives = scored[w].negatives[name]
-        if cutting:
-            positives = np.concatenate([scored[w].positives[c][name] for c in cutting])
-            lowest = min(auroc(negatives, scored[w].positives[c][name]) for c in cutting)
-            row.append(f"{_interval(negatives, positives, cfg)}, min {lowest:.3f}")
-        else:
-            row.append("no such condition")
-        together = np.concatenate([scored[w].negatives[name], scored[w].positives[ALL_CONDITIONS][name]])
-        row.append(
-            _interval(together[~failed], together[failed], cfg) if 0 < failed.sum() < failed.size else "n/a"
-        )
-        rows.append(row)
-    first, whole = _chunks_label(w), _chunks_label(None)
-    headers = ["Score", f"Pooled, {first}", "Alarms v / s", f"Pooled, {whole}", "Alarms v / s"]
-    headers += [f"Worst, {first}", f"Inverted, {first}", f"Inverted, {whole}"]
-    headers += [f"Success-cutting, {first}", f"Failed vs successful, {first}"]
-    lines = [
-        "## Score summary\n\n"
-        f"Held-out vanilla rollouts (negatives): {len(vanilla)}, success {_successes(vanilla)}; perturbed "
-        f"(positives): {len(ood)} in {len(single)} conditions. AUROC [bootstrap 95% interval]. Alarms v / s: the "
-        f"share of held-out vanilla / perturbed rollouts above T = mu_v + {cfg.k:g} sigma_v, fitted on the "
-        "calibration rollouts over the same chunks. Inverted: conditions with AUROC < 0.5, `!` where the interval "
-        f"lies wholly below 0.5 (confidently wrong). Success-cutting: the conditions {SUCCESS_CUT_POINTS:g}+ "
-        f"points below vanilla's success ({', '.join(cutting) or 'none'}) pooled, and the lowest of them. Failed vs "
-        f"successful: every held-out rollout, {int(failed.sum())} of {failed.size} failed.",
-        markdown_table(headers, rows),
-    ]
-    for k in windows:
-        table = [
-            ["held-out vanilla: alarms", len(vanilla), *(alarms(k, n, scored[k].negatives[n]) for n in names)]
-        ]
-        for c, episodes in single.items():
-            cells = []
-            for n in names:
-                area, positives = per_condition(k, n)[c]
-                cells.append(f"{area:.3f} ({alarms(k, n, positives)})")
-            table.append([c, len(episodes), *cells])
-        lines.append(
-            f"### Each condition, {_chunks_label(k)} (AUROC, alarm rate at T)\n\n"
-            + markdown_table(["Condition", "Episodes", *names], table)
         )
     return "\n\n".join(lines)
 
@@ -589,7 +483,7 @@ def _table_iii_sections(title, fits, scored, vanilla, conditions, names, cfg) ->
             + format_table_iii(
                 rows[final],
                 fits[final],
-                _interval(negatives[final], positives[final], cfg),
+                auroc_interval(negatives[final], positives[final], cfg),
                 len(vanilla),
                 len(episodes),
             )
@@ -639,7 +533,7 @@ def _conformal_note(fits: dict, cfg: OODReportConfig) -> str:
 
 
 def _success_table(vanilla, conditions, fits, negatives, positives, cfg) -> str:
-    vanilla_success = _success_rate(vanilla)
+    vanilla_success = success_rate(vanilla)
     final = fits["final_energy"]
     held_out = negatives["final_energy"]
     reference = float(np.mean(held_out))
@@ -650,17 +544,17 @@ def _success_table(vanilla, conditions, fits, negatives, positives, cfg) -> str:
     for condition, episodes in conditions.items():
         scores = positives[condition]["final_energy"]
         shift = float(np.mean(scores)) - reference
-        drop = 100 * (vanilla_success - _success_rate(episodes))
+        drop = 100 * (vanilla_success - success_rate(episodes))
         sigma_units = f"{shift / final.sigma_v:+.2f}" if final.sigma_v > 0 else "n/a"
         rows.append(
             [
                 condition,
                 len(episodes),
-                percent(_success_rate(episodes)),
+                percent(success_rate(episodes)),
                 f"{drop:+.1f} pts",
                 f"{shift:+.4g}",
                 sigma_units,
-                _interval(held_out, scores, cfg),
+                auroc_interval(held_out, scores, cfg),
                 percent(BinaryRates.from_scores(held_out, scores, final.conformal_threshold).tpr),
             ]
         )
@@ -679,7 +573,11 @@ def _success_table(vanilla, conditions, fits, negatives, positives, cfg) -> str:
 
 def _auroc_table(conditions, names, negatives, positives, cfg) -> str:
     rows = [
-        [condition, len(episodes), *(_interval(negatives[n], positives[condition][n], cfg) for n in names)]
+        [
+            condition,
+            len(episodes),
+            *(auroc_interval(negatives[n], positives[condition][n], cfg) for n in names),
+        ]
         for condition, episodes in conditions.items()
     ]
     return markdown_table(["Condition", "Episodes", *names], rows)

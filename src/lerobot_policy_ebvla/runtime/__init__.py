@@ -4,8 +4,9 @@
   quantile of a stated false-alarm rate, and `OODDecision`, its verdict on a batch of scores.
 - `statistics`: what the chunk scores measure against, fitted on vanilla rollouts (`PhaseStatistics`,
   `ContextStatistics`, `ContextNeighbours`, `CombinedStatistics`).
-- `scores`: the `ChunkScore` protocol, one class per OOD score (final energy, phase energy, context distance,
-  energy and context, context k-NN), and `SCORES`, the registry that names them.
+- `scores`: the `ChunkScore` protocol, one class per OOD score (final energy and phase energy, each also
+  two-sided, context distance, energy and context, context k-NN, two-sided energy and context k-NN), and
+  `SCORES`, the registry that names them.
 - `calibration`: `OODCalibration`, the threshold statistics of one chunk score (`ood_calibration.json` beside
   the weights, the score's statistics in safetensors files beside it).
 - `monitor`: `EnergyOODMonitor`, which applies a calibration to chunks and rollouts as they come.

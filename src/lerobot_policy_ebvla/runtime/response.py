@@ -3,7 +3,8 @@
 After each refinement, the score of every chunk is compared to the threshold T = mu_v + k * sigma_v (Eq. 5)
 of the checkpoint's `ood_calibration.json`, with the one rule of `threshold.py`: only a score <= T is in
 distribution, so +inf (diverged refinement) and NaN are flagged. The score is the calibration's
-(`OODCalibration.chunk_score`, one of `scores.SCORES`: the final energy E(a^(K_inf), C) by default); a score
+(`OODCalibration.chunk_score`, one of `scores.SCORES`: the final energy E(a^(K_inf), C) is the paper's, the
+context k-NN distance what `ebvla-ood-report --calibrate_to` saves by default); a score
 that reads the chunk's pooled context has the policy compute it from the backbone pass that encoded the chunk's
 context. `EBVLAConfig.ood_response` picks what happens to a flagged chunk:
 
