@@ -35,6 +35,7 @@ from .configuration_ebvla import EBVLAConfig
 from .energy_head import ContextKV, EBVLAEnergyHead
 from .mcmc import EnergyFn, RefinementResult, refine_actions, sample_initial_actions
 from .runtime.response import EnergyOODResponse, OODResponseDecision, respond_to_energy
+from .training_signal import corrupt_observation, energy_margin_loss
 
 logger = logging.getLogger(__name__)
 
@@ -552,7 +553,25 @@ class EBVLA(nn.Module):
             contrastive = self.contrastive_energy_loss(kv, target, generator)
             loss = loss + cfg.energy_contrastive_weight * contrastive
             info["contrastive_loss"] = contrastive.item()
+        if cfg.energy_ood_margin_weight > 0:
+            margin_loss, gap = self.ood_margin_loss(batch, kv, target, generator)
+            loss = loss + cfg.energy_ood_margin_weight * margin_loss
+            info["ood_margin_loss"], info["ood_energy_gap"] = margin_loss.item(), gap
         return loss, info
+
+    def ood_margin_loss(
+        self, batch: dict[str, Tensor], kv: ContextKV, target: Tensor, generator: torch.Generator
+    ) -> tuple[Tensor, float]:
+        """`training_signal.energy_margin_loss` of the expert chunks under corrupted copies of the batch's
+        observations, and the mean energy gap E(a*, C~) - E(a*, C) it acts on."""
+        cfg = self.config
+        corrupted = corrupt_observation(
+            batch, list(cfg.image_features), cfg.energy_ood_corruptions, generator, state_key=OBS_STATE
+        )
+        clean = self.head(target, kv).mean(dim=-1)
+        shifted = self.head(target, self.encode_context(corrupted)).mean(dim=-1)
+        loss = energy_margin_loss(clean, shifted, cfg.energy_ood_margin)
+        return loss, (shifted - clean).mean().item()
 
     def contrastive_energy_loss(self, kv: ContextKV, target: Tensor, generator: torch.Generator) -> Tensor:
         """InfoNCE over chunks: under each context C_i, the expert chunk a*_i must have the lowest energy.
