@@ -38,6 +38,23 @@ def test_margin_term_is_added_with_its_weight_and_reported():
     assert with_term.item() == pytest.approx(plain.item() + 0.5 * info["ood_margin_loss"], rel=1e-4)
 
 
+@pytest.mark.parametrize("chunk", ["expert", "refined"])
+def test_margin_term_runs_on_either_chunk_and_reaches_the_backbone(chunk):
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(
+        tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin=100.0, energy_ood_margin_chunk=chunk)
+    )
+    margin, _ = policy.model.ood_margin_loss(
+        tiny_batch(policy.config, batch_size=3),
+        policy.model.encode_context(tiny_batch(policy.config, batch_size=3)),
+        tiny_batch(policy.config, batch_size=3)["action"],
+        torch.Generator().manual_seed(0),
+        [0.1, 0.1],
+    )
+    margin.backward()
+    assert policy.model.backbone.state_proj.weight.grad.abs().sum() > 0
+
+
 def test_margin_loss_is_zero_once_the_corrupted_energy_is_a_margin_above():
     clean = torch.tensor([0.0, 1.0])
     assert energy_margin_loss(clean, clean + 2.0, margin=1.0).item() == 0.0
@@ -114,7 +131,12 @@ def test_channel_gain_and_shift_do_what_they_say():
 
 @pytest.mark.parametrize(
     ("field", "value"),
-    [("energy_ood_margin_weight", -0.1), ("energy_ood_margin", 0.0), ("energy_ood_corruptions", ("fog",))],
+    [
+        ("energy_ood_margin_weight", -0.1),
+        ("energy_ood_margin", 0.0),
+        ("energy_ood_corruptions", ("fog",)),
+        ("energy_ood_margin_chunk", "prior"),
+    ],
 )
 def test_margin_fields_are_validated_by_name(field, value):
     with pytest.raises(ValueError, match=field):

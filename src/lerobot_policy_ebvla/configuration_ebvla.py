@@ -24,6 +24,7 @@ FROZEN_WEIGHTS_DTYPES = ("bfloat16", "float32")
 CONTRASTIVE_DTYPES = ("float32", "bfloat16", "auto")
 # The generic corruptions of `training_signal.corrupt_observation` (kept here: the config imports no torch).
 OOD_CORRUPTIONS = ("channel_gain", "patch_swap", "shift", "state_noise")
+OOD_MARGIN_CHUNKS = ("expert", "refined")
 
 
 @PreTrainedConfig.register_subclass("ebvla")
@@ -154,6 +155,10 @@ class EBVLAConfig(PreTrainedConfig):
             sit below the data and read as more familiar than vanilla; this term pins the level. 0 (default)
             is off. It costs one more backbone pass and one head pass per training step.
         energy_ood_margin: Margin m of that hinge, in energy units.
+        energy_ood_margin_chunk: Which chunk's energies the hinge compares: "expert", a* under C~ against a*
+            under C; "refined", the chunk refined under C~ (same a^(0) and step sizes, no graph) against the
+            training chain's refined chunk under C, so that min_a E(a, C~) rises (the shift's refined energy can
+            fall while E(a*, C~) rises: docs/energy_study.md).
         energy_ood_corruptions: Corruptions drawn from (one per observation), a non-empty subset of
             `training_signal.CORRUPTIONS`: "channel_gain" (random per-channel gains), "patch_swap" (a
             rectangle from another observation of the batch), "shift" (a translation with a black border),
@@ -313,6 +318,7 @@ class EBVLAConfig(PreTrainedConfig):
     energy_contrastive_dtype: str = "float32"
     energy_ood_margin_weight: float = 0.0
     energy_ood_margin: float = 1.0
+    energy_ood_margin_chunk: str = "expert"
     energy_ood_corruptions: tuple[str, ...] = ("channel_gain", "patch_swap", "shift")
 
     # Inference options beyond the paper (off by default).
@@ -430,6 +436,10 @@ class EBVLAConfig(PreTrainedConfig):
             raise ValueError(f"`energy_ood_margin_weight` must be >= 0. Got {self.energy_ood_margin_weight}.")
         if not self.energy_ood_margin > 0:
             raise ValueError(f"`energy_ood_margin` must be > 0. Got {self.energy_ood_margin}.")
+        if self.energy_ood_margin_chunk not in OOD_MARGIN_CHUNKS:
+            raise ValueError(
+                f"`energy_ood_margin_chunk` must be one of {OOD_MARGIN_CHUNKS}. Got {self.energy_ood_margin_chunk!r}."
+            )
         unknown = [kind for kind in self.energy_ood_corruptions if kind not in OOD_CORRUPTIONS]
         if unknown or not self.energy_ood_corruptions:
             raise ValueError(

@@ -554,22 +554,39 @@ class EBVLA(nn.Module):
             loss = loss + cfg.energy_contrastive_weight * contrastive
             info["contrastive_loss"] = contrastive.item()
         if cfg.energy_ood_margin_weight > 0:
-            margin_loss, gap = self.ood_margin_loss(batch, kv, target, generator)
+            chunk = target if cfg.energy_ood_margin_chunk == "expert" else last.actions.detach()
+            margin_loss, gap = self.ood_margin_loss(batch, kv, chunk, generator, step_sizes)
             loss = loss + cfg.energy_ood_margin_weight * margin_loss
             info["ood_margin_loss"], info["ood_energy_gap"] = margin_loss.item(), gap
         return loss, info
 
     def ood_margin_loss(
-        self, batch: dict[str, Tensor], kv: ContextKV, target: Tensor, generator: torch.Generator
+        self,
+        batch: dict[str, Tensor],
+        kv: ContextKV,
+        chunk: Tensor,
+        generator: torch.Generator,
+        step_sizes: list[float],
     ) -> tuple[Tensor, float]:
-        """`training_signal.energy_margin_loss` of the expert chunks under corrupted copies of the batch's
-        observations, and the mean energy gap E(a*, C~) - E(a*, C) it acts on."""
+        """`training_signal.energy_margin_loss` under corrupted copies of the batch's observations, and the mean
+        energy gap it acts on.
+
+        `energy_ood_margin_chunk="expert"`: E(a*, C~) against E(a*, C), `chunk` being a*. "refined": the energy
+        of the chunk refined under C~ (the same a^(0) and step sizes as the training chain, no graph) against
+        that of the training chain's own refined chunk `chunk` under C, so that min_a E(a, C~) rises.
+        """
         cfg = self.config
-        corrupted = corrupt_observation(
+        corrupted_batch = corrupt_observation(
             batch, list(cfg.image_features), cfg.energy_ood_corruptions, generator, state_key=OBS_STATE
         )
-        clean = self.head(target, kv).mean(dim=-1)
-        shifted = self.head(target, self.encode_context(corrupted)).mean(dim=-1)
+        corrupted_kv = self.encode_context(corrupted_batch)
+        corrupted_chunk = chunk
+        if cfg.energy_ood_margin_chunk == "refined":
+            initial = self._initial_actions(chunk.shape[0], kv[0][0], generator)
+            detached_kv = [(k.detach(), v.detach()) for k, v in corrupted_kv]
+            corrupted_chunk = self._refine(detached_kv, initial, step_sizes, generator).actions.detach()
+        clean = self.head(chunk, kv).mean(dim=-1)
+        shifted = self.head(corrupted_chunk, corrupted_kv).mean(dim=-1)
         loss = energy_margin_loss(clean, shifted, cfg.energy_ood_margin)
         return loss, (shifted - clean).mean().item()
 
