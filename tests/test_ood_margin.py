@@ -136,8 +136,38 @@ def test_channel_gain_and_shift_do_what_they_say():
         ("energy_ood_margin", 0.0),
         ("energy_ood_corruptions", ("fog",)),
         ("energy_ood_margin_chunk", "prior"),
+        ("energy_ood_margin_on", "action"),
     ],
 )
 def test_margin_fields_are_validated_by_name(field, value):
     with pytest.raises(ValueError, match=field):
         tiny_config(**{field: value})
+
+
+def test_context_margin_trains_only_the_context_energy():
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on="context"))
+    margin, _ = policy.model.context_margin_loss(tiny_batch(policy.config, batch_size=3), torch.Generator())
+    margin.backward()
+    assert all(p.grad is None for p in policy.model.backbone.parameters())
+    assert all(p.grad is None for p in policy.model.head.parameters())
+    assert any(
+        p.grad is not None and p.grad.abs().sum() > 0 for p in policy.model.context_energy.parameters()
+    )
+
+
+def test_joint_final_energy_is_the_head_energy_plus_the_context_energy():
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on="context")).eval()
+    batch = tiny_batch(policy.config, batch_size=3, with_action=False)
+    chunk, readout = policy.predict_action_chunk(
+        batch, generator=torch.Generator().manual_seed(0), return_energy=True
+    )
+    head = policy.score_action_chunks(batch, chunk[:, None])[:, 0]
+    context = policy.model.context_energy(policy.context_features(batch))
+    torch.testing.assert_close(readout.final_energy, head + context, rtol=1e-4, atol=1e-4)
+
+
+def test_without_the_context_variant_the_policy_has_no_context_energy():
+    assert EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0)).model.context_energy is None
+    assert EBVLAPolicy(tiny_config(energy_ood_margin_on="context")).model.context_energy is None

@@ -155,6 +155,11 @@ class EBVLAConfig(PreTrainedConfig):
             sit below the data and read as more familiar than vanilla; this term pins the level. 0 (default)
             is off. It costs one more backbone pass and one head pass per training step.
         energy_ood_margin: Margin m of that hinge, in energy units.
+        energy_ood_margin_on: What the margin trains. "head": the head's energy E(a, C) itself (with
+            `energy_ood_margin_chunk`), through the backbone. "context": a joint energy E(a, C) + E_c(C), E_c a
+            small learned energy of the pooled (detached) context, trained by the margin alone and added to the
+            final energy only: the refinement, whose step length exp(e_t / tau) grows with the head's energy,
+            and the backbone are left as without the term.
         energy_ood_margin_chunk: Which chunk's energies the hinge compares: "expert", a* under C~ against a*
             under C; "refined", the chunk refined under C~ (same a^(0) and step sizes, no graph) against the
             training chain's refined chunk under C, so that min_a E(a, C~) rises (the shift's refined energy can
@@ -319,6 +324,7 @@ class EBVLAConfig(PreTrainedConfig):
     energy_ood_margin_weight: float = 0.0
     energy_ood_margin: float = 1.0
     energy_ood_margin_chunk: str = "expert"
+    energy_ood_margin_on: str = "head"
     energy_ood_corruptions: tuple[str, ...] = ("channel_gain", "patch_swap", "shift")
 
     # Inference options beyond the paper (off by default).
@@ -439,6 +445,10 @@ class EBVLAConfig(PreTrainedConfig):
         if self.energy_ood_margin_chunk not in OOD_MARGIN_CHUNKS:
             raise ValueError(
                 f"`energy_ood_margin_chunk` must be one of {OOD_MARGIN_CHUNKS}. Got {self.energy_ood_margin_chunk!r}."
+            )
+        if self.energy_ood_margin_on not in ("head", "context"):
+            raise ValueError(
+                f"`energy_ood_margin_on` must be 'head' or 'context'. Got {self.energy_ood_margin_on!r}."
             )
         unknown = [kind for kind in self.energy_ood_corruptions if kind not in OOD_CORRUPTIONS]
         if unknown or not self.energy_ood_corruptions:

@@ -35,7 +35,7 @@ from .configuration_ebvla import EBVLAConfig
 from .energy_head import ContextKV, EBVLAEnergyHead
 from .mcmc import EnergyFn, RefinementResult, refine_actions, sample_initial_actions
 from .runtime.response import EnergyOODResponse, OODResponseDecision, respond_to_energy
-from .training_signal import corrupt_observation, energy_margin_loss
+from .training_signal import EBVLAContextEnergy, corrupt_observation, energy_margin_loss
 
 logger = logging.getLogger(__name__)
 
@@ -347,6 +347,10 @@ class EBVLA(nn.Module):
         # whatever else consumed the global RNG in between.
         self.register_buffer("mcmc_seed", torch.randint(0, 2**62, ()))
         self.register_buffer("train_steps", torch.zeros((), dtype=torch.long))
+        # Built last, so that the backbone's and head's initial weights do not depend on it.
+        self.context_energy = None
+        if config.energy_ood_margin_weight > 0 and config.energy_ood_margin_on == "context":
+            self.context_energy = EBVLAContextEnergy(self.backbone.context_dim)
 
     def training_generator(self, device: torch.device) -> torch.Generator:
         """A generator for one training step; ranks of a multi-process run get different streams."""
@@ -461,9 +465,10 @@ class EBVLA(nn.Module):
         backbone pass that encoded the context.
         """
         cfg = self.config
+        with_features = return_context_features or self.context_energy is not None
         with torch.no_grad():
-            encoded = self._inference_context(batch, return_context_features)
-            kv, features = encoded if return_context_features else (encoded, None)
+            encoded = self._inference_context(batch, with_features)
+            kv, features = encoded if with_features else (encoded, None)
         batch_size, restarts = kv[0][0].shape[0], cfg.num_restarts
         initial = self._initial_actions(batch_size * restarts, kv[0][0], generator)
         if prefix is not None:
@@ -480,6 +485,8 @@ class EBVLA(nn.Module):
         )
         with torch.no_grad():
             final_energy = self.head(result.actions, kv).mean(dim=-1)
+            if self.context_energy is not None:  # the joint energy E(a, C) + E_c(C)
+                final_energy = final_energy + self.context_energy(features).repeat_interleave(restarts)
         final_energy = torch.where(result.diverged, math.inf, final_energy)
         if result.diverged.any():
             logger.warning(
@@ -553,12 +560,33 @@ class EBVLA(nn.Module):
             contrastive = self.contrastive_energy_loss(kv, target, generator)
             loss = loss + cfg.energy_contrastive_weight * contrastive
             info["contrastive_loss"] = contrastive.item()
-        if cfg.energy_ood_margin_weight > 0:
+        if self.context_energy is not None:
+            margin_loss, gap = self.context_margin_loss(batch, generator)
+            loss = loss + cfg.energy_ood_margin_weight * margin_loss
+            info["ood_margin_loss"], info["ood_energy_gap"] = margin_loss.item(), gap
+        elif cfg.energy_ood_margin_weight > 0:
             chunk = target if cfg.energy_ood_margin_chunk == "expert" else last.actions.detach()
             margin_loss, gap = self.ood_margin_loss(batch, kv, chunk, generator, step_sizes)
             loss = loss + cfg.energy_ood_margin_weight * margin_loss
             info["ood_margin_loss"], info["ood_energy_gap"] = margin_loss.item(), gap
         return loss, info
+
+    def context_margin_loss(
+        self, batch: dict[str, Tensor], generator: torch.Generator
+    ) -> tuple[Tensor, float]:
+        """The margin on the context energy E_c of the joint energy E(a, C) + E_c(C), on the pooled backbone
+        contexts of the batch and of its corrupted copy, both detached (the policy's backbone and head are
+        trained as without the term), plus E_c(C)^2 on the data (the hinge leaves E_c's level free)."""
+        cfg = self.config
+        corrupted_batch = corrupt_observation(
+            batch, list(cfg.image_features), cfg.energy_ood_corruptions, generator, state_key=OBS_STATE
+        )
+        with torch.no_grad():
+            clean_features = pooled_context(self.backbone(batch))
+            corrupted_features = pooled_context(self.backbone(corrupted_batch))
+        clean, shifted = self.context_energy(clean_features), self.context_energy(corrupted_features)
+        loss = energy_margin_loss(clean, shifted, cfg.energy_ood_margin) + clean.float().pow(2).mean()
+        return loss, (shifted - clean).mean().item()
 
     def ood_margin_loss(
         self,

@@ -17,7 +17,7 @@ by 5 in 8 steps while the gap stayed at 0.
 """
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from .configuration_ebvla import OOD_CORRUPTIONS as CORRUPTIONS
 
@@ -130,3 +130,17 @@ def energy_margin_loss(clean_energy: Tensor, corrupted_energy: Tensor, margin: f
     """mean_i max(0, m - (E(a*_i, C~_i) - E(a*_i, C_i))): zero once every corrupted context costs m more."""
     gap = corrupted_energy.float() - clean_energy.float()
     return torch.relu(margin - gap).mean()
+
+
+class EBVLAContextEnergy(nn.Module):
+    """E_c(C): a scalar energy of the pooled context, added to the head's final energy (a joint energy
+    E(a, C) + E_c(C), `energy_ood_margin_on="context"`). It has no gradient in a, so the MCMC refinement and
+    its energy-scaled steps are those of the head alone."""
+
+    def __init__(self, dim: int):
+        super().__init__()
+        self.net = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, dim), nn.SiLU(), nn.Linear(dim, 1))
+
+    def forward(self, features: Tensor) -> Tensor:
+        """(B, D) pooled contexts -> (B,) energies."""
+        return self.net(features.float()).squeeze(-1)
