@@ -54,6 +54,11 @@ def run_table(folder: Path, chunks: int) -> dict[str, dict]:
     vanilla = episodes(folder / "vanilla")
     v_raw, v_two = scores(vanilla, chunks, mu, sigma)
     rows = {"vanilla": {"n": len(vanilla), "success": np.mean([ep[0].success for ep in vanilla])}}
+    pooled_raw, pooled_two, outcomes = (
+        [],
+        [],
+        [(ep[0].success, r) for ep, r in zip(vanilla, v_raw, strict=True)],
+    )
     for sub in sorted(p for p in folder.iterdir() if p.is_dir() and p.name not in ("calibration", "vanilla")):
         if records_file_in(sub) is None:
             continue
@@ -65,6 +70,26 @@ def run_table(folder: Path, chunks: int) -> dict[str, dict]:
             "one_sided": cell(v_raw, raw),
             "two_sided": cell(v_two, two),
         }
+        if sub.name != "vanilla_extra":  # extra vanilla rollouts are not a perturbation
+            pooled_raw.append(raw)
+            pooled_two.append(two)
+            outcomes += [(ep[0].success, r) for ep, r in zip(eps, raw, strict=True)]
+    pooled_eps = np.concatenate(pooled_raw)
+    rows["all perturbations pooled"] = {
+        "n": len(pooled_eps),
+        "success": np.mean([o for o, _ in outcomes[len(vanilla) :]]),
+        "one_sided": cell(v_raw, pooled_eps),
+        "two_sided": cell(v_two, np.concatenate(pooled_two)),
+    }
+    # Failed vs successful, over every held-out rollout (vanilla and perturbed), raw final energy, first chunks.
+    failed = np.array([r for o, r in outcomes if not o])
+    succeeded = np.array([r for o, r in outcomes if o])
+    rows["failed vs successful (all held out)"] = {
+        "n": len(outcomes),
+        "success": len(succeeded) / len(outcomes),
+        "one_sided": cell(succeeded, failed),
+        "two_sided": ("-", float("nan")),
+    }
     return rows
 
 
