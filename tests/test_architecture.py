@@ -27,6 +27,8 @@ CORE = {
     "modeling_ebvla",
     "compile_ebvla",
     "rtc_ebvla",
+    "inputs_ebvla",
+    "training_signal",
 }
 # What each part may import from the package (besides itself). The package's own __init__ is the facade.
 ALLOWED = {

@@ -189,9 +189,9 @@ def test_contrastive_term_in_bf16_runs_its_head_pass_in_bf16_and_stays_close_to_
 
 @pytest.mark.parametrize(("native", "expected"), [(True, torch.bfloat16), (False, torch.float32)])
 def test_contrastive_dtype_auto_uses_bf16_only_where_the_device_has_it(monkeypatch, native, expected):
-    from lerobot_policy_ebvla import modeling_ebvla
+    from lerobot_policy_ebvla import training_signal
 
-    monkeypatch.setattr(modeling_ebvla, "native_bf16", lambda device_type: native)
+    monkeypatch.setattr(training_signal, "native_bf16", lambda device_type: native)
     batch = tiny_batch(tiny_config(), batch_size=3)
     policy = EBVLAPolicy(tiny_config(energy_contrastive_weight=1.0, energy_contrastive_dtype="auto"))
     dtypes = []

@@ -22,6 +22,9 @@ HOLD_ACTIONS = ("zero_delta", "current_state")
 COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 FROZEN_WEIGHTS_DTYPES = ("bfloat16", "float32")
 CONTRASTIVE_DTYPES = ("float32", "bfloat16", "auto")
+# The generic corruptions of `training_signal.corrupt_observation` (kept here: the config imports no torch).
+OOD_CORRUPTIONS = ("channel_gain", "patch_swap", "shift", "state_noise")
+OOD_MARGIN_CHUNKS = ("expert", "refined")
 
 
 @PreTrainedConfig.register_subclass("ebvla")
@@ -145,6 +148,26 @@ class EBVLAConfig(PreTrainedConfig):
         energy_contrastive_temperature: Temperature of the InfoNCE logits -E / T. The energy level also sets
             the MCMC step length exp(e_t / tau) (Eq. 3); a small T asks for small energy gaps only, so the
             ranking does not inflate the energies that drive refinement.
+        energy_ood_margin_weight: Weight of an added outlier-exposure term (`training_signal`, issue 32):
+            under a generically corrupted copy of each observation (`energy_ood_corruptions`), the expert
+            chunk's energy must exceed its energy under the real observation by `energy_ood_margin` (hinge).
+            The L1 and contrastive terms leave the energy's level per context free, so an unseen context can
+            sit below the data and read as more familiar than vanilla; this term pins the level. 0 (default)
+            is off. It costs one more backbone pass and one head pass per training step.
+        energy_ood_margin: Margin m of that hinge, in energy units.
+        energy_ood_margin_on: What the margin trains. "head": the head's energy E(a, C) itself (with
+            `energy_ood_margin_chunk`), through the backbone. "context": a joint energy E(a, C) + E_c(C), E_c a
+            small learned energy of the pooled (detached) context, trained by the margin alone and added to the
+            final energy only: the refinement, whose step length exp(e_t / tau) grows with the head's energy,
+            and the backbone are left as without the term.
+        energy_ood_margin_chunk: Which chunk's energies the hinge compares: "expert", a* under C~ against a*
+            under C; "refined", the chunk refined under C~ (same a^(0) and step sizes, no graph) against the
+            training chain's refined chunk under C, so that min_a E(a, C~) rises (the shift's refined energy can
+            fall while E(a*, C~) rises: docs/energy_study.md).
+        energy_ood_corruptions: Corruptions drawn from (one per observation), a non-empty subset of
+            `training_signal.CORRUPTIONS`: "channel_gain" (random per-channel gains), "patch_swap" (a
+            rectangle from another observation of the batch), "shift" (a translation with a black border),
+            "state_noise" (N(0, 1) added to the normalized state).
         train_mcmc_steps_range: [K_min, K_max] of the number of MCMC steps sampled at every training step.
         inference_mcmc_steps: Number K_inf of MCMC steps at inference.
         num_restarts: Refine this many chains per observation and keep the one with the lowest final
@@ -288,6 +311,11 @@ class EBVLAConfig(PreTrainedConfig):
     energy_contrastive_noise_std: float = 0.5
     energy_contrastive_temperature: float = 0.1
     energy_contrastive_dtype: str = "float32"
+    energy_ood_margin_weight: float = 0.0
+    energy_ood_margin: float = 1.0
+    energy_ood_margin_chunk: str = "expert"
+    energy_ood_margin_on: str = "head"
+    energy_ood_corruptions: tuple[str, ...] = ("channel_gain", "patch_swap", "shift")
 
     # Inference options beyond the paper (off by default).
     num_restarts: int = 1
@@ -414,6 +442,20 @@ class EBVLAConfig(PreTrainedConfig):
             )
         _check_one_of(self, "energy_contrastive_dtype", CONTRASTIVE_DTYPES)
         _check_positive(self, "energy_contrastive_temperature", "energy_contrastive_noise_std")
+        self._validate_ood_margin()
+
+    def _validate_ood_margin(self) -> None:
+        if self.energy_ood_margin_weight < 0:
+            raise ValueError(f"`energy_ood_margin_weight` must be >= 0. Got {self.energy_ood_margin_weight}.")
+        _check_positive(self, "energy_ood_margin")
+        _check_one_of(self, "energy_ood_margin_chunk", OOD_MARGIN_CHUNKS)
+        _check_one_of(self, "energy_ood_margin_on", ("head", "context"))
+        unknown = [kind for kind in self.energy_ood_corruptions if kind not in OOD_CORRUPTIONS]
+        if unknown or not self.energy_ood_corruptions:
+            raise ValueError(
+                f"`energy_ood_corruptions` must be a non-empty subset of {OOD_CORRUPTIONS}. "
+                f"Got {self.energy_ood_corruptions}."
+            )
 
     def _validate_inference_options(self) -> None:
         _check_at_least(self, 1, "num_restarts")

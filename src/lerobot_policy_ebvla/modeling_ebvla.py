@@ -7,7 +7,6 @@ decision at run time; `monitoring/` studies it offline.
 """
 
 import dataclasses
-import functools
 import logging
 import math
 import os
@@ -32,10 +31,17 @@ from .backbone_resnet import EBVLAResNetBackbone
 from .compile_ebvla import compiled_context, compiled_energy_fn
 from .configuration_ebvla import EBVLAConfig
 from .energy_head import ContextKV, EBVLAEnergyHead
+from .inputs_ebvla import validate_actions, validate_observation
 from .mcmc import EnergyFn, RefinementResult, RTCPrefix, refine_actions, sample_initial_actions
 from .rtc_ebvla import rtc_prefix
 from .runtime.response import EnergyOODResponse, respond_to_energy
 from .runtime.threshold import OODDecision
+from .training_signal import (
+    EBVLAContextEnergy,
+    contrastive_in_bf16,
+    corrupt_observation,
+    energy_margin_loss,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -330,6 +336,10 @@ class EBVLA(nn.Module):
         # whatever else consumed the global RNG in between.
         self.register_buffer("mcmc_seed", torch.randint(0, 2**62, ()))
         self.register_buffer("train_steps", torch.zeros((), dtype=torch.long))
+        # Built last, so that the backbone's and head's initial weights do not depend on it.
+        self.context_energy = None
+        if config.energy_ood_margin_weight > 0 and config.energy_ood_margin_on == "context":
+            self.context_energy = EBVLAContextEnergy(self.backbone.context_dim)
 
     def training_generator(self, device: torch.device) -> torch.Generator:
         """A generator for one training step; ranks of a multi-process run get different streams."""
@@ -418,9 +428,10 @@ class EBVLA(nn.Module):
         backbone pass that encoded the context.
         """
         cfg = self.config
+        with_features = return_context_features or self.context_energy is not None
         with torch.no_grad():
-            encoded = self._inference_context(batch, return_context_features)
-            kv, features = encoded if return_context_features else (encoded, None)
+            encoded = self._inference_context(batch, with_features)
+            kv, features = encoded if with_features else (encoded, None)
         batch_size, restarts = kv[0][0].shape[0], cfg.num_restarts
         initial = self._initial_actions(batch_size * restarts, kv[0][0], generator)
         if prefix is not None:
@@ -437,6 +448,8 @@ class EBVLA(nn.Module):
         )
         with torch.no_grad():
             final_energy = self.head(result.actions, kv).mean(dim=-1)
+            if self.context_energy is not None:  # the joint energy E(a, C) + E_c(C)
+                final_energy = final_energy + self.context_energy(features).repeat_interleave(restarts)
         final_energy = torch.where(result.diverged, math.inf, final_energy)
         if result.diverged.any():
             logger.warning(
@@ -510,7 +523,63 @@ class EBVLA(nn.Module):
             contrastive = self.contrastive_energy_loss(kv, target, generator)
             loss = loss + cfg.energy_contrastive_weight * contrastive
             info["contrastive_loss"] = contrastive.item()
+        if self.context_energy is not None:
+            margin_loss, gap = self.context_margin_loss(batch, generator)
+            loss = loss + cfg.energy_ood_margin_weight * margin_loss
+            info["ood_margin_loss"], info["ood_energy_gap"] = margin_loss.item(), gap
+        elif cfg.energy_ood_margin_weight > 0:
+            chunk = target if cfg.energy_ood_margin_chunk == "expert" else last.actions.detach()
+            margin_loss, gap = self.ood_margin_loss(batch, kv, chunk, generator, step_sizes)
+            loss = loss + cfg.energy_ood_margin_weight * margin_loss
+            info["ood_margin_loss"], info["ood_energy_gap"] = margin_loss.item(), gap
         return loss, info
+
+    def context_margin_loss(
+        self, batch: dict[str, Tensor], generator: torch.Generator
+    ) -> tuple[Tensor, float]:
+        """The margin on the context energy E_c of the joint energy E(a, C) + E_c(C), on the pooled backbone
+        contexts of the batch and of its corrupted copy, both detached (the policy's backbone and head are
+        trained as without the term), plus E_c(C)^2 on the data (the hinge leaves E_c's level free)."""
+        cfg = self.config
+        corrupted_batch = corrupt_observation(
+            batch, list(cfg.image_features), cfg.energy_ood_corruptions, generator, state_key=OBS_STATE
+        )
+        with torch.no_grad():
+            clean_features = pooled_context(self.backbone(batch))
+            corrupted_features = pooled_context(self.backbone(corrupted_batch))
+        clean, shifted = self.context_energy(clean_features), self.context_energy(corrupted_features)
+        loss = energy_margin_loss(clean, shifted, cfg.energy_ood_margin) + clean.float().pow(2).mean()
+        return loss, (shifted - clean).mean().item()
+
+    def ood_margin_loss(
+        self,
+        batch: dict[str, Tensor],
+        kv: ContextKV,
+        chunk: Tensor,
+        generator: torch.Generator,
+        step_sizes: list[float],
+    ) -> tuple[Tensor, float]:
+        """`training_signal.energy_margin_loss` under corrupted copies of the batch's observations, and the mean
+        energy gap it acts on.
+
+        `energy_ood_margin_chunk="expert"`: E(a*, C~) against E(a*, C), `chunk` being a*. "refined": the energy
+        of the chunk refined under C~ (the same a^(0) and step sizes as the training chain, no graph) against
+        that of the training chain's own refined chunk `chunk` under C, so that min_a E(a, C~) rises.
+        """
+        cfg = self.config
+        corrupted_batch = corrupt_observation(
+            batch, list(cfg.image_features), cfg.energy_ood_corruptions, generator, state_key=OBS_STATE
+        )
+        corrupted_kv = self.encode_context(corrupted_batch)
+        corrupted_chunk = chunk
+        if cfg.energy_ood_margin_chunk == "refined":
+            initial = self._initial_actions(chunk.shape[0], kv[0][0], generator)
+            detached_kv = [(k.detach(), v.detach()) for k, v in corrupted_kv]
+            corrupted_chunk = self._refine(detached_kv, initial, step_sizes, generator).actions.detach()
+        clean = self.head(chunk, kv).mean(dim=-1)
+        shifted = self.head(corrupted_chunk, corrupted_kv).mean(dim=-1)
+        loss = energy_margin_loss(clean, shifted, cfg.energy_ood_margin)
+        return loss, (shifted - clean).mean().item()
 
     def contrastive_energy_loss(self, kv: ContextKV, target: Tensor, generator: torch.Generator) -> Tensor:
         """InfoNCE over chunks: under each context C_i, the expert chunk a*_i must have the lowest energy.
@@ -565,26 +634,6 @@ def sample_training_step_sizes(config: EBVLAConfig, generator: torch.Generator) 
     return alphas.expand(num_steps).tolist()
 
 
-def contrastive_in_bf16(config: EBVLAConfig, device_type: str) -> bool:
-    """Whether the contrastive term's head pass runs under bf16 autocast (`energy_contrastive_dtype`)."""
-    if config.energy_contrastive_dtype == "auto":
-        return native_bf16(device_type)
-    return config.energy_contrastive_dtype == "bfloat16"
-
-
-@functools.cache
-def native_bf16(device_type: str) -> bool:
-    """Whether `device_type` multiplies bf16 matrices in hardware: a CUDA GPU that supports bf16, or a CPU
-    with AVX512-BF16 or AMX tiles (elsewhere oneDNN emulates bf16, slower than fp32)."""
-    if device_type == "cuda":
-        return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
-    if device_type == "cpu":
-        # Private torch names: getattr, so that a torch without them reads as "no native bf16".
-        probes = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
-        return any(getattr(torch.cpu, probe, lambda: False)() for probe in probes)
-    return False
-
-
 def _load_saved_config(pretrained_name_or_path: str | Path, **kwargs) -> PreTrainedConfig:
     """The saved config; a value its checks reject is reported with the file and the field, which draccus's
     own "Couldn't instantiate class" message leaves out."""
@@ -611,58 +660,6 @@ def make_backbone(config: EBVLAConfig) -> nn.Module:
     return EBVLAVisionLanguageBackbone(config)
 
 
-def validate_observation(batch: dict[str, Tensor], config: EBVLAConfig) -> None:
-    """Raises a ValueError naming the key when a camera or the state is missing, misshapen, non-finite, of the
-    wrong dtype, or of another batch size than the rest of the observation."""
-    resizes = config.backbone == "vlm" or config.resize_shape is not None
-    for key, feature in config.image_features.items():
-        if key not in batch:
-            raise ValueError(
-                f"Missing camera `{key}`: the policy was configured with cameras {list(config.image_features)}, "
-                f"the batch has keys {sorted(batch)}. Rename cameras with the pre-processor's rename map."
-            )
-        image = batch[key]
-        if not image.is_floating_point():
-            raise ValueError(
-                f"Camera `{key}` has dtype {image.dtype}; the policy expects float images in [0, 1], as LeRobot's "
-                "datasets and envs give them (lerobot-train divides uint8 frames by 255). Convert with "
-                "`image.float() / 255`."
-            )
-        expected = (
-            f"(B, {feature.shape[0]}, H, W)" if resizes else f"(B, {', '.join(map(str, feature.shape))})"
-        )
-        ok = image.ndim == 4 and image.shape[1] == feature.shape[0]
-        ok &= resizes or tuple(image.shape[1:]) == tuple(feature.shape)
-        if not ok:
-            raise ValueError(f"Camera `{key}` must be {expected}. Got {tuple(image.shape)}.")
-        _check_finite(image, key)
-    if config.state_dim is not None:
-        if OBS_STATE not in batch:
-            raise ValueError(
-                f"Missing `{OBS_STATE}` of size {config.state_dim}. Batch keys: {sorted(batch)}."
-            )
-        state = batch[OBS_STATE]
-        if state.ndim != 2 or state.shape[1] != config.state_dim:
-            raise ValueError(f"`{OBS_STATE}` must be (B, {config.state_dim}). Got {tuple(state.shape)}.")
-        _check_finite(state, OBS_STATE)
-    inputs = [*config.image_features, *([OBS_STATE] if config.state_dim is not None else [])]
-    sizes = {key: batch[key].shape[0] for key in inputs}
-    if len(set(sizes.values())) > 1:
-        found = ", ".join(f"`{key}` {size}" for key, size in sizes.items())
-        raise ValueError(f"Every input of an observation batch needs the same batch size B. Got {found}.")
-
-
-def validate_actions(batch: dict[str, Tensor], config: EBVLAConfig) -> None:
-    """Raises a ValueError when the training target is missing, misshapen or non-finite."""
-    expected = (config.chunk_size, config.action_dim)
-    if ACTION not in batch:
-        raise ValueError(f"Training needs `{ACTION}` of shape (B, {expected[0]}, {expected[1]}).")
-    action = batch[ACTION]
-    if action.ndim != 3 or tuple(action.shape[1:]) != expected:
-        raise ValueError(f"`{ACTION}` must be (B, {expected[0]}, {expected[1]}). Got {tuple(action.shape)}.")
-    _check_finite(action, ACTION)
-
-
 def _batch_size(batch: dict[str, Tensor]) -> int:
     return next(v.shape[0] for v in batch.values() if isinstance(v, Tensor) and v.ndim > 0)
 
@@ -687,8 +684,3 @@ def repeat_observations(batch: dict[str, Tensor], n: int) -> dict[str, Tensor]:
 def _without_inference_tensors(batch: dict[str, Tensor]) -> dict[str, Tensor]:
     """Clones tensors made under `torch.inference_mode` (lerobot-eval), which autograd cannot record."""
     return {k: v.clone() if isinstance(v, Tensor) and v.is_inference() else v for k, v in batch.items()}
-
-
-def _check_finite(tensor: Tensor, key: str) -> None:
-    if tensor.is_floating_point() and not torch.isfinite(tensor).all():
-        raise ValueError(f"`{key}` contains NaN or infinite values.")

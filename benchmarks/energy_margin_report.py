@@ -1,0 +1,126 @@
+"""Per-condition table of sweep records: success, and the final energy's AUROC one- and two-sided (issue 32).
+
+For each run (a folder of `metaworld_perturbation_sweep.py` records: `calibration/`, `vanilla/`, one folder per
+condition) and each condition: the success rate of the 8 (or n) held-out rollouts; the AUROC of the rollout
+score against the held-out vanilla rollouts, with a stratified bootstrap 95% interval, where a rollout's score is
+the mean over its first `--chunks` chunks of
+
+- one-sided: the raw final energy E(a^(K_inf), C) (the paper's score);
+- two-sided: |z|, z = (E - mu_k) / sigma_k with mu_k, sigma_k the calibration rollouts' mean and std of the
+  final energy at the same chunk index k;
+
+and whether the condition is inverted (AUROC < 0.5).
+
+    python benchmarks/energy_margin_report.py --runs without=DIR1 with=DIR2 --output=table.md
+"""
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_interval
+from lerobot_policy_ebvla.monitoring.records import group_by_episode, read_energy_records, records_file_in
+
+
+def episodes(folder: Path) -> list[list]:
+    records = read_energy_records(records_file_in(folder))
+    return [sorted(chunks, key=lambda r: r.chunk_index) for chunks in group_by_episode(records).values()]
+
+
+def calibration_moments(calibration: list[list], chunks: int) -> tuple[np.ndarray, np.ndarray]:
+    energies = np.array([[r.final_energy for r in ep[:chunks]] for ep in calibration if len(ep) >= chunks])
+    return energies.mean(axis=0), energies.std(axis=0, ddof=1)
+
+
+def scores(eps: list[list], chunks: int, mu: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    raw, two_sided = [], []
+    for ep in eps:
+        e = np.array([r.final_energy for r in ep[:chunks]])
+        raw.append(e.mean())
+        two_sided.append(np.abs((e - mu[: len(e)]) / sigma[: len(e)]).mean())
+    return np.array(raw), np.array(two_sided)
+
+
+def cell(negatives: np.ndarray, positives: np.ndarray) -> tuple[str, float]:
+    value = auroc(negatives, positives)
+    low, high = bootstrap_auroc_interval(negatives, positives)
+    mark = " **inv**" if value < 0.5 else ""
+    return f"{value:.2f} [{low:.2f}, {high:.2f}]{mark}", value
+
+
+def run_table(folder: Path, chunks: int) -> dict[str, dict]:
+    mu, sigma = calibration_moments(episodes(folder / "calibration"), chunks)
+    vanilla = episodes(folder / "vanilla")
+    v_raw, v_two = scores(vanilla, chunks, mu, sigma)
+    rows = {"vanilla": {"n": len(vanilla), "success": np.mean([ep[0].success for ep in vanilla])}}
+    pooled_raw, pooled_two, outcomes = (
+        [],
+        [],
+        [(ep[0].success, r) for ep, r in zip(vanilla, v_raw, strict=True)],
+    )
+    for sub in sorted(p for p in folder.iterdir() if p.is_dir() and p.name not in ("calibration", "vanilla")):
+        if records_file_in(sub) is None:
+            continue
+        eps = episodes(sub)
+        raw, two = scores(eps, chunks, mu, sigma)
+        rows[sub.name] = {
+            "n": len(eps),
+            "success": np.mean([ep[0].success for ep in eps]),
+            "one_sided": cell(v_raw, raw),
+            "two_sided": cell(v_two, two),
+        }
+        if sub.name != "vanilla_extra":  # extra vanilla rollouts are not a perturbation
+            pooled_raw.append(raw)
+            pooled_two.append(two)
+            outcomes += [(ep[0].success, r) for ep, r in zip(eps, raw, strict=True)]
+    pooled_eps = np.concatenate(pooled_raw)
+    rows["all perturbations pooled"] = {
+        "n": len(pooled_eps),
+        "success": np.mean([o for o, _ in outcomes[len(vanilla) :]]),
+        "one_sided": cell(v_raw, pooled_eps),
+        "two_sided": cell(v_two, np.concatenate(pooled_two)),
+    }
+    # Failed vs successful, over every held-out rollout (vanilla and perturbed), raw final energy, first chunks.
+    failed = np.array([r for o, r in outcomes if not o])
+    succeeded = np.array([r for o, r in outcomes if o])
+    rows["failed vs successful (all held out)"] = {
+        "n": len(outcomes),
+        "success": len(succeeded) / len(outcomes),
+        "one_sided": cell(succeeded, failed),
+        "two_sided": ("-", float("nan")),
+    }
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", nargs="+", required=True, help="name=folder of sweep records")
+    parser.add_argument("--chunks", type=int, default=3)
+    parser.add_argument("--output", type=Path)
+    args = parser.parse_args()
+    runs = dict(item.split("=", 1) for item in args.runs)
+    tables = {name: run_table(Path(folder), args.chunks) for name, folder in runs.items()}
+    conditions = list(next(iter(tables.values())))
+    header = ["condition"]
+    for name in runs:
+        header += [f"{name}: success (n)", f"{name}: AUROC E, first {args.chunks}", f"{name}: AUROC abs(z)"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for condition in conditions:
+        cells = [condition]
+        for table in tables.values():
+            row = table.get(condition)
+            if row is None:
+                cells += ["-", "-", "-"]
+                continue
+            cells.append(f"{100 * row['success']:.0f}% ({row['n']})")
+            cells += [row["one_sided"][0], row["two_sided"][0]] if "one_sided" in row else ["-", "-"]
+        lines.append("| " + " | ".join(cells) + " |")
+    text = "\n".join(lines)
+    print(text)
+    if args.output:
+        args.output.write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()

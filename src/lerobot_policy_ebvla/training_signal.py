@@ -1,0 +1,172 @@
+"""Training signals beyond the paper's Eq. 4: outlier exposure for the energy (issue 32), and where the
+contrastive term's head pass runs in bf16.
+
+Outlier exposure: the expert chunk must cost more under a corrupted context.
+
+The paper's loss (Eq. 4, the L1 of the refined chunk) and the contrastive ranking both leave the energy's level
+per context free: adding any f(C) to E(a, C) changes neither the descent direction nor the ranking of chunks
+under one context. Nothing then stops a context the policy never saw from sitting *lower* than the data, and
+the final energy from flagging it as more familiar than vanilla (docs/energy_study.md, section "Why the energy
+falls"). `energy_margin_loss` pins the level: for each observation, under a generically corrupted copy C~ of its
+context (`corrupt_observation`, never the evaluation's perturbations), the expert chunk a* must cost at least
+`margin` more than under the real context,
+
+    L_margin = mean_i max(0, m - (E(a*_i, C~_i) - E(a*_i, C_i))).
+
+The gradient flows through both energies: the hinge then sees only the part of the energy that depends on the
+context, and cannot be met by raising every energy at once (a bias that also lengthens every MCMC step,
+exp(e_t / tau)). With a stop-gradient on the real side, a tiny policy did exactly that: its energies climbed
+by 5 in 8 steps while the gap stayed at 0.
+"""
+
+import functools
+
+import torch
+from torch import Tensor, nn
+
+from .configuration_ebvla import OOD_CORRUPTIONS as CORRUPTIONS
+from .configuration_ebvla import EBVLAConfig
+
+# Range of |log g| of "channel_gain"'s per-channel gains g (the sign drawn per channel): g in [0.30, 0.67] or
+# [1.5, 3.3]. Gains near 1 would look like the data, and a hinge on corruptions indistinguishable from the data is
+# minimized by an energy that ignores the context (Jensen: E relu(m - gap) >= relu(m - E gap) = m at E gap = 0).
+LOG_GAIN_RANGE = (0.4, 1.2)
+# Range of the side of "patch_swap"'s rectangle and of "shift"'s translation, as fractions of the image side.
+PATCH_RANGE = (0.3, 0.6)
+SHIFT_RANGE = (0.1, 0.25)
+# Std of "state_noise" in normalized state units.
+STATE_NOISE_STD = 1.0
+
+
+def _uniform(
+    low: float, high: float, shape: tuple[int, ...], generator: torch.Generator, ref: Tensor
+) -> Tensor:
+    return low + (high - low) * torch.rand(shape, generator=generator, device=ref.device, dtype=ref.dtype)
+
+
+def channel_gain(images: Tensor, gains: Tensor) -> Tensor:
+    """Each image's channels scaled by its own gains (B, C), clipped to [0, 1]."""
+    return (images * gains[:, :, None, None]).clamp(0.0, 1.0)
+
+
+def patch_swap(images: Tensor, sources: Tensor, boxes: list[tuple[int, int, int, int, int, int]]) -> Tensor:
+    """Each image with a rectangle (h, w at y, x) replaced by the rectangle of another image at (y2, x2)."""
+    out = images.clone()
+    for i, (h, w, y, x, y2, x2) in enumerate(boxes):
+        out[i, :, y : y + h, x : x + w] = sources[i, :, y2 : y2 + h, x2 : x2 + w]
+    return out
+
+
+def shift(images: Tensor, offsets: list[tuple[int, int]]) -> Tensor:
+    """Each image translated by (dy, dx) pixels, the uncovered border black."""
+    out = torch.zeros_like(images)
+    height, width = images.shape[-2:]
+    for i, (dy, dx) in enumerate(offsets):
+        src_y, dst_y = slice(max(0, -dy), height - max(0, dy)), slice(max(0, dy), height - max(0, -dy))
+        src_x, dst_x = slice(max(0, -dx), width - max(0, dx)), slice(max(0, dx), width - max(0, -dx))
+        out[i, :, dst_y, dst_x] = images[i, :, src_y, src_x]
+    return out
+
+
+def corrupt_observation(
+    batch: dict[str, Tensor],
+    camera_keys: list[str],
+    kinds: tuple[str, ...],
+    generator: torch.Generator,
+    state_key: str | None = None,
+) -> dict[str, Tensor]:
+    """A copy of `batch` in which each observation gets one corruption drawn uniformly from `kinds`.
+
+    The image corruptions act on every camera of the observation alike; "state_noise" adds N(0, 1) to the
+    normalized state (`state_key`). Other keys are shared with `batch`.
+    """
+    unknown = [kind for kind in kinds if kind not in CORRUPTIONS]
+    if unknown or not kinds:
+        raise ValueError(f"Corruptions must be a non-empty subset of {CORRUPTIONS}. Got {kinds}.")
+    first = batch[camera_keys[0]]
+    batch_size, (height, width) = first.shape[0], first.shape[-2:]
+    device = first.device
+    choice = torch.randint(len(kinds), (batch_size,), generator=generator, device=device).tolist()
+    masks = {kind: torch.tensor([kinds[c] == kind for c in choice], device=device) for kind in kinds}
+    # Every draw is made whether or not a kind is chosen, so that a batch's corruptions depend on the seed only.
+    log_gains = _uniform(*LOG_GAIN_RANGE, (batch_size, first.shape[1]), generator, first)
+    gain_signs = torch.randint(2, log_gains.shape, generator=generator, device=device) * 2 - 1
+    gains = torch.exp(log_gains * gain_signs)
+    sides = _uniform(*PATCH_RANGE, (batch_size, 2), generator, first)
+    corners = torch.rand((batch_size, 4), generator=generator, device=device)
+    boxes = []
+    for (fh, fw), (a, b, c, d) in zip(sides.tolist(), corners.tolist(), strict=True):
+        h, w = max(1, round(fh * height)), max(1, round(fw * width))
+        boxes.append(
+            (h, w, int(a * (height - h)), int(b * (width - w)), int(c * (height - h)), int(d * (width - w)))
+        )
+    magnitudes = _uniform(*SHIFT_RANGE, (batch_size, 2), generator, first)
+    signs = torch.randint(2, (batch_size, 2), generator=generator, device=device) * 2 - 1
+    offsets = [
+        (round(my * sy * height), round(mx * sx * width))
+        for (my, mx), (sy, sx) in zip(magnitudes.tolist(), signs.tolist(), strict=True)
+    ]
+    # Another observation of the batch for each one's patch: the batch is shuffled, so its neighbour is random.
+    source_index = torch.roll(torch.arange(batch_size, device=device), 1)
+
+    out = dict(batch)
+    for key in camera_keys:
+        images = batch[key]
+        corrupted = images
+        if "channel_gain" in masks:
+            corrupted = torch.where(
+                masks["channel_gain"][:, None, None, None], channel_gain(images, gains), corrupted
+            )
+        if "patch_swap" in masks:
+            swapped = patch_swap(images, images[source_index], boxes)
+            corrupted = torch.where(masks["patch_swap"][:, None, None, None], swapped, corrupted)
+        if "shift" in masks:
+            corrupted = torch.where(masks["shift"][:, None, None, None], shift(images, offsets), corrupted)
+        out[key] = corrupted
+    if "state_noise" in masks and state_key is not None and state_key in batch:
+        state = batch[state_key]
+        noise = STATE_NOISE_STD * torch.randn(
+            state.shape, generator=generator, device=device, dtype=state.dtype
+        )
+        out[state_key] = torch.where(masks["state_noise"][:, None], state + noise, state)
+    return out
+
+
+def energy_margin_loss(clean_energy: Tensor, corrupted_energy: Tensor, margin: float) -> Tensor:
+    """mean_i max(0, m - (E(a*_i, C~_i) - E(a*_i, C_i))): zero once every corrupted context costs m more."""
+    gap = corrupted_energy.float() - clean_energy.float()
+    return torch.relu(margin - gap).mean()
+
+
+class EBVLAContextEnergy(nn.Module):
+    """E_c(C): a scalar energy of the pooled context, added to the head's final energy (a joint energy
+    E(a, C) + E_c(C), `energy_ood_margin_on="context"`). It has no gradient in a, so the MCMC refinement and
+    its energy-scaled steps are those of the head alone."""
+
+    def __init__(self, dim: int):
+        super().__init__()
+        self.net = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, dim), nn.SiLU(), nn.Linear(dim, 1))
+
+    def forward(self, features: Tensor) -> Tensor:
+        """(B, D) pooled contexts -> (B,) energies."""
+        return self.net(features.float()).squeeze(-1)
+
+
+def contrastive_in_bf16(config: EBVLAConfig, device_type: str) -> bool:
+    """Whether the contrastive term's head pass runs under bf16 autocast (`energy_contrastive_dtype`)."""
+    if config.energy_contrastive_dtype == "auto":
+        return native_bf16(device_type)
+    return config.energy_contrastive_dtype == "bfloat16"
+
+
+@functools.cache
+def native_bf16(device_type: str) -> bool:
+    """Whether `device_type` multiplies bf16 matrices in hardware: a CUDA GPU that supports bf16, or a CPU
+    with AVX512-BF16 or AMX tiles (elsewhere oneDNN emulates bf16, slower than fp32)."""
+    if device_type == "cuda":
+        return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
+    if device_type == "cpu":
+        # Private torch names: getattr, so that a torch without them reads as "no native bf16".
+        probes = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
+        return any(getattr(torch.cpu, probe, lambda: False)() for probe in probes)
+    return False

@@ -1,0 +1,173 @@
+"""The outlier-exposure margin (issue 32): E(a*, corrupted C) is pushed above E(a*, C), off by default."""
+
+import pytest
+import torch
+
+from lerobot_policy_ebvla import EBVLAPolicy
+from lerobot_policy_ebvla.training_signal import (
+    CORRUPTIONS,
+    channel_gain,
+    corrupt_observation,
+    energy_margin_loss,
+    shift,
+)
+
+from .conftest import tiny_batch, tiny_config
+
+
+def test_margin_term_is_off_by_default_and_adds_nothing():
+    config = tiny_config()
+    assert config.energy_ood_margin_weight == 0.0
+    batch = tiny_batch(config, batch_size=4)
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(config)
+    _, info = policy.model.compute_loss(batch, generator=torch.Generator().manual_seed(0))
+    assert "ood_margin_loss" not in info
+
+
+def test_margin_term_is_added_with_its_weight_and_reported():
+    batch = tiny_batch(tiny_config(), batch_size=4)
+    losses = {}
+    for weight in (0.0, 0.5):
+        torch.manual_seed(0)
+        policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=weight, energy_ood_margin=100.0))
+        losses[weight] = policy.model.compute_loss(batch, generator=torch.Generator().manual_seed(0))
+    (plain, _), (with_term, info) = losses[0.0], losses[0.5]
+    # A margin far above any gap of an untrained head: the hinge is active, 100 - gap.
+    assert info["ood_margin_loss"] == pytest.approx(100.0 - info["ood_energy_gap"], rel=1e-4)
+    assert with_term.item() == pytest.approx(plain.item() + 0.5 * info["ood_margin_loss"], rel=1e-4)
+
+
+@pytest.mark.parametrize("chunk", ["expert", "refined"])
+def test_margin_term_runs_on_either_chunk_and_reaches_the_backbone(chunk):
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(
+        tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin=100.0, energy_ood_margin_chunk=chunk)
+    )
+    margin, _ = policy.model.ood_margin_loss(
+        tiny_batch(policy.config, batch_size=3),
+        policy.model.encode_context(tiny_batch(policy.config, batch_size=3)),
+        tiny_batch(policy.config, batch_size=3)["action"],
+        torch.Generator().manual_seed(0),
+        [0.1, 0.1],
+    )
+    margin.backward()
+    assert policy.model.backbone.state_proj.weight.grad.abs().sum() > 0
+
+
+def test_margin_loss_is_zero_once_the_corrupted_energy_is_a_margin_above():
+    clean = torch.tensor([0.0, 1.0])
+    assert energy_margin_loss(clean, clean + 2.0, margin=1.0).item() == 0.0
+    assert energy_margin_loss(clean, clean + 0.25, margin=1.0).item() == pytest.approx(0.75)
+
+
+def test_margin_loss_raises_the_corrupted_energy_and_lowers_the_clean_one_alike():
+    clean = torch.tensor([0.5, -0.5], requires_grad=True)
+    corrupted = torch.tensor([0.0, 0.0], requires_grad=True)
+    energy_margin_loss(clean, corrupted, margin=1.0).backward()
+    # Descending the loss moves the corrupted energies up and the real ones down, by the same amount: a shift
+    # of every energy (a bias) has no gradient.
+    assert (corrupted.grad < 0).all() and (clean.grad > 0).all()
+    torch.testing.assert_close(clean.grad, -corrupted.grad)
+
+
+def test_training_with_the_margin_opens_the_gap_on_a_fixed_batch():
+    """The tiny policy's GroupNorm ResNet and keypoints barely see its random images, whatever their corruption
+    (its context moves by 0.004 of 8 under them): the state's corruption is the one it can learn to tell."""
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(
+        tiny_config(
+            energy_ood_margin_weight=1.0, energy_ood_margin=1.0, energy_ood_corruptions=("state_noise",)
+        )
+    )
+    batch = tiny_batch(policy.config, batch_size=4)
+    optimizer = torch.optim.Adam(policy.parameters(), lr=3e-3)
+    gaps = []
+    for step in range(30):
+        loss, info = policy.model.compute_loss(batch, generator=torch.Generator().manual_seed(step))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        gaps.append(info["ood_energy_gap"])
+    assert sum(gaps[-5:]) / 5 > sum(gaps[:5]) / 5 + 0.5
+
+
+@pytest.mark.parametrize("kind", CORRUPTIONS)
+def test_each_corruption_changes_the_observation_and_keeps_images_in_range(kind):
+    config = tiny_config()
+    batch = tiny_batch(config, batch_size=4)
+    cameras = list(config.image_features)
+    out = corrupt_observation(batch, cameras, (kind,), torch.Generator().manual_seed(0), "observation.state")
+    changed_key = "observation.state" if kind == "state_noise" else cameras[0]
+    assert not torch.equal(out[changed_key], batch[changed_key])
+    for key in cameras:
+        assert out[key].shape == batch[key].shape
+        assert out[key].min() >= 0.0 and out[key].max() <= 1.0
+    torch.testing.assert_close(out["action"], batch["action"])
+
+
+def test_corruptions_depend_on_the_seed_only():
+    config = tiny_config()
+    batch = tiny_batch(config, batch_size=4)
+    cameras = list(config.image_features)
+    outs = [
+        corrupt_observation(
+            batch, cameras, CORRUPTIONS, torch.Generator().manual_seed(3), "observation.state"
+        )
+        for _ in range(2)
+    ]
+    for key in outs[0]:
+        torch.testing.assert_close(outs[0][key], outs[1][key])
+
+
+def test_channel_gain_and_shift_do_what_they_say():
+    images = torch.full((1, 3, 4, 4), 0.5)
+    torch.testing.assert_close(
+        channel_gain(images, torch.tensor([[2.0, 1.0, 0.0]]))[0, :, 0, 0], torch.tensor([1.0, 0.5, 0.0])
+    )
+    moved = shift(torch.arange(16.0).view(1, 1, 4, 4), [(1, 0)])
+    assert moved[0, 0, 0].eq(0).all() and torch.equal(moved[0, 0, 1], torch.arange(4.0))
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("energy_ood_margin_weight", -0.1),
+        ("energy_ood_margin", 0.0),
+        ("energy_ood_corruptions", ("fog",)),
+        ("energy_ood_margin_chunk", "prior"),
+        ("energy_ood_margin_on", "action"),
+    ],
+)
+def test_margin_fields_are_validated_by_name(field, value):
+    with pytest.raises(ValueError, match=field):
+        tiny_config(**{field: value})
+
+
+def test_context_margin_trains_only_the_context_energy():
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on="context"))
+    margin, _ = policy.model.context_margin_loss(tiny_batch(policy.config, batch_size=3), torch.Generator())
+    margin.backward()
+    assert all(p.grad is None for p in policy.model.backbone.parameters())
+    assert all(p.grad is None for p in policy.model.head.parameters())
+    assert any(
+        p.grad is not None and p.grad.abs().sum() > 0 for p in policy.model.context_energy.parameters()
+    )
+
+
+def test_joint_final_energy_is_the_head_energy_plus_the_context_energy():
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on="context")).eval()
+    batch = tiny_batch(policy.config, batch_size=3, with_action=False)
+    chunk, readout = policy.predict_action_chunk(
+        batch, generator=torch.Generator().manual_seed(0), return_energy=True
+    )
+    head = policy.score_action_chunks(batch, chunk[:, None])[:, 0]
+    context = policy.model.context_energy(policy.context_features(batch))
+    torch.testing.assert_close(readout.final_energy, head + context, rtol=1e-4, atol=1e-4)
+
+
+def test_without_the_context_variant_the_policy_has_no_context_energy():
+    assert EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0)).model.context_energy is None
+    assert EBVLAPolicy(tiny_config(energy_ood_margin_on="context")).model.context_energy is None
