@@ -110,3 +110,13 @@ def write_records(folder, records) -> str:
     from lerobot_policy_ebvla.monitoring.records import ENERGY_RECORDS_FILENAME, write_energy_records
 
     return str(write_energy_records(folder / ENERGY_RECORDS_FILENAME, records).parent)
+
+
+def write_calibration_vanilla_and_ood(root, perturbation: str, energy: float) -> tuple[str, str, str]:
+    """Record folders of 8 calibration and 8 held-out vanilla rollouts, and 8 rollouts of `perturbation` whose
+    final energy sits at `energy` (vanilla's: 5.0)."""
+    return (
+        write_records(root / "calibration", context_rollouts(8, seed=10)),
+        write_records(root / "vanilla", context_rollouts(8, seed=11)),
+        write_records(root / "ood", context_rollouts(8, 1, perturbation, energy=energy)),
+    )

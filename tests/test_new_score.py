@@ -24,7 +24,7 @@ from lerobot_policy_ebvla.runtime import (
 )
 from lerobot_policy_ebvla.runtime.threshold import as_array
 
-from .conftest import context_rollouts, tiny_config, write_records
+from .conftest import tiny_config, write_calibration_vanilla_and_ood
 
 
 @dataclass(frozen=True)
@@ -61,12 +61,7 @@ def registered(monkeypatch):
 @pytest.fixture(scope="module")
 def record_dirs(tmp_path_factory):
     """Calibration and held-out vanilla rollouts, and rollouts whose final energy is higher."""
-    root = tmp_path_factory.mktemp("records")
-    return (
-        write_records(root / "calibration", context_rollouts(8, seed=10)),
-        write_records(root / "vanilla", context_rollouts(8, seed=11)),
-        write_records(root / "ood", context_rollouts(8, 1, "energy", energy=5.5)),
-    )
+    return write_calibration_vanilla_and_ood(tmp_path_factory.mktemp("records"), "energy", 5.5)
 
 
 def energies(episode) -> np.ndarray:

@@ -25,7 +25,7 @@ from lerobot_policy_ebvla.runtime.scores import (
     score_rollout,
 )
 
-from .conftest import context_rollouts, write_records
+from .conftest import write_calibration_vanilla_and_ood, write_records
 
 N_CHUNKS, DIM = 6, 4
 
@@ -115,12 +115,7 @@ def test_a_two_sided_calibration_is_saved_and_loaded_back_and_monitors_the_same(
 
 @pytest.fixture(scope="module")
 def record_dirs(tmp_path_factory):
-    root = tmp_path_factory.mktemp("records")
-    return (
-        write_records(root / "calibration", context_rollouts(8, seed=10)),
-        write_records(root / "vanilla", context_rollouts(8, seed=11)),
-        write_records(root / "ood", context_rollouts(8, 1, "dim", energy=4.0)),
-    )
+    return write_calibration_vanilla_and_ood(tmp_path_factory.mktemp("records"), "dim", 4.0)
 
 
 def report(record_dirs, out, **options) -> tuple[str, OODCalibration]:
