@@ -66,6 +66,13 @@ def main() -> None:
         default=None,
         help="Vanilla calibration episodes (default: --episodes). With few, one astray rollout sets the threshold.",
     )
+    parser.add_argument(
+        "--vanilla_episodes",
+        type=int,
+        default=None,
+        help="Held-out vanilla episodes (default: --episodes): more of them firm up the vanilla success rate "
+        "and the AUROCs' negatives.",
+    )
     parser.add_argument("--max_episode_steps", type=int, default=150)
     parser.add_argument("--severities", type=int, nargs="+", default=[3, 5])
     parser.add_argument("--perturbations", nargs="+", default=SWEPT, choices=SWEPT)
@@ -88,7 +95,7 @@ def main() -> None:
 
     args.output_dir.mkdir(parents=True, exist_ok=True)
     evaluate(args, "calibration", args.calibration_seed, episodes=args.calibration_episodes)
-    evaluate(args, "vanilla", args.seed)
+    evaluate(args, "vanilla", args.seed, episodes=args.vanilla_episodes)
     conditions = {f"{p}_s{s}": (p, s) for p in args.perturbations for s in args.severities}
     for folder, (perturbation, severity) in conditions.items():
         evaluate(args, folder, args.seed, perturbation, severity)

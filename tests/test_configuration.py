@@ -1,6 +1,7 @@
 """EBVLAConfig: the paper's Table V defaults, validation and save/load."""
 
 import dataclasses
+import math
 
 import pytest
 from lerobot.configs import PreTrainedConfig
@@ -59,6 +60,8 @@ def test_is_registered_as_ebvla():
         ("context_layers", (1, 2)),
         ("dropout", 1.0),
         ("num_restarts", 0),
+        ("restart_energy_threshold", 2.0),  # with num_restarts 1: nothing to restart with
+        ("restart_energy_threshold", math.inf),
     ],
 )
 def test_impossible_values_are_rejected_naming_the_field(field, value):
@@ -72,6 +75,7 @@ def test_save_and_load_keep_every_field(tmp_path):
         train_mcmc_steps_range=(2, 3),
         crop_shape=(28, 28),
         num_restarts=3,
+        restart_energy_threshold=1.5,
         vlm_config_overrides={"hidden_size": 64},
     )
     config.save_pretrained(tmp_path)

@@ -161,6 +161,8 @@ def test_recorder_records_restart_spread_and_context_features(tiny_policy, tmp_p
     read = read_energy_records(write_energy_records(tmp_path / "energy_records.jsonl", records))
     assert [r.restart_spread for r in read] == pytest.approx([r.restart_spread for r in records])
     assert read[2].context_feature.shape == (tiny_policy.config.dim_model,)
+    # Each chunk's compute: the policy refines one chain (num_restarts = 1).
+    assert [r.mcmc_chains for r in read] == [1, 1, 1, 1]
 
 
 def test_recorder_records_the_final_energy_relative_to_prior_chunks(tiny_policy, tmp_path):

@@ -50,6 +50,13 @@ def test_records_round_trip(tmp_path):
     assert read_energy_records(path) == records
 
 
+def test_mcmc_chains_round_trip_and_old_rows_read_without_them(tmp_path):
+    records = [dataclasses.replace(record(chunk=0), mcmc_chains=4), record(chunk=1)]
+    path = write_energy_records(tmp_path / ENERGY_RECORDS_FILENAME, records)
+    assert "mcmc_chains" not in path.read_text().splitlines()[1]
+    assert [r.mcmc_chains for r in read_energy_records(path)] == [4, None]
+
+
 def test_restart_spread_and_context_features_round_trip(tmp_path):
     records = [
         dataclasses.replace(

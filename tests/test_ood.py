@@ -13,7 +13,12 @@ import pytest
 import torch
 
 from lerobot_policy_ebvla.monitoring.baselines import ContextFeatureModel, available_scores
-from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_interval, roc_curve
+from lerobot_policy_ebvla.monitoring.metrics import (
+    auroc,
+    bootstrap_auroc_interval,
+    roc_curve,
+    wilson_interval,
+)
 from lerobot_policy_ebvla.monitoring.ood import (
     TABLE_III_MULTIPLIERS,
     format_balanced_accuracy_table,
@@ -69,6 +74,14 @@ def test_conformal_threshold_rejects_an_alpha_outside_zero_one():
 
 
 # Metrics.
+
+
+def test_wilson_interval_of_a_success_rate():
+    low, high = wilson_interval(22, 34)  # the quickstart's vanilla success, 64.7%
+    assert (round(low, 2), round(high, 2)) == (0.48, 0.79)
+    assert wilson_interval(0, 8)[0] == 0.0 and 0.3 < wilson_interval(0, 8)[1] < 0.4
+    assert wilson_interval(8, 8)[1] == 1.0
+    assert all(math.isnan(v) for v in wilson_interval(0, 0))
 
 
 def test_bootstrap_interval_contains_the_auroc():

@@ -164,6 +164,34 @@ def test_restarts_keep_the_lowest_energy_chain():
     torch.testing.assert_close(best.final_energy, every.final_energy.view(2, 4).min(dim=1).values)
 
 
+def test_adaptive_restarts_refine_more_chains_only_where_the_first_energy_is_above_the_threshold():
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(tiny_config(num_restarts=1)).eval()
+    batch = tiny_batch(policy.config, batch_size=2, with_action=False)
+    first_actions, first = policy.predict_action_chunk(batch, generator=seeded(3), return_energy=True)
+    assert first.chains.tolist() == [1, 1]
+    low, high = first.final_energy.sort().values.tolist()
+    unsure = int(first.final_energy.argmax())
+
+    policy.config.num_restarts = 4
+    policy.config.restart_energy_threshold = (low + high) / 2
+    actions, adaptive = policy.predict_action_chunk(batch, generator=seeded(3), return_energy=True)
+    sure = 1 - unsure
+    # The sure observation keeps its one chain; the unsure one gets 3 more and keeps the lowest of all 4.
+    assert adaptive.chains.tolist()[sure] == 1 and adaptive.chains.tolist()[unsure] == 4
+    torch.testing.assert_close(actions[sure], first_actions[sure])
+    torch.testing.assert_close(adaptive.final_energy[sure], first.final_energy[sure])
+    assert adaptive.final_energy[unsure] <= first.final_energy[unsure]
+    scored = policy.score_action_chunks(batch, actions.unsqueeze(1))[:, 0]
+    torch.testing.assert_close(scored, adaptive.final_energy)
+
+    # Above every energy nothing restarts: the paper's single chain, drawn identically.
+    policy.config.restart_energy_threshold = high + 1.0
+    same, energy = policy.predict_action_chunk(batch, generator=seeded(3), return_energy=True)
+    torch.testing.assert_close(same, first_actions)
+    assert energy.chains.tolist() == [1, 1]
+
+
 def test_non_finite_energy_never_reaches_the_actions(tiny_policy, monkeypatch, caplog):
     tiny_policy.eval()
     head_forward = tiny_policy.model.head.forward

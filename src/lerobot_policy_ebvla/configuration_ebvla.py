@@ -6,6 +6,7 @@ The light backbone (`backbone="resnet"`) is LeRobot's Diffusion Policy image enc
 head-only experiments (Sec. III-A) and for CPU training.
 """
 
+import math
 import warnings
 from dataclasses import dataclass, field
 
@@ -172,6 +173,10 @@ class EBVLAConfig(PreTrainedConfig):
         inference_mcmc_steps: Number K_inf of MCMC steps at inference.
         num_restarts: Refine this many chains per observation and keep the one with the lowest final
             energy (energy as a verifier). 1 is the paper.
+        restart_energy_threshold: Adaptive restarts ("think more when unsure"): refine one chain, and only
+            where its final energy is above this value the other `num_restarts` - 1 (needs `num_restarts` >= 2).
+            A threshold in the energy's units, e.g. a high percentile of calibration rollouts' final energies;
+            None (the default) refines all `num_restarts` chains for every chunk.
         early_stop_tol: Stop refining once no action moves more than this in one step. None (the paper)
             runs all K_inf steps.
         compile_mode: torch.compile the inference chain of every chunk (`compile_ebvla.py`): the context
@@ -319,6 +324,7 @@ class EBVLAConfig(PreTrainedConfig):
 
     # Inference options beyond the paper (off by default).
     num_restarts: int = 1
+    restart_energy_threshold: float | None = None
     early_stop_tol: float | None = None
     compile_mode: str = "off"
     rtc_config: RTCConfig | None = None
@@ -459,6 +465,16 @@ class EBVLAConfig(PreTrainedConfig):
 
     def _validate_inference_options(self) -> None:
         _check_at_least(self, 1, "num_restarts")
+        if self.restart_energy_threshold is not None:
+            if not math.isfinite(self.restart_energy_threshold):
+                raise ValueError(
+                    f"`restart_energy_threshold` must be a finite energy or None. Got {self.restart_energy_threshold}."
+                )
+            if self.num_restarts < 2:
+                raise ValueError(
+                    "`restart_energy_threshold` restarts unsure chunks with `num_restarts` chains: set "
+                    f"`num_restarts` >= 2 (got {self.num_restarts}), or leave the threshold None."
+                )
         if self.early_stop_tol is not None and self.early_stop_tol <= 0:
             raise ValueError(f"`early_stop_tol` must be > 0 or None. Got {self.early_stop_tol}.")
         _check_one_of(self, "compile_mode", COMPILE_MODES)

@@ -56,10 +56,13 @@ class EnergyReadout:
         initial_energy: E(a^(0), C), (B,): the energy of the initial noise, read at the first MCMC step.
         final_energy: E(a^(K_inf), C), (B,): the confidence score of the returned chunk; +inf where the
             refinement hit a non-finite energy or gradient.
+        chains: (B,) how many MCMC chains were refined for each observation: `num_restarts`, or with
+            `restart_energy_threshold` 1, and `num_restarts` where the first chunk's energy was above it.
     """
 
     initial_energy: Tensor
     final_energy: Tensor
+    chains: Tensor | None = None
 
 
 # hook(policy, batch, readout, decision), called after each refined chunk the policy returns.
@@ -432,10 +435,30 @@ class EBVLA(nn.Module):
         with torch.no_grad():
             encoded = self._inference_context(batch, with_features)
             kv, features = encoded if with_features else (encoded, None)
-        batch_size, restarts = kv[0][0].shape[0], cfg.num_restarts
-        initial = self._initial_actions(batch_size * restarts, kv[0][0], generator)
+        adaptive = cfg.restart_energy_threshold is not None
+        actions, readout = self._best_of_chains(
+            kv, features, 1 if adaptive else cfg.num_restarts, generator, prefix
+        )
+        if adaptive and cfg.num_restarts > 1:
+            actions, readout = self._restart_unsure_chunks(kv, features, actions, readout, generator, prefix)
+        if return_context_features:
+            return actions.detach(), readout, features
+        return actions.detach(), readout
+
+    def _best_of_chains(
+        self,
+        kv: ContextKV,
+        features: Tensor | None,
+        chains: int,
+        generator: torch.Generator | None,
+        prefix: RTCPrefix | None,
+    ) -> tuple[Tensor, EnergyReadout]:
+        """Refines `chains` chunks per observation from independent a^(0) and keeps the lowest final energy."""
+        cfg = self.config
+        batch_size = kv[0][0].shape[0]
+        initial = self._initial_actions(batch_size * chains, kv[0][0], generator)
         if prefix is not None:
-            actions = prefix.actions.to(initial.device).repeat_interleave(restarts, dim=0)
+            actions = prefix.actions.to(initial.device).repeat_interleave(chains, dim=0)
             prefix = dataclasses.replace(prefix, actions=actions)
         result = self._refine(
             kv,
@@ -449,7 +472,7 @@ class EBVLA(nn.Module):
         with torch.no_grad():
             final_energy = self.head(result.actions, kv).mean(dim=-1)
             if self.context_energy is not None:  # the joint energy E(a, C) + E_c(C)
-                final_energy = final_energy + self.context_energy(features).repeat_interleave(restarts)
+                final_energy = final_energy + self.context_energy(features).repeat_interleave(chains)
         final_energy = torch.where(result.diverged, math.inf, final_energy)
         if result.diverged.any():
             logger.warning(
@@ -459,14 +482,52 @@ class EBVLA(nn.Module):
                 result.diverged.numel(),
             )
         actions, initial_energy = result.actions, result.step_energies[0]
-        if restarts > 1:
-            best = final_energy.view(batch_size, restarts).argmin(dim=1)
-            rows = torch.arange(batch_size, device=best.device) * restarts + best
+        if chains > 1:
+            best = final_energy.view(batch_size, chains).argmin(dim=1)
+            rows = torch.arange(batch_size, device=best.device) * chains + best
             actions, initial_energy, final_energy = actions[rows], initial_energy[rows], final_energy[rows]
-        readout = EnergyReadout(initial_energy=initial_energy, final_energy=final_energy)
-        if return_context_features:
-            return actions.detach(), readout, features
-        return actions.detach(), readout
+        counts = torch.full((batch_size,), chains, dtype=torch.long, device=final_energy.device)
+        return actions, EnergyReadout(initial_energy, final_energy, chains=counts)
+
+    def _restart_unsure_chunks(
+        self,
+        kv: ContextKV,
+        features: Tensor | None,
+        actions: Tensor,
+        readout: EnergyReadout,
+        generator: torch.Generator | None,
+        prefix: RTCPrefix | None,
+    ) -> tuple[Tensor, EnergyReadout]:
+        """Adaptive best-of-N: observations whose first chunk's final energy is above the threshold get
+        num_restarts - 1 more chains, and keep the lowest-energy chunk of all num_restarts."""
+        cfg = self.config
+        unsure = (readout.final_energy > cfg.restart_energy_threshold).nonzero().squeeze(1)
+        if unsure.numel() == 0:
+            return actions, readout
+        if prefix is not None:
+            weights = prefix.weights
+            if weights is not None and weights.dim() == 2:
+                weights = weights[unsure]
+            prefix = dataclasses.replace(prefix, actions=prefix.actions[unsure], weights=weights)
+        more_actions, more = self._best_of_chains(
+            [(k[unsure], v[unsure]) for k, v in kv],
+            None if features is None else features[unsure],
+            cfg.num_restarts - 1,
+            generator,
+            prefix,
+        )
+        better = more.final_energy < readout.final_energy[unsure]
+        rows = unsure[better]
+        actions, initial, final = (
+            actions.clone(),
+            readout.initial_energy.clone(),
+            readout.final_energy.clone(),
+        )
+        actions[rows] = more_actions[better]
+        initial[rows], final[rows] = more.initial_energy[better], more.final_energy[better]
+        chains = readout.chains.clone()
+        chains[unsure] = cfg.num_restarts
+        return actions, EnergyReadout(initial, final, chains=chains)
 
     def compute_loss(
         self, batch: dict[str, Tensor], generator: torch.Generator | None = None

@@ -52,6 +52,7 @@ class _Chunk:
     restart_spread: float | None = None
     normalized_energy: float | None = None
     held: bool | None = None
+    mcmc_chains: int | None = None
     context_feature: np.ndarray | None = None
 
 
@@ -197,6 +198,8 @@ class EnergyRecorder:
             )
         spread, features, normalized = self._baselines(batch, readout.final_energy.detach())
         held = None if decision is None else decision.held.reshape(-1).tolist()
+        chains = getattr(readout, "chains", None)
+        chains = None if chains is None else chains.reshape(-1).tolist()
         for i in np.flatnonzero(~env.done):
             self.chunks.append(
                 _Chunk(
@@ -212,6 +215,7 @@ class EnergyRecorder:
                     restart_spread=None if spread is None else spread[i],
                     normalized_energy=None if normalized is None else normalized[i],
                     held=None if held is None else bool(held[i]),
+                    mcmc_chains=None if chains is None else int(chains[i]),
                     context_feature=None if features is None else features[i],
                 )
             )
@@ -264,6 +268,7 @@ class EnergyRecorder:
                 restart_spread=chunk.restart_spread,
                 normalized_energy=chunk.normalized_energy,
                 held=chunk.held,
+                mcmc_chains=chunk.mcmc_chains,
                 context_feature=chunk.context_feature,
             )
             for chunk in chunks

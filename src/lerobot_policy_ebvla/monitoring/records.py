@@ -83,6 +83,9 @@ class EnergyRecord:
         normalized_energy: Score: the final energy relative to the context's own energy scale,
             E(a^(K_inf), C) + log mean_j exp(-E(a_j, C)) over N chunks a_j drawn from the MCMC prior; None
             when not recorded.
+        mcmc_chains: How many MCMC chains were refined for this chunk (`num_restarts`; with adaptive
+            restarts 1, or `num_restarts` where the first chain's energy was above the threshold): the
+            chunk's compute; None when not recorded.
         held: Whether the policy's OOD response (`EBVLAConfig.ood_response="hold"`) replaced this chunk by
             the hold action; None when the policy has no OOD response.
         context_feature: Baseline: the (D,) pooled backbone context of the observation; None when not
@@ -102,6 +105,7 @@ class EnergyRecord:
     restart_spread: float | None = None
     normalized_energy: float | None = None
     held: bool | None = None
+    mcmc_chains: int | None = None
     context_feature: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     @property
@@ -143,6 +147,8 @@ def record_to_json(record: EnergyRecord) -> str:
         row["normalized_energy"] = _energy_to_json(record.normalized_energy)
     if record.held is not None:
         row["held"] = record.held
+    if record.mcmc_chains is not None:
+        row["mcmc_chains"] = record.mcmc_chains
     return json.dumps(row, allow_nan=False)
 
 
@@ -294,6 +300,9 @@ def record_from_json(row: dict[str, Any], where: str = "record") -> EnergyRecord
         if row.get("normalized_energy") is None
         else _parse_float(row["normalized_energy"], "normalized_energy", where),
         held=_parse_optional_bool(row.get("held"), "held", where),
+        mcmc_chains=None
+        if row.get("mcmc_chains") is None
+        else _parse_int(row["mcmc_chains"], "mcmc_chains", where),
     )
 
 

@@ -13,6 +13,7 @@ time, and `eval_metaworld_checkpoint` runs it: the quickstart and the benchmarks
 
 import json
 import logging
+from collections.abc import Sequence
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -172,6 +173,7 @@ def metaworld_eval_config(
     severity: int = 0,
     device: str | None = None,
     observation_size: int | None = None,
+    policy_overrides: Sequence[str] = (),
     **options: Any,
 ) -> EnergyEvalPipelineConfig:
     """The `eval_energy` config of a fast-render MetaWorld evaluation of a checkpoint, one env at a time.
@@ -188,11 +190,12 @@ def metaworld_eval_config(
         severity: Its severity, 1 to 5 (ignored for "none").
         device: The policy's torch device; None keeps the checkpoint's.
         observation_size: Side of the rendered frames (`--env.observation_size`); None: MetaWorld's 480 px.
+        policy_overrides: `--policy.<field>=<value>` arguments without `policy.`, e.g. `["--num_restarts=4"]`.
         **options: Other `EnergyEvalPipelineConfig` fields, e.g. `normalized_energy_samples=16` or
             `restart_spread_chains=4`.
     """
     # What `--policy.path=<checkpoint> --policy.device=<device>` loads on lerobot-eval's command line.
-    overrides = [] if device is None else [f"--device={device}"]
+    overrides = ([] if device is None else [f"--device={device}"]) + list(policy_overrides)
     policy = PreTrainedConfig.from_pretrained(checkpoint, cli_overrides=overrides)
     policy.pretrained_path = Path(checkpoint)
     # EvalPipelineConfig looks for `--policy.path` on the command line and warns when it finds none; the
