@@ -11,11 +11,13 @@ calibration rollouts (other seeds than the reported ones), so it is chosen befor
 
 `run` skips every folder that already holds its records, so an interrupted run resumes. Layout:
 `<variant>/<condition>/energy_records.jsonl` (each chunk's `mcmc_chains` is its compute), `timings.jsonl` (the
-wall time of each condition's process, start-up included), `adaptive_<N>/threshold.json`.
+wall time of each condition's process, start-up included: kept, not tabled, since other jobs share the cores),
+`adaptive_<N>/threshold.json`, and `chunk_cost.json` from `cost` (CPU ms per chunk for each N, one thread).
 """
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -105,28 +107,48 @@ def success_cell(successes: int, n: int) -> str:
     return f"{successes}/{n} = {100 * successes / n:.0f}% [{100 * low:.0f}, {100 * high:.0f}]"
 
 
-def variant_rows(folder: Path, timings: dict) -> dict[str, dict]:
-    """Per condition of one variant: successes, n, chains per chunk, seconds per episode (start-up included)."""
+def variant_rows(folder: Path) -> dict[str, dict]:
+    """Per condition of one variant: successes, n, chains per chunk, and each episode's outcome by seed."""
     rows = {}
     for condition_folder in sorted(p for p in folder.iterdir() if p.is_dir() and p.name != "calibration"):
         eps = episodes_of(condition_folder)
-        chains = [r.mcmc_chains for ep in eps for r in ep]
-        seconds = timings.get((folder.name, condition_folder.name))
         rows[condition_folder.name] = {
             "successes": sum(ep[0].success for ep in eps),
             "n": len(eps),
-            "chains_per_chunk": float(np.mean(chains)),
-            "seconds_per_episode": None if seconds is None else seconds / len(eps),
+            "chains_per_chunk": float(np.mean([r.mcmc_chains for ep in eps for r in ep])),
+            "outcomes": {ep[0].seed: ep[0].success for ep in eps},
         }
     return rows
 
 
-def read_timings(output_dir: Path) -> dict:
-    path = output_dir / "timings.jsonl"
+def paired_against(base: dict, other: dict, conditions: list[str]) -> tuple[int, int, float]:
+    """Episodes (same condition and seed) that `other` won and `base` lost, the reverse, and the two-sided
+    exact sign test's p-value over those discordant pairs."""
+    wins = losses = 0
+    for c in conditions:
+        for seed, success in other[c]["outcomes"].items():
+            before = base[c]["outcomes"][seed]
+            wins += success and not before
+            losses += before and not success
+    n = wins + losses
+    tail = sum(math.comb(n, k) for k in range(min(wins, losses) + 1)) / 2**n if n else 1.0
+    return wins, losses, min(1.0, 2 * tail)
+
+
+def cost_cell(output_dir: Path, variant: str, rows: dict, conditions: list[str]) -> str:
+    """The measured CPU ms per chunk (`cost`) of N chains; for adaptive N, interpolated linearly in its mean
+    chains per chunk between the measured N = 1 and N (marked "est.")."""
+    path = output_dir / "chunk_cost.json"
     if not path.is_file():
-        return {}
-    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    return {(row["variant"], row["condition"]): row["seconds"] for row in rows}
+        return "-"
+    cost = {int(n): ms for n, ms in json.loads(path.read_text())["cpu_ms_per_chunk"].items()}
+    n = int(variant.rsplit("_", 1)[1])
+    if n not in cost:
+        return "-"
+    if variant.startswith("restarts_"):
+        return f"{cost[n]:.0f}"
+    chains = np.mean([rows[c]["chains_per_chunk"] for c in conditions])
+    return f"{cost[1] + (chains - 1) / (n - 1) * (cost[n] - cost[1]):.0f} (est.)"
 
 
 def variant_sort_key(name: str) -> tuple[int, int]:
@@ -136,7 +158,6 @@ def variant_sort_key(name: str) -> tuple[int, int]:
 
 def table(output_dir: Path) -> tuple[str, dict]:
     """The markdown table and {variant: rows}: success per condition, the shifts pooled, and the compute."""
-    timings = read_timings(output_dir)
     variants = sorted(
         (
             p.name
@@ -145,7 +166,7 @@ def table(output_dir: Path) -> tuple[str, dict]:
         ),
         key=variant_sort_key,
     )
-    results = {v: variant_rows(output_dir / v, timings) for v in variants}
+    results = {v: variant_rows(output_dir / v) for v in variants}
     shifts = [c for c in results[variants[0]] if c != VANILLA and all(c in results[v] for v in variants)]
     conditions = [VANILLA] + shifts
     rows = [
@@ -157,15 +178,21 @@ def table(output_dir: Path) -> tuple[str, dict]:
         for v in variants
     }
     rows.append(["all shifts pooled"] + [success_cell(*pooled[v]) for v in variants])
+    base = results.get(variant_name(1, False))
+    if base is not None:
+        paired = []
+        for v in variants:
+            wins, losses, p = paired_against(base, results[v], conditions)
+            paired.append("-" if results[v] is base else f"+{wins} / -{losses} (p = {p:.3f})")
+        rows.append(["episodes won / lost against N = 1 (all conditions, same seeds)"] + paired)
     rows.append(
         ["MCMC chains per chunk"]
         + [f"{np.mean([results[v][c]['chains_per_chunk'] for c in conditions]):.2f}" for v in variants]
     )
-    per_episode = []
-    for v in variants:
-        seconds = [results[v][c]["seconds_per_episode"] for c in conditions]
-        per_episode.append("-" if None in seconds else f"{np.mean(seconds):.1f}")
-    rows.append(["wall s per episode (start-up incl.)"] + per_episode)
+    rows.append(
+        ["CPU ms per chunk, one thread"]
+        + [cost_cell(output_dir, v, results[v], conditions) for v in variants]
+    )
     return markdown_table(["condition"] + variants, rows), results
 
 
