@@ -611,8 +611,15 @@ def success_table(work: Path) -> dict:
     return table
 
 
-def report(work: Path, runs: list[str]) -> None:
-    """Success per task, Table III (ebvla-ood-report) and Table IV (ebvla-failure-report) of each run."""
+def report(work: Path, runs: list[str], failure_calibration_shifts: tuple[str, ...] = ()) -> None:
+    """Success per task, Table III (ebvla-ood-report) and Table IV (ebvla-failure-report) of each run.
+
+    Table IV needs failures on both sides: a policy that rarely fails in vanilla gives its calibration none to
+    choose an alarm on. The rollouts under `failure_calibration_shifts` (perturbation names) then join the
+    calibration, and those under every other shift join the held-out episodes: the alarm is chosen on some
+    shifts and reported on others, never on the rollouts it was chosen on. Without them, Table IV is vanilla
+    calibration against held-out vanilla.
+    """
     table = success_table(work)
     (work / "success.json").write_text(json.dumps(table, indent=1))
     for run, conditions in table.items():
@@ -627,28 +634,34 @@ def report(work: Path, runs: list[str]) -> None:
         if not run.startswith("ebvla") or not (folder / "vanilla_calib").exists():
             continue
         # Each condition's records sit in one folder per task.
-        calibration, heldout = (
-            f"[{folder / name / 'task*'}]" for name in ("vanilla_calib", "vanilla_heldout")
-        )
         perturbed = sorted(
             p.name for p in folder.glob("*") if p.is_dir() and not p.name.startswith("vanilla")
         )
+        calibration, heldout = (str(folder / name / "task*") for name in ("vanilla_calib", "vanilla_heldout"))
         if perturbed:
             subprocess.run(
                 [
                     bin_path("ebvla-ood-report"),
-                    f"--calibration={calibration}",
-                    f"--vanilla={heldout}",
+                    f"--calibration=[{calibration}]",
+                    f"--vanilla=[{heldout}]",
                     f"--ood=[{','.join(str(folder / name / 'task*') for name in perturbed)}]",
                     f"--output_dir={work / 'reports' / run / 'ood'}",
                 ],
                 check=True,
             )
+        failure_calibration, failure_heldout = [calibration], [heldout]
+        for name in perturbed if failure_calibration_shifts else []:
+            side = (
+                failure_calibration
+                if name.rstrip("0123456789") in failure_calibration_shifts
+                else failure_heldout
+            )
+            side.append(str(folder / name / "task*"))
         subprocess.run(
             [
                 bin_path("ebvla-failure-report"),
-                f"--calibration={calibration}",
-                f"--records={heldout}",
+                f"--calibration=[{','.join(failure_calibration)}]",
+                f"--records=[{','.join(failure_heldout)}]",
                 f"--output_dir={work / 'reports' / run / 'failure'}",
             ],
             check=True,
@@ -682,6 +695,13 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--jobs", type=int, default=10, help="processes side by side (record, eval)")
     parser.add_argument("--runs", nargs="+", choices=list(RUNS), default=["ebvla_paper", "diffusion"])
+    parser.add_argument(
+        "--failure_calibration_shifts",
+        nargs="*",
+        default=[],
+        help="report: the perturbations whose rollouts join Table IV's calibration (the others' join its held-out "
+        "episodes); none: vanilla calibration only",
+    )
     parser.add_argument("--steps", type=int, default=8000)
     parser.add_argument("--batch_size", type=int, default=32)
     parser.add_argument("--workers", type=int, default=5, help="loader processes per training")
@@ -767,7 +787,7 @@ def main(argv: list[str] | None = None) -> None:
     elif args.stage == "pack":
         pack(work, args.archive or work / "libero_results.tar.gz")
     else:
-        report(work, args.runs)
+        report(work, args.runs, tuple(args.failure_calibration_shifts))
     if args.stage in ("record", "train", "eval", "report"):
         log_timing(work, args.stage, time.time() - start, argv if argv is not None else sys.argv[1:])
 

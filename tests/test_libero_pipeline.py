@@ -179,6 +179,32 @@ def test_success_table_counts_successes_per_run_condition_and_task(tmp_path):
     }
 
 
+def test_table_iv_chooses_its_alarm_on_some_shifts_and_reports_it_on_the_others(tmp_path, monkeypatch):
+    for condition in ("vanilla_calib", "vanilla_heldout", "pose5", "pose3", "rotation5", "light_dim5"):
+        write_json(tmp_path / f"eval/ebvla_cpu/{condition}/task2/eval_info.json", eval_info([True, False]))
+    commands = []
+    monkeypatch.setattr(pipeline.subprocess, "run", lambda command, check: commands.append(command))
+
+    def failure_sides() -> tuple[str, str]:
+        failure = next(c for c in commands if c[0].endswith("ebvla-failure-report"))
+        calibration = next(a for a in failure if a.startswith("--calibration="))
+        return calibration, next(a for a in failure if a.startswith("--records="))
+
+    pipeline.report(tmp_path, ["ebvla_cpu"], failure_calibration_shifts=("pose",))
+    calibration, heldout = failure_sides()
+    assert all(f"/{c}/task*" in calibration for c in ("vanilla_calib", "pose5", "pose3"))
+    assert all(f"/{c}/task*" in heldout for c in ("vanilla_heldout", "rotation5", "light_dim5"))
+    assert "pose" not in heldout and "rotation" not in calibration and "vanilla_heldout" not in calibration
+    # Table III is unchanged: vanilla calibration, held-out vanilla, every shift.
+    ood = next(c for c in commands if c[0].endswith("ebvla-ood-report"))
+    assert "vanilla_calib" in ood[1] and "vanilla_heldout" in ood[2] and ood[3].count("task*") == 4
+
+    commands.clear()
+    pipeline.report(tmp_path, ["ebvla_cpu"])  # without shifts: vanilla on both sides, as before
+    calibration, heldout = failure_sides()
+    assert calibration.count("task*") == 1 and heldout.count("task*") == 1
+
+
 def test_pack_keeps_records_logs_and_ebvla_checkpoints_and_leaves_out_data_frames(work):
     kept = [
         "recording_summary.json",
