@@ -87,11 +87,13 @@ def test_rtc_disabled_ignores_the_leftover_as_lerobot_does(leftover):
     assert torch.equal(plain, ignored)
 
 
-@pytest.mark.parametrize("restarts", [1, 3])
+# (num_restarts, restart_energy_threshold): the paper, best-of-3, and adaptive restarts that restart every chunk.
+@pytest.mark.parametrize(("restarts", "threshold"), [(1, None), (3, None), (3, -1e9)])
 @pytest.mark.parametrize("delay", [1, 3])
-def test_the_first_d_actions_are_the_leftover_exactly(leftover, delay, restarts):
+def test_the_first_d_actions_are_the_leftover_exactly(leftover, delay, restarts, threshold):
     policy = rtc_policy()
     policy.config.num_restarts = restarts
+    policy.config.restart_energy_threshold = threshold
     batch = tiny_batch(policy.config, with_action=False)
     actions, _ = chunk(policy, batch, inference_delay=delay, prev_chunk_left_over=leftover)
     assert torch.equal(actions[:, :delay], leftover[:, :delay])
