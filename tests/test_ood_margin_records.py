@@ -60,3 +60,31 @@ def test_each_margin_lifts_the_pooled_auroc_and_only_the_joint_energy_keeps_the_
     if run == "joint_context":  # no light shift inverted, none confidently caught either
         lights = [auroc(rows, c) for c in ("light_color_s5", "light_dim_s5", "light_direction_s5")]
         assert lights == [0.78, 0.8, 0.72]
+
+
+FULL = RESULTS.parent / "metaworld_sweep_margin_full"
+
+
+def success_cutting(rows: dict) -> list[str]:
+    """The conditions whose success is 20+ points under vanilla's (issue 32's success-cutting perturbations)."""
+    vanilla = rows["vanilla"]["success"]
+    return [c for c, r in rows.items() if c.endswith(("_s3", "_s5")) and r["success"] <= vanilla - 0.2]
+
+
+def test_on_the_full_sweep_the_image_margin_sees_every_success_cutting_shift_and_costs_the_policy():
+    without = report.run_table(FULL / "without" / "records", 3)
+    margin = report.run_table(FULL / "margin_head_img" / "records", 3)
+    assert len([c for c in margin if c.endswith(("_s3", "_s5"))]) == 26
+    # Without the term the raw energy pools to chance and inverts under every light shift.
+    assert auroc(without, "all perturbations pooled") == 0.52
+    assert all(auroc(without, f"light_{k}_s5") < 0.5 for k in ("color", "dim", "direction"))
+    # With it: at least 0.98 on every success-cutting condition, one condition just under 0.5 (not confidently).
+    assert auroc(margin, "all perturbations pooled") == 0.94
+    assert min(auroc(margin, c) for c in success_cutting(margin)) >= 0.98
+    worst = min((c for c in margin if c.endswith(("_s3", "_s5"))), key=lambda c: margin[c]["one_sided"][1])
+    assert (worst, auroc(margin, worst)) == ("light_direction_s3", 0.47)
+    assert auroc(margin, "failed vs successful (all held out)") == 0.70
+    # ... and the policy pays: 70% -> 57.5% vanilla (40 rollouts each), 50% -> 23% under the shifts.
+    assert (without["vanilla"]["success"], margin["vanilla"]["success"]) == (0.7, 0.575)
+    assert round(without["all perturbations pooled"]["success"], 2) == 0.5
+    assert round(margin["all perturbations pooled"]["success"], 2) == 0.23
