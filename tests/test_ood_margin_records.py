@@ -88,3 +88,13 @@ def test_on_the_full_sweep_the_image_margin_sees_every_success_cutting_shift_and
     assert (without["vanilla"]["success"], margin["vanilla"]["success"]) == (0.7, 0.575)
     assert round(without["all perturbations pooled"]["success"], 2) == 0.5
     assert round(margin["all perturbations pooled"]["success"], 2) == 0.23
+
+
+def test_at_weight_0_3_the_margin_costs_as_much_success_and_light_direction_inverts_confidently():
+    rows = report.run_table(FULL / "margin_head_img_w03" / "records", 3)
+    assert rows["vanilla"]["success"] == 0.575
+    assert round(rows["all perturbations pooled"]["success"], 2) == 0.42
+    assert auroc(rows, "all perturbations pooled") == 0.87
+    assert min(auroc(rows, c) for c in success_cutting(rows)) >= 0.94
+    assert (auroc(rows, "light_direction_s3"), auroc(rows, "light_direction_s5")) == (0.17, 0.1)
+    assert rows["light_direction_s5"]["one_sided"][0].endswith("**inv**")
