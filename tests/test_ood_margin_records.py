@@ -98,3 +98,14 @@ def test_at_weight_0_3_the_margin_costs_as_much_success_and_light_direction_inve
     assert min(auroc(rows, c) for c in success_cutting(rows)) >= 0.94
     assert (auroc(rows, "light_direction_s3"), auroc(rows, "light_direction_s5")) == (0.17, 0.1)
     assert rows["light_direction_s5"]["one_sided"][0].endswith("**inv**")
+
+
+def test_the_joint_energy_is_never_confidently_wrong_on_the_full_sweep_but_weak():
+    rows = report.run_table(FULL / "joint_context" / "records", 3)
+    conditions = [c for c in rows if c.endswith(("_s3", "_s5"))]
+    inverted = [c for c in conditions if rows[c]["one_sided"][1] < 0.5]
+    assert sorted(inverted) == ["blur_s3", "blur_s5", "light_direction_s3", "noise_s3", "noise_s5"]
+    # Each inverted interval reaches above 0.5: the upper bound of "0.38 [0.15, 0.63]".
+    assert all(float(rows[c]["one_sided"][0].split(", ")[1].split("]")[0]) > 0.5 for c in inverted)
+    assert auroc(rows, "all perturbations pooled") == 0.7
+    assert round(min(rows[c]["one_sided"][1] for c in success_cutting(rows)), 2) == 0.84
