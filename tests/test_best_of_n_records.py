@@ -43,14 +43,18 @@ def test_every_variant_ran_the_same_episodes(results):
     assert results["restarts_1"]["vanilla"]["n"] == 16
 
 
-def test_best_of_8_raises_success_and_adaptive_restarts_at_the_75th_percentile_do_not(script, results):
+def test_best_of_8_raises_success_and_best_of_4_and_adaptive_restarts_at_the_75th_percentile_do_not(
+    script, results
+):
     base = results["restarts_1"]
     assert pooled(base) == (49, 104)
     assert pooled(results["restarts_8"]) == (60, 104)
+    assert pooled(results["restarts_4"]) == (50, 104)
     assert pooled(results["adaptive_8"]) == (48, 104)
     conditions = list(base)
     wins, losses, p = script.paired_against(base, results["restarts_8"], conditions)
     assert (wins, losses) == (14, 1) and p < 0.01
+    assert script.paired_against(base, results["restarts_4"], conditions)[:2] == (7, 6)
     wins, losses, p = script.paired_against(base, results["adaptive_8"], conditions)
     assert (wins, losses) == (6, 7) and p > 0.5
 
