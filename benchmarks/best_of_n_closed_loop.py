@@ -65,11 +65,24 @@ def evaluate(
 
 
 def adaptive_threshold(args) -> float:
-    """T: the `--adaptive_quantile` of N = 1's calibration chunk energies, saved beside the adaptive runs."""
+    """T: the `--adaptive_quantile` of N = 1's calibration chunk energies."""
     calibration = args.output_dir / variant_name(1, False) / "calibration"
     energies = [r.final_energy for r in read_energy_records(records_file_in(calibration))]
-    threshold = float(np.quantile(energies, args.adaptive_quantile))
-    return threshold
+    return float(np.quantile(energies, args.adaptive_quantile))
+
+
+def saved_threshold(args, variant: str) -> float:
+    """T of an adaptive variant, chosen once and kept in its `threshold.json`, so a resumed run reuses it."""
+    saved = args.output_dir / variant / "threshold.json"
+    if not saved.is_file():
+        saved.parent.mkdir(parents=True, exist_ok=True)
+        source = f"{variant_name(1, False)}/calibration"
+        saved.write_text(
+            json.dumps(
+                {"threshold": adaptive_threshold(args), "quantile": args.adaptive_quantile, "from": source}
+            )
+        )
+    return json.loads(saved.read_text())["threshold"]
 
 
 def run(args) -> None:
@@ -81,15 +94,7 @@ def run(args) -> None:
         variant = variant_name(restarts, adaptive)
         overrides = [f"--num_restarts={restarts}"]
         if adaptive:
-            (args.output_dir / variant).mkdir(parents=True, exist_ok=True)
-            saved = args.output_dir / variant / "threshold.json"
-            if not saved.is_file():
-                threshold = adaptive_threshold(args)
-                source = f"{base}/calibration"
-                saved.write_text(
-                    json.dumps({"threshold": threshold, "quantile": args.adaptive_quantile, "from": source})
-                )
-            overrides.append(f"--restart_energy_threshold={json.loads(saved.read_text())['threshold']}")
+            overrides.append(f"--restart_energy_threshold={saved_threshold(args, variant)}")
         evaluate(args, variant, VANILLA, args.seed, args.vanilla_episodes, overrides)
         for condition, (perturbation, severity) in conditions.items():
             evaluate(
