@@ -360,8 +360,9 @@ def eval_jobs(
     conditions=CAMERA_CONDITIONS,
     calibration: int | None = None,
 ) -> list[EvalJob]:
-    """The evaluation queue, most needed first: vanilla calibration and held-out rollouts of every run, then
-    the camera perturbations of the `ebvla` runs in the order of `conditions`.
+    """The evaluation queue, most needed first: vanilla calibration and held-out rollouts of the `ebvla` runs,
+    then the camera perturbations of the `ebvla` runs in the order of `conditions`; the other policies (no
+    energy to calibrate a monitor on) get the held-out rollouts alone, their success beside ebvla's.
 
     Without `calibration`, initial states [0, vanilla / 2) calibrate, [vanilla / 2, vanilla) are held out and
     the perturbed rollouts start from the calibration's states. With it, states [0, calibration) calibrate,
@@ -397,7 +398,7 @@ def eval_jobs(
     queue = [job for run in ebvla_runs for job in vanilla_jobs(run)]
     for perturbation, severity in conditions[:2]:
         queue += camera_jobs(perturbation, severity)
-    queue += [job for run in other_runs for job in vanilla_jobs(run)]
+    queue += [job for run in other_runs for job in vanilla_jobs(run) if job.condition == "vanilla_heldout"]
     for perturbation, severity in conditions[2:]:
         queue += camera_jobs(perturbation, severity)
     return queue
@@ -488,6 +489,13 @@ def camera_check(work: Path, run: str, frames: int = 32) -> None:
 # Pack and report ---------------------------------------------------------------------------------------------
 
 
+def light_checkpoint(run: str) -> bool:
+    """Whether a run's checkpoint is light enough to bring back and commit: the `ebvla` runs' (a few MB). Diffusion
+    Policy's (its U-Net and ResNet-18 with their optimizer state, hundreds of MB) is not, so it trains and is
+    evaluated within one slice."""
+    return run.startswith("ebvla")
+
+
 def pack(work: Path, archive: Path) -> None:
     """Records (with their context features), eval infos, logs, summaries and the light `ebvla` runs' last
     checkpoints (a few MB each) in one archive."""
@@ -504,15 +512,16 @@ def pack(work: Path, archive: Path) -> None:
                 tar.add(path, arcname=str(relative))
         for run in RUNS:
             checkpoint = last_checkpoint(work, run)
-            if run.startswith("ebvla") and checkpoint is not None:
+            if light_checkpoint(run) and checkpoint is not None:
                 tar.add(checkpoint.resolve(), arcname=f"train/{run}/pretrained_model")
     print(f"pack: {archive} ({archive.stat().st_size / 2**20:.1f} MiB)")
 
 
 def save_results(work: Path, results: Path) -> None:
     """Copies what the next session needs to go on, and what a table is recomputed from, into `results` (a
-    folder to commit): the recording summaries, each run's last checkpoint with its optimizer state (resume),
-    `DONE` markers, eval infos, gzip records with their context features, camera checks, reports, timings.
+    folder to commit): the recording summaries, each light run's last checkpoint with its optimizer state
+    (resume; `light_checkpoint`), `DONE` markers, eval infos, gzip records with their context features, camera
+    checks, reports, timings.
 
     The frames are not saved: `record` with the same `--placement_seed` makes the same dataset again.
     """
@@ -552,7 +561,10 @@ def save_results(work: Path, results: Path) -> None:
                 write_energy_records(target, records)
     for run_dir in sorted((work / "train").glob("*")):
         last = run_dir / "checkpoints" / "last"
-        if not (last / "pretrained_model" / "model.safetensors").exists():
+        if (
+            not light_checkpoint(run_dir.name)
+            or not (last / "pretrained_model" / "model.safetensors").exists()
+        ):
             continue
         target = results / "train" / run_dir.name / "last"
         shutil.rmtree(target, ignore_errors=True)

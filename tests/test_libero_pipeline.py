@@ -59,7 +59,7 @@ def test_eval_queue_puts_ebvla_vanilla_then_two_camera_conditions_before_the_oth
     expected = (
         [("ebvla_paper", c, t) for t in (0, 1) for c in vanilla]
         + [("ebvla_paper", c, t) for c in ("pose5", "fov5") for t in (0, 1)]
-        + [("diffusion", c, t) for t in (0, 1) for c in vanilla]
+        + [("diffusion", "vanilla_heldout", t) for t in (0, 1)]  # no energy to calibrate on
         + [("ebvla_paper", "pose3", t) for t in (0, 1)]
     )
     assert [(job.run, job.condition, job.task) for job in jobs] == expected
@@ -306,9 +306,14 @@ def test_saved_results_restore_a_resumable_training_and_skip_finished_jobs(tmp_p
     first = saved_run(tmp_path / "first", 1500)
     write_json(first / "recording_summary.json", {"image_size": 128, "episodes_per_task": 44, "tasks": {}})
     write_json(first / "data" / "task2_from0" / "meta" / "recording_report.json", {"n_kept": 22})
+    fake_checkpoint(first, "diffusion_cpu")
+    (first / "train" / "diffusion_cpu" / "DONE").write_text("")
     results = tmp_path / "results"
     pipeline.save_results(first, results)
     assert json.loads((results / "recording_reports" / "task2_from0.json").read_text()) == {"n_kept": 22}
+    # Diffusion Policy's checkpoint is too large to commit; that it finished is kept.
+    assert (results / "train/diffusion_cpu/DONE").exists()
+    assert not (results / "train/diffusion_cpu/last").exists()
     # Records go in compressed; the frames and the full checkpoint tree do not.
     assert (results / "eval/ebvla_cpu/vanilla_heldout/task2/energy_records.jsonl.gz").exists()
     assert not (results / "eval/ebvla_cpu/vanilla_heldout/task2/energy_records.jsonl").exists()

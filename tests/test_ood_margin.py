@@ -156,9 +156,24 @@ def test_context_margin_trains_only_the_context_energy():
     )
 
 
-def test_joint_final_energy_is_the_head_energy_plus_the_context_energy():
+def test_context_margin_through_the_backbone_trains_the_backbone_and_the_context_energy_not_the_head():
     torch.manual_seed(0)
-    policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on="context")).eval()
+    config = tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on="context_backbone")
+    policy = EBVLAPolicy(config)
+    margin, _ = policy.model.context_margin_loss(tiny_batch(config, batch_size=3), torch.Generator())
+    margin.backward()
+    assert policy.model.backbone.state_proj.weight.grad.abs().sum() > 0
+    assert all(p.grad is None for p in policy.model.head.parameters())
+    # In a training step the margin reads the context of the step's own backbone pass.
+    policy.zero_grad(set_to_none=True)
+    loss, info = policy.model.compute_loss(tiny_batch(config, batch_size=3), torch.Generator().manual_seed(0))
+    assert "ood_margin_loss" in info and torch.isfinite(loss)
+
+
+@pytest.mark.parametrize("target", ["context", "context_backbone"])
+def test_joint_final_energy_is_the_head_energy_plus_the_context_energy(target):
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on=target)).eval()
     batch = tiny_batch(policy.config, batch_size=3, with_action=False)
     chunk, readout = policy.predict_action_chunk(
         batch, generator=torch.Generator().manual_seed(0), return_energy=True

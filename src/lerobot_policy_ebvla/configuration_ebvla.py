@@ -26,6 +26,7 @@ CONTRASTIVE_DTYPES = ("float32", "bfloat16", "auto")
 # The generic corruptions of `training_signal.corrupt_observation` (kept here: the config imports no torch).
 OOD_CORRUPTIONS = ("channel_gain", "patch_swap", "shift", "state_noise")
 OOD_MARGIN_CHUNKS = ("expert", "refined")
+OOD_MARGIN_TARGETS = ("head", "context", "context_backbone")
 
 
 @PreTrainedConfig.register_subclass("ebvla")
@@ -160,7 +161,10 @@ class EBVLAConfig(PreTrainedConfig):
             `energy_ood_margin_chunk`), through the backbone. "context": a joint energy E(a, C) + E_c(C), E_c a
             small learned energy of the pooled (detached) context, trained by the margin alone and added to the
             final energy only: the refinement, whose step length exp(e_t / tau) grows with the head's energy,
-            and the backbone are left as without the term.
+            and the backbone are left as without the term. "context_backbone": the same joint energy, its margin
+            also training the backbone (the context E_c reads is not detached), so that the backbone learns
+            what sets a corrupted observation apart; E_c has no gradient in a, so the refinement's landscape
+            and step lengths are still the head's alone, and the actions change only as the shared context does.
         energy_ood_margin_chunk: Which chunk's energies the hinge compares: "expert", a* under C~ against a*
             under C; "refined", the chunk refined under C~ (same a^(0) and step sizes, no graph) against the
             training chain's refined chunk under C, so that min_a E(a, C~) rises (the shift's refined energy can
@@ -455,7 +459,7 @@ class EBVLAConfig(PreTrainedConfig):
             raise ValueError(f"`energy_ood_margin_weight` must be >= 0. Got {self.energy_ood_margin_weight}.")
         _check_positive(self, "energy_ood_margin")
         _check_one_of(self, "energy_ood_margin_chunk", OOD_MARGIN_CHUNKS)
-        _check_one_of(self, "energy_ood_margin_on", ("head", "context"))
+        _check_one_of(self, "energy_ood_margin_on", OOD_MARGIN_TARGETS)
         unknown = [kind for kind in self.energy_ood_corruptions if kind not in OOD_CORRUPTIONS]
         if unknown or not self.energy_ood_corruptions:
             raise ValueError(

@@ -341,7 +341,7 @@ class EBVLA(nn.Module):
         self.register_buffer("train_steps", torch.zeros((), dtype=torch.long))
         # Built last, so that the backbone's and head's initial weights do not depend on it.
         self.context_energy = None
-        if config.energy_ood_margin_weight > 0 and config.energy_ood_margin_on == "context":
+        if config.energy_ood_margin_weight > 0 and config.energy_ood_margin_on != "head":
             self.context_energy = EBVLAContextEnergy(self.backbone.context_dim)
 
     def training_generator(self, device: torch.device) -> torch.Generator:
@@ -541,7 +541,12 @@ class EBVLA(nn.Module):
         """
         cfg = self.config
         target = batch[ACTION]
-        kv = self.encode_context(batch)
+        # The joint energy's margin through the backbone reads the pooled context of this same backbone pass.
+        clean_features = None
+        if self.context_energy is not None and cfg.energy_ood_margin_on == "context_backbone":
+            kv, clean_features = self.encode_context(batch, return_features=True)
+        else:
+            kv = self.encode_context(batch)
         device = target.device
         if generator is None:
             generator = self.training_generator(device)
@@ -585,7 +590,7 @@ class EBVLA(nn.Module):
             loss = loss + cfg.energy_contrastive_weight * contrastive
             info["contrastive_loss"] = contrastive.item()
         if self.context_energy is not None:
-            margin_loss, gap = self.context_margin_loss(batch, generator)
+            margin_loss, gap = self.context_margin_loss(batch, generator, clean_features)
             loss = loss + cfg.energy_ood_margin_weight * margin_loss
             info["ood_margin_loss"], info["ood_energy_gap"] = margin_loss.item(), gap
         elif cfg.energy_ood_margin_weight > 0:
@@ -596,17 +601,22 @@ class EBVLA(nn.Module):
         return loss, info
 
     def context_margin_loss(
-        self, batch: dict[str, Tensor], generator: torch.Generator
+        self, batch: dict[str, Tensor], generator: torch.Generator, clean_features: Tensor | None = None
     ) -> tuple[Tensor, float]:
         """The margin on the context energy E_c of the joint energy E(a, C) + E_c(C), on the pooled backbone
-        contexts of the batch and of its corrupted copy, both detached (the policy's backbone and head are
-        trained as without the term), plus E_c(C)^2 on the data (the hinge leaves E_c's level free)."""
+        contexts of the batch (`clean_features` where the caller's backbone pass has them) and of its corrupted
+        copy, plus E_c(C)^2 on the data (the hinge leaves E_c's level free).
+
+        `energy_ood_margin_on="context"` detaches both contexts: the backbone and head train as without the
+        term. "context_backbone" lets the margin's gradient into the backbone.
+        """
         cfg = self.config
         corrupted_batch = corrupt_observation(
             batch, list(cfg.image_features), cfg.energy_ood_corruptions, generator, state_key=OBS_STATE
         )
-        with torch.no_grad():
-            clean_features = pooled_context(self.backbone(batch))
+        with torch.set_grad_enabled(cfg.energy_ood_margin_on == "context_backbone"):
+            if clean_features is None:
+                clean_features = pooled_context(self.backbone(batch))
             corrupted_features = pooled_context(self.backbone(corrupted_batch))
         clean, shifted = self.context_energy(clean_features), self.context_energy(corrupted_features)
         loss = energy_margin_loss(clean, shifted, cfg.energy_ood_margin) + clean.float().pow(2).mean()
