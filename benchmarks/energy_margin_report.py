@@ -11,6 +11,11 @@ the mean over its first `--chunks` chunks of
 
 and whether the condition is inverted (AUROC < 0.5).
 
+Below it, each run's vanilla success over every vanilla rollout it has (`vanilla/` and `vanilla_extra/`, extra
+seeds that are not a perturbation) and, on the seeds it shares with the first run, the episodes it won and lost
+against it with the exact sign test: with 40 rollouts a side, two training realizations of one recipe differ by
+10 points.
+
     python benchmarks/energy_margin_report.py --runs without=DIR1 with=DIR2 --output=table.md
 """
 
@@ -18,6 +23,8 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+
+from best_of_n_closed_loop import paired_against, success_cell
 
 from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_interval
 from lerobot_policy_ebvla.monitoring.records import group_by_episode, read_energy_records, records_file_in
@@ -93,6 +100,27 @@ def run_table(folder: Path, chunks: int) -> dict[str, dict]:
     return rows
 
 
+def vanilla_success(folders: dict[str, Path]) -> dict[str, tuple[int, int, int, int, float]]:
+    """Per run: vanilla successes and n over `vanilla/` and `vanilla_extra/`, and on the seeds shared with the
+    first run, (wins, losses, sign-test p) against it."""
+    outcomes = {
+        name: {
+            c: {ep[0].seed: ep[0].success for ep in episodes(folder / c)}
+            for c in ("vanilla", "vanilla_extra")
+            if (folder / c).is_dir()
+        }
+        for name, folder in folders.items()
+    }
+    base = next(iter(outcomes.values()))
+    out = {}
+    for name, run in outcomes.items():
+        shared = {c: {"outcomes": {s: o for s, o in run[c].items() if s in base[c]}} for c in run if c in base}
+        as_base = {c: {"outcomes": base[c]} for c in shared}
+        successes = sum(sum(run[c].values()) for c in run)
+        out[name] = (successes, sum(len(run[c]) for c in run), *paired_against(as_base, shared, list(shared)))
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", nargs="+", required=True, help="name=folder of sweep records")
@@ -116,6 +144,13 @@ def main() -> None:
             cells.append(f"{100 * row['success']:.0f}% ({row['n']})")
             cells += [row["one_sided"][0], row["two_sided"][0]] if "one_sided" in row else ["-", "-"]
         lines.append("| " + " | ".join(cells) + " |")
+    first = next(iter(runs))
+    lines += ["", f"| run | vanilla success [Wilson 95%] | won / lost against {first}, same seeds | sign test p |"]
+    lines.append("|---|---|---|---|")
+    for name, (successes, n, wins, losses, p) in vanilla_success(
+        {name: Path(folder) for name, folder in runs.items()}
+    ).items():
+        lines.append(f"| {name} | {success_cell(successes, n)} | +{wins} / -{losses} | {p:.2f} |")
     text = "\n".join(lines)
     print(text)
     if args.output:
