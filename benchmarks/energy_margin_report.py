@@ -23,7 +23,6 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-
 from best_of_n_closed_loop import paired_against, success_cell
 
 from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_interval
