@@ -162,3 +162,11 @@ def test_vanilla_success_over_140_shared_seeds_differs_as_much_between_training_
     # 21 and wins 7 of the same seeds: the realization, not the term.
     assert table["joint_context"][2:4] == (7, 21)
     assert table["joint_context"][4] < 0.05
+
+
+def test_on_a_second_training_seed_the_backbone_joint_energy_also_succeeds_less_in_vanilla():
+    seed2000 = FULL / "seed2000"
+    table = report.vanilla_success({run: seed2000 / run / "records" for run in ("without", "context_backbone")})
+    assert table["without"][:2] == (84, 140)
+    assert table["context_backbone"][:4] == (72, 140, 7, 19)
+    assert table["context_backbone"][4] < 0.05
