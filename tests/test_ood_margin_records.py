@@ -170,3 +170,19 @@ def test_on_a_second_training_seed_the_backbone_joint_energy_also_succeeds_less_
     assert table["without"][:2] == (84, 140)
     assert table["context_backbone"][:4] == (72, 140, 7, 19)
     assert table["context_backbone"][4] < 0.05
+
+
+def test_on_seed_2000_the_backbone_joint_energy_is_never_under_0_5_and_misses_only_the_robots_initial_state():
+    rows = report.run_table(FULL / "seed2000" / "context_backbone" / "records", 3)
+    conditions = [c for c in rows if c.endswith(("_s3", "_s5"))]
+    assert len(conditions) == 26
+    assert min(rows[c]["one_sided"][1] for c in conditions) >= 0.5
+    assert auroc(rows, "all perturbations pooled") == 0.93
+    cutting = {c: auroc(rows, c) for c in success_cutting(rows)}
+    assert cutting == {
+        "noise_s5": 1.0,
+        "robot_init_s3": 0.76,
+        "robot_init_s5": 0.85,
+        "table_color_s5": 1.0,
+        "table_texture_s5": 1.0,
+    }
