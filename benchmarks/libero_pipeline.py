@@ -580,7 +580,10 @@ def restore_results(results: Path, work: Path) -> None:
         if not path.is_file() or relative.parts[0] == "train" and "last" in relative.parts:
             continue
         target = work / relative
-        if not target.exists():
+        # The compressed copy of records `work` still holds uncompressed (the session that saved them) would
+        # leave two record files in one folder.
+        uncompressed = target.with_name(target.name.removesuffix(".gz"))
+        if not target.exists() and not (target.name.endswith(".gz") and uncompressed.exists()):
             target.parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(path, target)
     for last in sorted(results.glob("train/*/last")):

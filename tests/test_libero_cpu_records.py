@@ -1,5 +1,6 @@
 """The LIBERO-Object two-core figures (BENCHMARKS.md section 13, issue 33), recomputed from the committed records."""
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -38,3 +39,18 @@ def test_the_raw_final_energy_falls_in_the_first_chunks_and_separates_over_whole
     assert round(auroc(vanilla, shifted), 3) == expected
     if chunks == 3:  # confidently below vanilla under the largest camera moves
         assert auroc(vanilla, mean_energy(episodes("pose3"), 3)) < 0.1
+
+
+def test_diffusion_policy_on_the_same_data_fails_every_held_out_episode():
+    infos = sorted((EVAL.parent / "diffusion_cpu" / "vanilla_heldout").glob("task*/eval_info.json"))
+    successes = {
+        info.parent.name: [
+            bool(s) for t in json.loads(info.read_text())["per_task"] for s in t["metrics"]["successes"]
+        ]
+        for info in infos
+    }
+    assert {task: (sum(s), len(s)) for task, s in successes.items()} == {
+        "task2": (0, 10),
+        "task3": (0, 10),
+        "task9": (0, 10),
+    }

@@ -319,6 +319,12 @@ def test_saved_results_restore_a_resumable_training_and_skip_finished_jobs(tmp_p
     assert not (results / "eval/ebvla_cpu/vanilla_heldout/task2/energy_records.jsonl").exists()
     assert (results / "train/ebvla_cpu/last/pretrained_model/model.safetensors").exists()
 
+    # Restored into the folder that saved them, the compressed records do not join the uncompressed ones (a
+    # folder with both is refused), and saving again works.
+    pipeline.restore_results(results, first)
+    assert not (first / "eval/ebvla_cpu/vanilla_heldout/task2/energy_records.jsonl.gz").exists()
+    pipeline.save_results(first, results)
+
     second = tmp_path / "second"
     pipeline.restore_results(results, second)
     config = second / "train/ebvla_cpu/checkpoints/last/pretrained_model/train_config.json"
