@@ -102,21 +102,24 @@ def run_table(folder: Path, chunks: int) -> dict[str, dict]:
 def vanilla_success(folders: dict[str, Path]) -> dict[str, tuple[int, int, int, int, float]]:
     """Per run: vanilla successes and n over `vanilla/` and `vanilla_extra/`, and on the seeds shared with the
     first run, (wins, losses, sign-test p) against it."""
-    outcomes = {
+    rows = {
         name: {
-            c: {ep[0].seed: ep[0].success for ep in episodes(folder / c)}
+            c: {"outcomes": {ep[0].seed: ep[0].success for ep in episodes(folder / c)}}
             for c in ("vanilla", "vanilla_extra")
             if (folder / c).is_dir()
         }
         for name, folder in folders.items()
     }
-    base = next(iter(outcomes.values()))
+    base = next(iter(rows.values()))
     out = {}
-    for name, run in outcomes.items():
-        shared = {c: {"outcomes": {s: o for s, o in run[c].items() if s in base[c]}} for c in run if c in base}
-        as_base = {c: {"outcomes": base[c]} for c in shared}
-        successes = sum(sum(run[c].values()) for c in run)
-        out[name] = (successes, sum(len(run[c]) for c in run), *paired_against(as_base, shared, list(shared)))
+    for name, row in rows.items():
+        shared = {
+            c: {"outcomes": {s: o for s, o in row[c]["outcomes"].items() if s in base[c]["outcomes"]}}
+            for c in row
+            if c in base
+        }
+        outcomes = [o for c in row for o in row[c]["outcomes"].values()]
+        out[name] = (sum(outcomes), len(outcomes), *paired_against(base, shared, list(shared)))
     return out
 
 
@@ -144,7 +147,10 @@ def main() -> None:
             cells += [row["one_sided"][0], row["two_sided"][0]] if "one_sided" in row else ["-", "-"]
         lines.append("| " + " | ".join(cells) + " |")
     first = next(iter(runs))
-    lines += ["", f"| run | vanilla success [Wilson 95%] | won / lost against {first}, same seeds | sign test p |"]
+    lines += [
+        "",
+        f"| run | vanilla success [Wilson 95%] | won / lost against {first}, same seeds | sign test p |",
+    ]
     lines.append("|---|---|---|---|")
     for name, (successes, n, wins, losses, p) in vanilla_success(
         {name: Path(folder) for name, folder in runs.items()}

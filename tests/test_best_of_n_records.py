@@ -1,12 +1,12 @@
 """The closed-loop best-of-N table (benchmarks/results/metaworld_best_of_n/summary.md, issue 32 part 5),
 recomputed from its committed records by the script that printed it."""
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
+
+from tests.conftest import load_benchmark
 
 ROOT = Path(__file__).parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "metaworld_best_of_n"
@@ -14,16 +14,7 @@ RESULTS = ROOT / "benchmarks" / "results" / "metaworld_best_of_n"
 
 @pytest.fixture(scope="module")
 def script():
-    sys.path.insert(0, str(ROOT / "benchmarks"))  # the script imports its sibling compare_diffusion_metaworld
-    try:
-        spec = importlib.util.spec_from_file_location(
-            "best_of_n", ROOT / "benchmarks" / "best_of_n_closed_loop.py"
-        )
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
-    return module
+    return load_benchmark("best_of_n_closed_loop")
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,6 @@ The machine's versions where the list records them (numpy 2.5.2, transformers 5.
 metadata says; the code behind them is this environment's.
 """
 
-import importlib.util
 import json
 import os
 import shutil
@@ -21,19 +20,13 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import load_benchmark
 from tests.test_libero import requires_libero
 
 REPO = Path(__file__).parents[1]
 
 
-def load_bundle_module():
-    spec = importlib.util.spec_from_file_location("gpu_bundle", REPO / "benchmarks" / "gpu_bundle.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-gpu_bundle = load_bundle_module()
+gpu_bundle = load_benchmark("gpu_bundle")
 PART_MIB = 40.0
 
 

@@ -4,7 +4,6 @@ Its queue, commands and packing are checked on temporary folders, without the si
 every stage at a tiny size on CPU (it needs LIBERO set up, as the simulator tests of tests/test_libero.py).
 """
 
-import importlib.util
 import json
 import math
 import tarfile
@@ -14,18 +13,10 @@ import numpy as np
 import pytest
 
 from lerobot_policy_ebvla.envs.libero_configs import LiberoEBVLAEnv
+from tests.conftest import load_benchmark
 from tests.test_libero import requires_libero
 
-
-def load_pipeline():
-    path = Path(__file__).parents[1] / "benchmarks" / "libero_pipeline.py"
-    spec = importlib.util.spec_from_file_location("libero_pipeline", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-pipeline = load_pipeline()
+pipeline = load_benchmark("libero_pipeline")
 
 
 def write_json(path: Path, content: dict) -> Path:

@@ -1,30 +1,17 @@
 """The with/without table of the OOD margin (benchmarks/results/metaworld_sweep_ood_margin/summary.md, issue 32),
 recomputed from its committed records by the script that printed it."""
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import pytest
+
+from tests.conftest import load_benchmark
 
 ROOT = Path(__file__).parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "metaworld_sweep_ood_margin"
 
 
-def load_report_script():
-    sys.path.insert(0, str(ROOT / "benchmarks"))  # the script imports its sibling best_of_n_closed_loop
-    try:
-        spec = importlib.util.spec_from_file_location(
-            "energy_margin_report", ROOT / "benchmarks" / "energy_margin_report.py"
-        )
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
-    return module
-
-
-report = load_report_script()
+report = load_benchmark("energy_margin_report")
 
 
 def auroc(rows: dict, condition: str, form: str = "one_sided") -> float:

@@ -11,7 +11,7 @@ from lerobot.policies.rtc.configuration_rtc import RTCConfig
 from lerobot_policy_ebvla import EBVLAPolicy
 from lerobot_policy_ebvla import modeling_ebvla as modeling
 from lerobot_policy_ebvla.mcmc import RTCPrefix, refine_actions, sample_initial_actions
-from tests.conftest import tiny_batch, tiny_config
+from tests.conftest import load_benchmark, tiny_batch, tiny_config
 from tests.test_mcmc import TARGET, quadratic
 
 CHUNK, HORIZON = 8, 6
@@ -212,15 +212,9 @@ def test_zero_rows_lerobot_pads_the_leftover_with_are_not_guided(leftover):
 
 def test_the_metaworld_benchmark_measures_both_arms_at_each_latency(tmp_path):
     pytest.importorskip("metaworld")
-    import importlib.util
-    from pathlib import Path
-
     from tests.test_ood_response import metaworld_config, save_checkpoint
 
-    path = Path(__file__).parents[1] / "benchmarks" / "rtc_metaworld.py"
-    spec = importlib.util.spec_from_file_location("rtc_metaworld", path)
-    benchmark = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(benchmark)
+    benchmark = load_benchmark("rtc_metaworld")
     checkpoint = save_checkpoint(tmp_path, metaworld_config(), None, action_dim=4, state_dim=4)
     rows = benchmark.run(checkpoint, task="reach-v3", episodes=1, max_episode_steps=8, latencies=(1,))
     assert [(r["latency"], r["arm"]) for r in rows] == [(1, "naive"), (1, "rtc")]

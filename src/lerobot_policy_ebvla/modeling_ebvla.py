@@ -541,12 +541,11 @@ class EBVLA(nn.Module):
         """
         cfg = self.config
         target = batch[ACTION]
-        # The joint energy's margin through the backbone reads the pooled context of this same backbone pass.
-        clean_features = None
-        if self.context_energy is not None and cfg.energy_ood_margin_on == "context_backbone":
+        # The joint energy's margin reads the pooled context of this same backbone pass.
+        if self.context_energy is not None:
             kv, clean_features = self.encode_context(batch, return_features=True)
         else:
-            kv = self.encode_context(batch)
+            kv, clean_features = self.encode_context(batch), None
         device = target.device
         if generator is None:
             generator = self.training_generator(device)
@@ -611,13 +610,16 @@ class EBVLA(nn.Module):
         term. "context_backbone" lets the margin's gradient into the backbone.
         """
         cfg = self.config
+        through_backbone = cfg.energy_ood_margin_on == "context_backbone"
         corrupted_batch = corrupt_observation(
             batch, list(cfg.image_features), cfg.energy_ood_corruptions, generator, state_key=OBS_STATE
         )
-        with torch.set_grad_enabled(cfg.energy_ood_margin_on == "context_backbone"):
+        with torch.set_grad_enabled(through_backbone):
             if clean_features is None:
                 clean_features = pooled_context(self.backbone(batch))
             corrupted_features = pooled_context(self.backbone(corrupted_batch))
+        if not through_backbone:
+            clean_features = clean_features.detach()
         clean, shifted = self.context_energy(clean_features), self.context_energy(corrupted_features)
         loss = energy_margin_loss(clean, shifted, cfg.energy_ood_margin) + clean.float().pow(2).mean()
         return loss, (shifted - clean).mean().item()
