@@ -6,8 +6,9 @@ score against the held-out vanilla rollouts, with a stratified bootstrap 95% int
 the mean over its first `--chunks` chunks of
 
 - one-sided: the raw final energy E(a^(K_inf), C) (the paper's score);
-- two-sided: |z|, z = (E - mu_k) / sigma_k with mu_k, sigma_k the calibration rollouts' mean and std of the
-  final energy at the same chunk index k;
+- two-sided: the mean of |z_k|, z_k = (E_k - mu_v[k]) / sigma_v[k] against the calibration rollouts' final
+  energy at the same chunk index k: the shipped `phase_energy_deviation` score (`runtime.scores`), fitted on
+  the calibration rollouts;
 
 and whether the condition is inverted (AUROC < 0.5).
 
@@ -27,6 +28,7 @@ from best_of_n_closed_loop import paired_against, success_cell
 
 from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_interval
 from lerobot_policy_ebvla.monitoring.records import group_by_episode, read_energy_records, records_file_in
+from lerobot_policy_ebvla.runtime.scores import PhaseEnergyDeviation, VanillaRollouts, score_rollout
 
 
 def episodes(folder: Path) -> list[list]:
@@ -34,17 +36,29 @@ def episodes(folder: Path) -> list[list]:
     return [sorted(chunks, key=lambda r: r.chunk_index) for chunks in group_by_episode(records).values()]
 
 
-def calibration_moments(calibration: list[list], chunks: int) -> tuple[np.ndarray, np.ndarray]:
-    energies = np.array([[r.final_energy for r in ep[:chunks]] for ep in calibration if len(ep) >= chunks])
-    return energies.mean(axis=0), energies.std(axis=0, ddof=1)
+def energies(episode: list) -> np.ndarray:
+    return np.array([r.final_energy for r in episode])
 
 
-def scores(eps: list[list], chunks: int, mu: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def indices(episode: list) -> np.ndarray:
+    return np.array([r.chunk_index for r in episode])
+
+
+def fit_deviation(calibration: list[list]) -> PhaseEnergyDeviation:
+    return PhaseEnergyDeviation.fit(
+        VanillaRollouts([energies(ep) for ep in calibration], [indices(ep) for ep in calibration])
+    )
+
+
+def scores(eps: list[list], chunks: int, deviation: PhaseEnergyDeviation) -> tuple[np.ndarray, np.ndarray]:
+    """Each episode's raw final energy and `phase_energy_deviation`, both the mean over its first chunks."""
     raw, two_sided = [], []
     for ep in eps:
-        e = np.array([r.final_energy for r in ep[:chunks]])
+        e = energies(ep[:chunks])
         raw.append(e.mean())
-        two_sided.append(np.abs((e - mu[: len(e)]) / sigma[: len(e)]).mean())
+        two_sided.append(
+            score_rollout(deviation, deviation.components(e, indices(ep[:chunks]), None), "mean")
+        )
     return np.array(raw), np.array(two_sided)
 
 
@@ -56,9 +70,9 @@ def cell(negatives: np.ndarray, positives: np.ndarray) -> tuple[str, float]:
 
 
 def run_table(folder: Path, chunks: int) -> dict[str, dict]:
-    mu, sigma = calibration_moments(episodes(folder / "calibration"), chunks)
+    deviation = fit_deviation(episodes(folder / "calibration"))
     vanilla = episodes(folder / "vanilla")
-    v_raw, v_two = scores(vanilla, chunks, mu, sigma)
+    v_raw, v_two = scores(vanilla, chunks, deviation)
     rows = {"vanilla": {"n": len(vanilla), "success": np.mean([ep[0].success for ep in vanilla])}}
     pooled_raw, pooled_two, outcomes = (
         [],
@@ -69,7 +83,7 @@ def run_table(folder: Path, chunks: int) -> dict[str, dict]:
         if records_file_in(sub) is None:
             continue
         eps = episodes(sub)
-        raw, two = scores(eps, chunks, mu, sigma)
+        raw, two = scores(eps, chunks, deviation)
         rows[sub.name] = {
             "n": len(eps),
             "success": np.mean([ep[0].success for ep in eps]),

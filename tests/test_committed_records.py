@@ -374,6 +374,7 @@ ENERGY_ONLY = (
     "final_energy_two_sided",
     "phase_energy",
     "phase_energy_two_sided",
+    "phase_energy_deviation",
     "initial_energy",
 )
 

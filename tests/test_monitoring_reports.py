@@ -174,7 +174,7 @@ def test_ood_report_without_baseline_data_reports_the_energies_only(tmp_path, ca
     out = capsys.readouterr().out
     assert (
         "| Condition | Episodes | final_energy | final_energy_two_sided | phase_energy | phase_energy_two_sided "
-        "| initial_energy |\n"
+        "| initial_energy | phase_energy_deviation |\n"
         in out
         and "knn" not in out
     )

@@ -100,7 +100,7 @@ def test_the_report_scores_and_saves_a_registered_score_it_has_no_line_for(regis
     assert f"| {PooledEnergyZ.name} | 8 | {calibration.mu_v:.4g} | {calibration.sigma_v:.4g} |" in report
     auroc_header = report.split("## AUROC")[1].split("\n\n")[1].splitlines()[0]
     assert auroc_header.endswith(
-        f"| energy_and_context_sum | energy_two_sided_and_context_knn | {PooledEnergyZ.name} |"
+        f"| energy_and_context_sum | phase_energy_deviation | energy_two_sided_and_context_knn | {PooledEnergyZ.name} |"
     )
 
 

@@ -125,7 +125,7 @@ def test_the_joint_energy_through_the_backbone_sees_the_image_shifts_and_keeps_t
 def test_with_state_noise_the_joint_energy_is_never_under_0_5_two_sided_and_sees_the_robots_initial_state():
     rows = report.run_table(FULL / "context_backbone_state" / "records", 3)
     conditions = [c for c in rows if c.endswith(("_s3", "_s5"))]
-    # Two-sided (mean |z_t| against the calibration at each chunk index): at least 0.51 everywhere, 0.86 and 0.98
+    # Two-sided (the shipped phase_energy_deviation, mean |z_t|): at least 0.51 everywhere, 0.86 and 0.98
     # on the two success-cutting conditions (the robot's initial state); one-sided it reaches 0.77 and 0.71 there.
     assert round(min(rows[c]["two_sided"][1] for c in conditions), 2) == 0.51
     assert success_cutting(rows) == ["robot_init_s3", "robot_init_s5"]

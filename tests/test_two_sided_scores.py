@@ -21,6 +21,7 @@ from lerobot_policy_ebvla.runtime.scores import (
     FinalEnergy,
     FinalEnergyTwoSided,
     PhaseEnergy,
+    PhaseEnergyDeviation,
     PhaseEnergyTwoSided,
     score_rollout,
 )
@@ -61,7 +62,12 @@ def rollout_score(calibration: OODCalibration, energies, features=None) -> float
 
 
 @pytest.mark.parametrize(
-    ("one_sided", "two_sided"), [(FinalEnergy, FinalEnergyTwoSided), (PhaseEnergy, PhaseEnergyTwoSided)]
+    ("one_sided", "two_sided"),
+    [
+        (FinalEnergy, FinalEnergyTwoSided),
+        (PhaseEnergy, PhaseEnergyTwoSided),
+        (PhaseEnergy, PhaseEnergyDeviation),
+    ],
 )
 def test_an_energy_below_vanilla_scores_high_two_sided_and_low_one_sided(one_sided, two_sided):
     rollouts = vanilla()
@@ -73,7 +79,7 @@ def test_an_energy_below_vanilla_scores_high_two_sided_and_low_one_sided(one_sid
     assert rollout_score(two, held_out) < rollout_score(two, below)
 
 
-@pytest.mark.parametrize("two_sided", [FinalEnergyTwoSided, PhaseEnergyTwoSided])
+@pytest.mark.parametrize("two_sided", [FinalEnergyTwoSided, PhaseEnergyTwoSided, PhaseEnergyDeviation])
 def test_a_two_sided_score_flags_an_energy_above_vanilla_as_the_one_sided_does(two_sided):
     calibration = calibrated(two_sided, vanilla())
     assert rollout_score(calibration, np.full(N_CHUNKS, 7.0)) > calibration.threshold
@@ -88,6 +94,24 @@ def test_the_two_sided_phase_energy_is_the_magnitude_of_the_phase_energy():
     assert score_rollout(two, z, "mean") == pytest.approx(abs(z.mean()))
 
 
+def test_the_phase_energy_deviation_flags_a_rollout_on_both_sides_that_the_aggregate_z_misses():
+    """Chunks above the vanilla band early and as far below it later: their mean z is near 0, so |mean z| passes
+    the rollout, and the mean of |z_t| does not."""
+    rollouts = vanilla()
+    aggregate, deviation = (
+        calibrated(PhaseEnergyTwoSided, rollouts),
+        calibrated(PhaseEnergyDeviation, rollouts),
+    )
+    phase = PhaseEnergy.fit(rollouts).phase
+    z_t = np.array([20.0, 20.0, 20.0, -20.0, -20.0, -20.0])
+    both_sides = np.array(phase.mean[:N_CHUNKS]) + z_t * np.array(phase.std[:N_CHUNKS])
+    assert rollout_score(aggregate, both_sides) < aggregate.threshold
+    assert rollout_score(deviation, both_sides) > deviation.threshold
+    assert deviation.score.components(both_sides, np.arange(N_CHUNKS), None)[:, 0] == pytest.approx(
+        np.abs(z_t)
+    )
+
+
 def test_the_energy_and_context_knn_flags_a_low_energy_and_a_far_context():
     calibration = calibrated(EnergyTwoSidedAndContextKNN, vanilla())
     typical = vanilla(seed=2)
@@ -98,7 +122,8 @@ def test_the_energy_and_context_knn_flags_a_low_energy_and_a_far_context():
 
 
 @pytest.mark.parametrize(
-    "score_class", [FinalEnergyTwoSided, PhaseEnergyTwoSided, EnergyTwoSidedAndContextKNN]
+    "score_class",
+    [FinalEnergyTwoSided, PhaseEnergyTwoSided, PhaseEnergyDeviation, EnergyTwoSidedAndContextKNN],
 )
 def test_a_two_sided_calibration_is_saved_and_loaded_back_and_monitors_the_same(score_class, tmp_path):
     assert SCORES[score_class.name] is score_class
@@ -137,6 +162,7 @@ def test_the_report_sets_each_two_sided_score_beside_its_one_sided_form(record_d
     text, _ = report(record_dirs, tmp_path)
     header = text.split("## AUROC")[1].split("\n\n")[1].splitlines()[0]
     assert "| final_energy | final_energy_two_sided | phase_energy | phase_energy_two_sided |" in header
+    assert "| phase_energy_deviation |" in header
     # An energy below vanilla's: inverted one-sided (with `!`, its interval wholly below 0.5), high two-sided.
     summary = text.split("## Score summary")[1].split("\n## ")[0]
     row = {line.split(" | ")[0].strip("| "): line for line in summary.splitlines() if line.startswith("| ")}

@@ -29,7 +29,11 @@ the vanilla band, |z| of the rollout's aggregated z (a typicality test, Nalisnic
 
 - "final_energy_two_sided" (`FinalEnergyTwoSided`): |E - mu_E| / sigma_E, mu_E and sigma_E of every vanilla
   chunk's final energy.
-- "phase_energy_two_sided" (`PhaseEnergyTwoSided`): |z_t| of the phase energy.
+- "phase_energy_two_sided" (`PhaseEnergyTwoSided`): |z| of the phase energy's rollout aggregate.
+- "phase_energy_deviation" (`PhaseEnergyDeviation`): |z_t| of each chunk, then aggregated. A rollout whose
+  chunks leave the band on both sides (above vanilla early, below it later) has a mean z near 0 and so passes
+  the aggregate's test; the mean of |z_t| does not (issue 32's joint-energy sweep: min over 26 conditions 0.51
+  against 0.53, success-cutting 0.86 against 0.84).
 - "energy_two_sided_and_context_knn" (`EnergyTwoSidedAndContextKNN`): the two-sided phase energy and the
   context k-NN distance, each standardized by the vanilla rollouts' mean and std, and the larger counts.
 
@@ -427,6 +431,17 @@ class PhaseEnergyTwoSided(PhaseEnergy):
 
 
 @dataclass(frozen=True)
+class PhaseEnergyDeviation(PhaseEnergy):
+    """|z_t| of each chunk's phase energy: how far its final energy lies from the vanilla energy at the same
+    chunk index, on either side, aggregated over the rollout (mean |z_t| by default)."""
+
+    name = "phase_energy_deviation"
+
+    def components(self, final_energy, chunk_index, context_features) -> np.ndarray:
+        return np.abs(super().components(final_energy, chunk_index, context_features))
+
+
+@dataclass(frozen=True)
 class EnergyTwoSidedAndContextKNN(ChunkScore):
     """max(z_|phase|, z_knn): the two-sided phase energy and the context k-NN distance, each standardized by
     the vanilla rollouts' mean and std (`CombinedStatistics`, in that order).
@@ -511,6 +526,7 @@ SCORES: dict[str, type[ChunkScore]] = {
         ContextKNN,
         FinalEnergyTwoSided,
         PhaseEnergyTwoSided,
+        PhaseEnergyDeviation,
         EnergyTwoSidedAndContextKNN,
     )
 }
