@@ -74,11 +74,8 @@ def run_table(folder: Path, chunks: int) -> dict[str, dict]:
     vanilla = episodes(folder / "vanilla")
     v_raw, v_two = scores(vanilla, chunks, deviation)
     rows = {"vanilla": {"n": len(vanilla), "success": np.mean([ep[0].success for ep in vanilla])}}
-    pooled_raw, pooled_two, outcomes = (
-        [],
-        [],
-        [(ep[0].success, r) for ep, r in zip(vanilla, v_raw, strict=True)],
-    )
+    # (success, raw, two-sided) of every held-out rollout, by where it comes from.
+    held_out = {"vanilla": list(zip([ep[0].success for ep in vanilla], v_raw, v_two, strict=True))}
     for sub in sorted(p for p in folder.iterdir() if p.is_dir() and p.name not in ("calibration", "vanilla")):
         if records_file_in(sub) is None:
             continue
@@ -90,26 +87,33 @@ def run_table(folder: Path, chunks: int) -> dict[str, dict]:
             "one_sided": cell(v_raw, raw),
             "two_sided": cell(v_two, two),
         }
-        if sub.name != "vanilla_extra":  # extra vanilla rollouts are not a perturbation
-            pooled_raw.append(raw)
-            pooled_two.append(two)
-            outcomes += [(ep[0].success, r) for ep, r in zip(eps, raw, strict=True)]
-    pooled_eps = np.concatenate(pooled_raw)
+        # Extra vanilla rollouts are not a perturbation.
+        group = "vanilla_extra" if sub.name == "vanilla_extra" else "shifted"
+        held_out.setdefault(group, []).extend(zip([ep[0].success for ep in eps], raw, two, strict=True))
+    shifted = np.array(held_out["shifted"])
     rows["all perturbations pooled"] = {
-        "n": len(pooled_eps),
-        "success": np.mean([o for o, _ in outcomes[len(vanilla) :]]),
-        "one_sided": cell(v_raw, pooled_eps),
-        "two_sided": cell(v_two, np.concatenate(pooled_two)),
+        "n": len(shifted),
+        "success": shifted[:, 0].mean(),
+        "one_sided": cell(v_raw, shifted[:, 1]),
+        "two_sided": cell(v_two, shifted[:, 2]),
     }
-    # Failed vs successful, over every held-out rollout (vanilla and perturbed), raw final energy, first chunks.
-    failed = np.array([r for o, r in outcomes if not o])
-    succeeded = np.array([r for o, r in outcomes if o])
-    rows["failed vs successful (all held out)"] = {
-        "n": len(outcomes),
-        "success": len(succeeded) / len(outcomes),
-        "one_sided": cell(succeeded, failed),
-        "two_sided": ("-", float("nan")),
+    # Failed vs successful, both forms over the first chunks: over the 40 held-out vanilla and the perturbed
+    # rollouts together (the figure), then apart: a score that flags every shift, whether the policy
+    # copes or not, splits the pool by condition, not by outcome.
+    sets = {
+        "all held out": held_out["vanilla"] + held_out["shifted"],
+        "vanilla only": held_out["vanilla"] + held_out.get("vanilla_extra", []),
+        "perturbed only": held_out["shifted"],
     }
+    for name, rollouts in sets.items():
+        rollouts = np.array(rollouts)
+        succeeded = rollouts[:, 0].astype(bool)
+        rows[f"failed vs successful ({name})"] = {
+            "n": len(rollouts),
+            "success": succeeded.mean(),
+            "one_sided": cell(rollouts[succeeded, 1], rollouts[~succeeded, 1]),
+            "two_sided": cell(rollouts[succeeded, 2], rollouts[~succeeded, 2]),
+        }
     return rows
 
 

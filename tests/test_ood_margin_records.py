@@ -178,3 +178,26 @@ def test_on_seed_2000_the_backbone_joint_energy_is_never_under_0_5_and_misses_on
         "table_color_s5": 1.0,
         "table_texture_s5": 1.0,
     }
+
+
+def test_the_first_chunks_do_not_tell_failure_from_success_within_vanilla_or_within_the_shifts():
+    """Why failed vs successful stays near chance: apart, within the vanilla rollouts (140) and within the
+    perturbed ones (208), the first 3 chunks' energy tells failure weakly, and its sign changes from checkpoint
+    to checkpoint; the backbone joint energy flags a shift whether the policy copes with it or not."""
+    without = report.run_table(FULL / "without" / "records", 3)
+    backbone = report.run_table(FULL / "context_backbone_state" / "records", 3)
+    seed2000 = report.run_table(FULL / "seed2000" / "context_backbone" / "records", 3)
+    vanilla, perturbed = "failed vs successful (vanilla only)", "failed vs successful (perturbed only)"
+    assert without[vanilla]["n"] == backbone[vanilla]["n"] == 140 and without[perturbed]["n"] == 208
+    # Failed vanilla rollouts sit *below* the successful ones without the term, above them on seed 2000's backbone.
+    assert (auroc(without, vanilla), auroc(without, vanilla, "two_sided")) == (0.17, 0.7)
+    assert auroc(seed2000, vanilla) == 0.81
+    assert [
+        auroc(backbone, c, form) for c in (vanilla, perturbed) for form in ("one_sided", "two_sided")
+    ] == [
+        0.6,
+        0.53,
+        0.53,
+        0.53,
+    ]
+    assert auroc(backbone, "failed vs successful (all held out)", "two_sided") == 0.56
