@@ -170,7 +170,41 @@ def test_context_margin_through_the_backbone_trains_the_backbone_and_the_context
     assert "ood_margin_loss" in info and torch.isfinite(loss)
 
 
-@pytest.mark.parametrize("target", ["context", "context_backbone"])
+def test_observation_margin_trains_the_observation_encoder_and_the_context_energy_only():
+    torch.manual_seed(0)
+    config = tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on="observation")
+    policy = EBVLAPolicy(config)
+    margin, _ = policy.model.context_margin_loss(tiny_batch(config, batch_size=3), torch.Generator())
+    margin.backward()
+    assert all(p.grad is None for p in policy.model.backbone.parameters())
+    assert all(p.grad is None for p in policy.model.head.parameters())
+    assert policy.model.observation_encoder.state_proj.weight.grad.abs().sum() > 0
+    assert policy.model.context_energy.net[-1].weight.grad.abs().sum() > 0
+
+
+def test_with_the_observation_energy_the_policy_starts_and_trains_exactly_as_without_the_term():
+    """Same seed: the backbone and head start from the same weights and get the same gradients, so the actions
+    differ from a policy without the term only through what they share with nothing (the observation encoder
+    and E_c are built last and the corruptions drawn after the action losses)."""
+    policies = {}
+    for name, fields in (("without", {}), ("observation", {"energy_ood_margin_on": "observation"})):
+        torch.manual_seed(0)
+        config = tiny_config(energy_ood_margin_weight=1.0 if fields else 0.0, **fields)
+        policies[name] = EBVLAPolicy(config)
+        loss, _ = policies[name].model.compute_loss(
+            tiny_batch(config, batch_size=3), torch.Generator().manual_seed(0)
+        )
+        loss.backward()
+    without, observation = policies["without"].model, policies["observation"].model
+    for part in ("backbone", "head"):
+        ours = dict(getattr(observation, part).named_parameters())
+        for name, param in getattr(without, part).named_parameters():
+            torch.testing.assert_close(ours[name], param)
+            if param.grad is not None:
+                torch.testing.assert_close(ours[name].grad, param.grad)
+
+
+@pytest.mark.parametrize("target", ["context", "context_backbone", "observation"])
 def test_joint_final_energy_is_the_head_energy_plus_the_context_energy(target):
     torch.manual_seed(0)
     policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on=target)).eval()
@@ -179,8 +213,11 @@ def test_joint_final_energy_is_the_head_energy_plus_the_context_energy(target):
         batch, generator=torch.Generator().manual_seed(0), return_energy=True
     )
     head = policy.score_action_chunks(batch, chunk[:, None])[:, 0]
-    context = policy.model.context_energy(policy.context_features(batch))
+    context = policy.model.context_energy_of(batch, policy.context_features(batch))
     torch.testing.assert_close(readout.final_energy, head + context, rtol=1e-4, atol=1e-4)
+    if target == "observation":  # E_c reads the observation encoder's context, not the policy's
+        other = policy.model.context_energy(policy.context_features(batch))
+        assert not torch.allclose(context, other)
 
 
 def test_without_the_context_variant_the_policy_has_no_context_energy():

@@ -26,7 +26,7 @@ CONTRASTIVE_DTYPES = ("float32", "bfloat16", "auto")
 # The generic corruptions of `training_signal.corrupt_observation` (kept here: the config imports no torch).
 OOD_CORRUPTIONS = ("channel_gain", "patch_swap", "shift", "state_noise")
 OOD_MARGIN_CHUNKS = ("expert", "refined")
-OOD_MARGIN_TARGETS = ("head", "context", "context_backbone")
+OOD_MARGIN_TARGETS = ("head", "context", "context_backbone", "observation")
 
 
 @PreTrainedConfig.register_subclass("ebvla")
@@ -165,6 +165,10 @@ class EBVLAConfig(PreTrainedConfig):
             also training the backbone (the context E_c reads is not detached), so that the backbone learns
             what sets a corrupted observation apart; E_c has no gradient in a, so the refinement's landscape
             and step lengths are still the head's alone, and the actions change only as the shared context does.
+            "observation": the same joint energy, E_c reading the pooled context of its own copy of the
+            backbone (built as the policy's, trained by the margin alone): E_c learns what sets a corrupted
+            observation apart, as through the backbone, while the policy's backbone and head train exactly as
+            without the term. It costs a second backbone pass per chunk at inference and two per training step.
         energy_ood_margin_chunk: Which chunk's energies the hinge compares: "expert", a* under C~ against a*
             under C; "refined", the chunk refined under C~ (same a^(0) and step sizes, no graph) against the
             training chain's refined chunk under C, so that min_a E(a, C~) rises (the shift's refined energy can

@@ -341,8 +341,11 @@ class EBVLA(nn.Module):
         self.register_buffer("train_steps", torch.zeros((), dtype=torch.long))
         # Built last, so that the backbone's and head's initial weights do not depend on it.
         self.context_energy = None
+        self.observation_encoder = None
         if config.energy_ood_margin_weight > 0 and config.energy_ood_margin_on != "head":
             self.context_energy = EBVLAContextEnergy(self.backbone.context_dim)
+        if self.context_energy is not None and config.energy_ood_margin_on == "observation":
+            self.observation_encoder = make_backbone(config)
 
     def training_generator(self, device: torch.device) -> torch.Generator:
         """A generator for one training step; ranks of a multi-process run get different streams."""
@@ -403,6 +406,15 @@ class EBVLA(nn.Module):
             generator=generator,
         )
 
+    def context_energy_of(self, batch: dict[str, Tensor], features: Tensor | None) -> Tensor | None:
+        """(B,) E_c of the joint energy E(a, C) + E_c(C) (None without one): of `features`, the pooled context of
+        the policy's own backbone pass, or of the observation encoder's (`energy_ood_margin_on="observation"`)."""
+        if self.context_energy is None:
+            return None
+        if self.observation_encoder is not None:
+            features = pooled_context(self.observation_encoder(batch))
+        return self.context_energy(features)
+
     def _inference_context(
         self, batch: dict[str, Tensor], return_features: bool = False
     ) -> ContextKV | tuple[ContextKV, Tensor]:
@@ -431,16 +443,21 @@ class EBVLA(nn.Module):
         backbone pass that encoded the context.
         """
         cfg = self.config
-        with_features = return_context_features or self.context_energy is not None
+        with_features = return_context_features or (
+            self.context_energy is not None and self.observation_encoder is None
+        )
         with torch.no_grad():
             encoded = self._inference_context(batch, with_features)
             kv, features = encoded if with_features else (encoded, None)
+            context_energy = self.context_energy_of(batch, features)
         adaptive = cfg.restart_energy_threshold is not None
         actions, readout = self._best_of_chains(
-            kv, features, 1 if adaptive else cfg.num_restarts, generator, prefix
+            kv, context_energy, 1 if adaptive else cfg.num_restarts, generator, prefix
         )
         if adaptive and cfg.num_restarts > 1:
-            actions, readout = self._restart_unsure_chunks(kv, features, actions, readout, generator, prefix)
+            actions, readout = self._restart_unsure_chunks(
+                kv, context_energy, actions, readout, generator, prefix
+            )
         if return_context_features:
             return actions.detach(), readout, features
         return actions.detach(), readout
@@ -448,12 +465,14 @@ class EBVLA(nn.Module):
     def _best_of_chains(
         self,
         kv: ContextKV,
-        features: Tensor | None,
+        context_energy: Tensor | None,
         chains: int,
         generator: torch.Generator | None,
         prefix: RTCPrefix | None,
     ) -> tuple[Tensor, EnergyReadout]:
-        """Refines `chains` chunks per observation from independent a^(0) and keeps the lowest final energy."""
+        """Refines `chains` chunks per observation from independent a^(0) and keeps the lowest final energy.
+
+        `context_energy`: E_c(C) of each observation, added to its chunks' final energies (the joint energy)."""
         cfg = self.config
         batch_size = kv[0][0].shape[0]
         initial = self._initial_actions(batch_size * chains, kv[0][0], generator)
@@ -471,8 +490,8 @@ class EBVLA(nn.Module):
         )
         with torch.no_grad():
             final_energy = self.head(result.actions, kv).mean(dim=-1)
-            if self.context_energy is not None:  # the joint energy E(a, C) + E_c(C)
-                final_energy = final_energy + self.context_energy(features).repeat_interleave(chains)
+            if context_energy is not None:  # the joint energy E(a, C) + E_c(C)
+                final_energy = final_energy + context_energy.repeat_interleave(chains)
         final_energy = torch.where(result.diverged, math.inf, final_energy)
         if result.diverged.any():
             logger.warning(
@@ -492,7 +511,7 @@ class EBVLA(nn.Module):
     def _restart_unsure_chunks(
         self,
         kv: ContextKV,
-        features: Tensor | None,
+        context_energy: Tensor | None,
         actions: Tensor,
         readout: EnergyReadout,
         generator: torch.Generator | None,
@@ -511,7 +530,7 @@ class EBVLA(nn.Module):
             prefix = dataclasses.replace(prefix, actions=prefix.actions[unsure], weights=weights)
         more_actions, more = self._best_of_chains(
             [(k[unsure], v[unsure]) for k, v in kv],
-            None if features is None else features[unsure],
+            None if context_energy is None else context_energy[unsure],
             cfg.num_restarts - 1,
             generator,
             prefix,
@@ -542,7 +561,7 @@ class EBVLA(nn.Module):
         cfg = self.config
         target = batch[ACTION]
         # The joint energy's margin reads the pooled context of this same backbone pass.
-        if self.context_energy is not None:
+        if self.context_energy is not None and self.observation_encoder is None:
             kv, clean_features = self.encode_context(batch, return_features=True)
         else:
             kv, clean_features = self.encode_context(batch), None
@@ -607,21 +626,29 @@ class EBVLA(nn.Module):
         copy, plus E_c(C)^2 on the data (the hinge leaves E_c's level free).
 
         `energy_ood_margin_on="context"` detaches both contexts: the backbone and head train as without the
-        term. "context_backbone" lets the margin's gradient into the backbone.
+        term. "context_backbone" lets the margin's gradient into the backbone. "observation" reads the contexts
+        of the observation encoder, which the margin alone trains.
         """
         cfg = self.config
-        through_backbone = cfg.energy_ood_margin_on == "context_backbone"
         corrupted_batch = corrupt_observation(
             batch, list(cfg.image_features), cfg.energy_ood_corruptions, generator, state_key=OBS_STATE
         )
+        if self.observation_encoder is not None:
+            clean_features = pooled_context(self.observation_encoder(batch))
+            corrupted_features = pooled_context(self.observation_encoder(corrupted_batch))
+            return self._context_margin(clean_features, corrupted_features)
+        through_backbone = cfg.energy_ood_margin_on == "context_backbone"
         with torch.set_grad_enabled(through_backbone):
             if clean_features is None:
                 clean_features = pooled_context(self.backbone(batch))
             corrupted_features = pooled_context(self.backbone(corrupted_batch))
         if not through_backbone:
             clean_features = clean_features.detach()
+        return self._context_margin(clean_features, corrupted_features)
+
+    def _context_margin(self, clean_features: Tensor, corrupted_features: Tensor) -> tuple[Tensor, float]:
         clean, shifted = self.context_energy(clean_features), self.context_energy(corrupted_features)
-        loss = energy_margin_loss(clean, shifted, cfg.energy_ood_margin) + clean.float().pow(2).mean()
+        loss = energy_margin_loss(clean, shifted, self.config.energy_ood_margin) + clean.float().pow(2).mean()
         return loss, (shifted - clean).mean().item()
 
     def ood_margin_loss(
