@@ -117,17 +117,18 @@ def run_table(folder: Path, chunks: int) -> dict[str, dict]:
     return rows
 
 
-def vanilla_success(folders: dict[str, Path]) -> dict[str, tuple[int, int, int, int, float]]:
-    """Per run: vanilla successes and n over `vanilla/` and `vanilla_extra/`, and on the seeds shared with the
-    first run, (wins, losses, sign-test p) against it."""
-    rows = {
-        name: {
-            c: {"outcomes": {ep[0].seed: ep[0].success for ep in episodes(folder / c)}}
-            for c in ("vanilla", "vanilla_extra")
-            if (folder / c).is_dir()
-        }
-        for name, folder in folders.items()
+def vanilla_outcomes(folder: Path) -> dict[str, dict]:
+    """The success of each vanilla rollout of a run, by rollout seed, in `vanilla/` and `vanilla_extra/`."""
+    return {
+        c: {"outcomes": {ep[0].seed: ep[0].success for ep in episodes(folder / c)}}
+        for c in ("vanilla", "vanilla_extra")
+        if (folder / c).is_dir()
     }
+
+
+def paired_success(rows: dict[str, dict]) -> dict[str, tuple[int, int, int, int, float]]:
+    """Per run: successes and n over its vanilla rollouts, and on the rollouts it shares with the first run
+    (same folder and seed), (wins, losses, sign-test p) against it."""
     base = next(iter(rows.values()))
     out = {}
     for name, row in rows.items():
@@ -141,9 +142,37 @@ def vanilla_success(folders: dict[str, Path]) -> dict[str, tuple[int, int, int, 
     return out
 
 
+def vanilla_success(folders: dict[str, Path]) -> dict[str, tuple[int, int, int, int, float]]:
+    """Per run: vanilla successes and n over `vanilla/` and `vanilla_extra/`, and on the seeds shared with the
+    first run, (wins, losses, sign-test p) against it."""
+    return paired_success({name: vanilla_outcomes(folder) for name, folder in folders.items()})
+
+
+def vanilla_success_over_seeds(runs: dict[str, list[Path]]) -> dict[str, tuple[int, int, int, int, float]]:
+    """`vanilla_success` of each recipe pooled over its training seeds: `runs` gives each recipe's run folders,
+    one per training seed in the same order for every recipe, and a rollout is paired with the first recipe's
+    rollout of the same training seed and rollout seed."""
+    return paired_success(
+        {
+            name: {
+                f"{i}/{c}": row
+                for i, folder in enumerate(folders)
+                for c, row in vanilla_outcomes(folder).items()
+            }
+            for name, folders in runs.items()
+        }
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", nargs="+", required=True, help="name=folder of sweep records")
+    parser.add_argument(
+        "--seeds",
+        nargs="*",
+        default=[],
+        help="name=DIR1,DIR2,...: a recipe's runs, one per training seed, for the vanilla success pooled over seeds",
+    )
     parser.add_argument("--chunks", type=int, default=3)
     parser.add_argument("--output", type=Path)
     args = parser.parse_args()
@@ -174,6 +203,19 @@ def main() -> None:
         {name: Path(folder) for name, folder in runs.items()}
     ).items():
         lines.append(f"| {name} | {success_cell(successes, n)} | +{wins} / -{losses} | {p:.2f} |")
+    if args.seeds:
+        seeds = {
+            name: [Path(f) for f in folders.split(",")]
+            for name, folders in (i.split("=", 1) for i in args.seeds)
+        }
+        first = next(iter(seeds))
+        lines += [
+            "",
+            f"| recipe, pooled over training seeds | vanilla success [Wilson 95%] | won / lost against {first} | sign test p |",
+            "|---|---|---|---|",
+        ]
+        for name, (successes, n, wins, losses, p) in vanilla_success_over_seeds(seeds).items():
+            lines.append(f"| {name} | {success_cell(successes, n)} | +{wins} / -{losses} | {p:.2f} |")
     text = "\n".join(lines)
     print(text)
     if args.output:

@@ -228,3 +228,15 @@ def test_with_60_calibration_rollouts_the_default_monitor_reaches_0_90_on_the_de
     assert rows["20"][0].startswith("0.879") and rows["20"][1] == "22% / 80%"
     assert rows["60"][0].startswith("0.905") and rows["60"][1] == "12% / 76%"
     assert rows["60"][4] == "light_direction 3 0.606" and rows["60"][5] == "none"
+
+
+def test_vanilla_success_pools_over_training_seeds_pairing_each_rollout_within_its_seed():
+    runs = {
+        name: [FULL / name / "records", FULL / "seed2000" / name / "records"]
+        for name in ("without", "context_backbone", "joint_context")
+    }
+    table = report.vanilla_success_over_seeds(runs)
+    assert table["without"] == (177, 280, 0, 0, 1.0)
+    # The per-seed tables' wins and losses, summed: +4 / -15 on seed 1000, +7 / -19 on seed 2000.
+    assert table["context_backbone"][:4] == (154, 280, 11, 34)
+    assert table["joint_context"][:4] == (166, 280, 23, 34)
