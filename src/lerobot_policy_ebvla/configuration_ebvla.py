@@ -169,6 +169,9 @@ class EBVLAConfig(PreTrainedConfig):
             backbone (built as the policy's, trained by the margin alone): E_c learns what sets a corrupted
             observation apart, as through the backbone, while the policy's backbone and head train exactly as
             without the term. It costs a second backbone pass per chunk at inference and two per training step.
+            Give it a small weight (0.01): Adam normalizes the encoder's and E_c's own updates, so the weight
+            only sets how much their gradients add to the norm LeRobot clips over all the policy's parameters
+            (at 1.0 they held it at 18-34 for the first 400 steps, shrinking the policy's updates).
         energy_ood_margin_chunk: Which chunk's energies the hinge compares: "expert", a* under C~ against a*
             under C; "refined", the chunk refined under C~ (same a^(0) and step sizes, no graph) against the
             training chain's refined chunk under C, so that min_a E(a, C~) rises (the shift's refined energy can
