@@ -5,6 +5,7 @@ energy is confidently wrong there. The two-sided forms flag a rollout on either 
 """
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -145,7 +146,7 @@ def record_dirs(tmp_path_factory):
 
 def report(record_dirs, out, **options) -> tuple[str, OODCalibration]:
     calibration, held_out, ood = record_dirs
-    (out / "pretrained_model").mkdir(parents=True)
+    (out / "pretrained_model").mkdir(parents=True, exist_ok=True)
     cfg = OODReportConfig(
         calibration=[calibration],
         vanilla=[held_out],
@@ -185,6 +186,25 @@ def test_without_context_features_the_default_is_the_best_energy_only_score(reco
         bare.append(write_records(tmp_path / f"bare{i}", records))
     _, calibration = report(bare, tmp_path / "out")
     assert calibration.score.name == DEFAULT_ENERGY_SCORE == "phase_energy_two_sided"
+
+
+@pytest.mark.parametrize(
+    ("fields", "expected"),
+    [
+        ({"energy_ood_margin_on": "observation", "energy_ood_margin_weight": 0.01}, "final_energy"),
+        ({"energy_ood_margin_on": "observation", "energy_ood_margin_weight": 0.0}, "context_knn"),
+        ({"energy_ood_margin_on": "context_backbone", "energy_ood_margin_weight": 1.0}, "context_knn"),
+    ],
+)
+def test_a_checkpoint_with_the_joint_energy_on_its_own_encoder_defaults_to_its_final_energy(
+    record_dirs, tmp_path, fields, expected
+):
+    checkpoint = tmp_path / "pretrained_model"
+    checkpoint.mkdir()
+    (checkpoint / "config.json").write_text(json.dumps({"type": "ebvla", **fields}))
+    text, calibration = report(record_dirs, tmp_path)
+    assert calibration.score.name == expected
+    assert f"Without `--score`, `--calibrate_to` saves `{expected}`" in text
 
 
 def test_the_papers_final_energy_stays_available(record_dirs, tmp_path):

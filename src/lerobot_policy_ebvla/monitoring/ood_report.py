@@ -16,6 +16,7 @@ With context features, the scores include the combinations of the final energy a
 """
 
 import dataclasses
+import json
 import logging
 import math
 from dataclasses import dataclass, field
@@ -74,6 +75,28 @@ logger = logging.getLogger(__name__)
 # below 0.5). It reads the pooled context; records without it get the best energy-only score by the same rule.
 DEFAULT_SCORE = "context_knn"
 DEFAULT_ENERGY_SCORE = "phase_energy_two_sided"
+# ... unless the checkpoint's joint energy has its own encoder (`energy_ood_margin_on="observation"`): its final
+# energy there, never confidently inverted on the sweep of three training seeds, where the context k-NN was once
+# (benchmarks/results/metaworld_sweep_margin_full/summary.md, last section).
+DEFAULT_JOINT_ENERGY_SCORE = "final_energy"
+
+
+def joint_energy_on_own_encoder(checkpoint: Path | None) -> bool:
+    """Whether the pretrained_model folder's policy was trained with the joint energy on its own encoder."""
+    config = None if checkpoint is None else Path(checkpoint) / "config.json"
+    if config is None or not config.is_file():
+        return False
+    fields = json.loads(config.read_text())
+    return (
+        fields.get("energy_ood_margin_on") == "observation" and fields.get("energy_ood_margin_weight", 0) > 0
+    )
+
+
+def default_score(cfg: "OODReportConfig", has_features: bool) -> str:
+    """The score `--calibrate_to` saves without `--score`."""
+    if joint_energy_on_own_encoder(cfg.calibrate_to):
+        return DEFAULT_JOINT_ENERGY_SCORE
+    return DEFAULT_SCORE if has_features else DEFAULT_ENERGY_SCORE
 
 
 @dataclass
@@ -127,7 +150,8 @@ class OODReportConfig:
     # The chunk score the saved calibration is of, a name of `runtime.scores.SCORES` and a row of the report.
     # None (default): context_knn, the best held out on the MetaWorld sweep (pooled first-3-chunk AUROC 0.842,
     # no condition confidently inverted; the final energy 0.585, confidently inverted under dim light), or
-    # phase_energy_two_sided when the records have no context features. final_energy is the paper's score;
+    # phase_energy_two_sided when the records have no context features, final_energy when the checkpoint's joint
+    # energy has its own encoder (`energy_ood_margin_on="observation"`). final_energy is the paper's score;
     # phase_energy the final energy against the calibration rollouts' at the same chunk index;
     # final_energy_two_sided and phase_energy_two_sided their |z|, high on either side of the vanilla band;
     # context_distance the chunk's pooled context against the calibration contexts (Mahalanobis);
@@ -235,7 +259,7 @@ def write_ood_report(cfg: OODReportConfig) -> str:
     can_combine = all(name in chunk_names for name in COMBINED_FROM)
     registered = [n for n in registered_scores() if has_features or not SCORES[n].needs_context_features]
     names = _beside_one_sided([*chunk_names, *(COMBINED_SCORES if can_combine else ()), *registered])
-    saved_score = cfg.score or (DEFAULT_SCORE if has_features else DEFAULT_ENERGY_SCORE)
+    saved_score = cfg.score or default_score(cfg, has_features)
     if saved_score not in names:
         raise ValueError(
             f"`--score={saved_score}` needs the context feature of every chunk of every set: record them with "
@@ -377,11 +401,13 @@ def _saved_score_note(cfg: OODReportConfig, saved_score: str) -> str:
     """Which score a calibration saved by this report is of, and which table rows it is."""
     default = ""
     if cfg.score is None and cfg.calibrate_to is not None:
-        default = f"\n\nWithout `--score`, `--calibrate_to` saves `{saved_score}`: " + (
-            f"`{DEFAULT_SCORE}`, the best held out on the MetaWorld sweep (docs/monitoring.md)."
-            if saved_score == DEFAULT_SCORE
-            else f"these records have no context features, so the best energy-only score, not `{DEFAULT_SCORE}`."
-        )
+        if saved_score == DEFAULT_SCORE:
+            why = f"`{DEFAULT_SCORE}`, the best held out on the MetaWorld sweep (docs/monitoring.md)."
+        elif joint_energy_on_own_encoder(cfg.calibrate_to):
+            why = "the checkpoint's joint energy has its own encoder, and its final energy is the safest score there."
+        else:
+            why = f"these records have no context features, so the best energy-only score, not `{DEFAULT_SCORE}`."
+        default = f"\n\nWithout `--score`, `--calibrate_to` saves `{saved_score}`: " + why
     what = {
         "context_distance": "of every table: the same features, fit and leave-one-episode-out calibration scores.",
         "context_knn": f"of every table (k = {cfg.knn_k}): the same features, standardization and "
