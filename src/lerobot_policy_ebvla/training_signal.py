@@ -140,8 +140,8 @@ def energy_margin_loss(clean_energy: Tensor, corrupted_energy: Tensor, margin: f
 
 class EBVLAContextEnergy(nn.Module):
     """E_c(C): a scalar energy of the pooled context, added to the head's final energy (a joint energy
-    E(a, C) + E_c(C), `energy_ood_margin_on="context"` or `"context_backbone"`). It has no gradient in a, so the
-    MCMC refinement and its energy-scaled steps are those of the head alone."""
+    E(a, C) + E_c(C), `energy_ood_margin_on="context"`, `"context_backbone"` or `"observation"`). It has no
+    gradient in a, so the MCMC refinement and its energy-scaled steps are those of the head alone."""
 
     def __init__(self, dim: int):
         super().__init__()
