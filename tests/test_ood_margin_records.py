@@ -342,3 +342,31 @@ def test_on_a_policy_trained_as_the_default_the_context_knn_can_be_confidently_w
     rows = summary_rows(write_ood_report(cfg))
     assert rows["context_knn"][0].startswith("0.807") and "light_direction 3 0.28!" in rows["context_knn"][5]
     assert rows["final_energy"][0].startswith("0.912") and "!" not in rows["final_energy"][5]
+
+
+def test_on_two_more_training_seeds_the_observation_energy_stays_safe_and_the_context_knn_does_not(tmp_path):
+    """Seeds 4000 and 5000: the joint energy pools to 0.91 on both, no condition confidently under 0.5; the context
+    k-NN on the same records pools to 0.771 / 0.786 and is confidently inverted twice on seed 5000."""
+    for seed, knn_pooled in ((4000, "0.771"), (5000, "0.786")):
+        records = FULL / f"seed{seed}" / "observation" / "records"
+        rows = report.run_table(records, 3)
+        assert auroc(rows, "all perturbations pooled") == 0.91
+        below = [c for c in rows if c.endswith(("_s3", "_s5")) and rows[c]["one_sided"][1] < 0.5]
+        assert all(float(rows[c]["one_sided"][0].split(", ")[1].split("]")[0]) > 0.5 for c in below)
+        conditions = sorted(
+            p for p in records.iterdir() if p.name not in ("calibration", "vanilla", "vanilla_extra")
+        )
+        cfg = OODReportConfig(
+            calibration=[str(records / "calibration")],
+            vanilla=[str(records / "vanilla")],
+            ood=[str(p) for p in conditions],
+            output_dir=tmp_path / str(seed),
+            n_bootstrap=200,
+            first_chunks=[3],
+            table_iii_first_chunks=0,
+        )
+        summary = summary_rows(write_ood_report(cfg))
+        assert summary["context_knn"][0].startswith(knn_pooled)
+        assert "!" not in summary["final_energy"][5]
+        if seed == 5000:
+            assert summary["context_knn"][5].count("!") == 2

@@ -76,7 +76,7 @@ logger = logging.getLogger(__name__)
 DEFAULT_SCORE = "context_knn"
 DEFAULT_ENERGY_SCORE = "phase_energy_two_sided"
 # ... unless the checkpoint's joint energy has its own encoder (`energy_ood_margin_on="observation"`): its final
-# energy there, never confidently inverted on the sweep of three training seeds, where the context k-NN was once
+# energy there, never confidently inverted on the sweeps of five training seeds, where the context k-NN was on two
 # (benchmarks/results/metaworld_sweep_margin_full/summary.md, last section).
 DEFAULT_JOINT_ENERGY_SCORE = "final_energy"
 
