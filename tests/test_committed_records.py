@@ -84,18 +84,19 @@ DISTRACTOR30 = (
 
 def records_report(records: Path, output_dir: Path, **options) -> str:
     """The OOD report of a sweep's committed records: its `calibration` and `vanilla` folders against every
-    other folder, with few bootstrap resamples, the first 1 and 3 chunks and no first-chunks Table III unless
-    `options` say otherwise."""
-    conditions = sorted(p for p in records.iterdir() if p.name not in ("calibration", "vanilla"))
-    defaults = {"n_bootstrap": 10, "first_chunks": [1, 3], "table_iii_first_chunks": 0}
-    cfg = OODReportConfig(
-        calibration=[str(records / "calibration")],
-        vanilla=[str(records / "vanilla")],
-        ood=[str(p) for p in conditions],
-        output_dir=output_dir,
-        **(defaults | options),
+    other folder but `vanilla_extra` (more vanilla rollouts, not a perturbation), with few bootstrap resamples,
+    the first 1 and 3 chunks and no first-chunks Table III unless `options` say otherwise."""
+    conditions = sorted(
+        p for p in records.iterdir() if p.name not in ("calibration", "vanilla", "vanilla_extra")
     )
-    return write_ood_report(cfg)
+    sets = {
+        "calibration": [str(records / "calibration")],
+        "vanilla": [str(records / "vanilla")],
+        "ood": [str(p) for p in conditions],
+        "output_dir": output_dir,
+    }
+    defaults = {"n_bootstrap": 10, "first_chunks": [1, 3], "table_iii_first_chunks": 0}
+    return write_ood_report(OODReportConfig(**(sets | defaults | options)))
 
 
 def test_with_30_rollouts_a_side_no_score_flagged_the_distractor_at_the_5th_neighbour(tmp_path):

@@ -144,11 +144,17 @@ def test_margin_fields_are_validated_by_name(field, value):
         tiny_config(**{field: value})
 
 
-def test_context_margin_trains_only_the_context_energy():
+def policy_after_the_context_margin(target: str) -> EBVLAPolicy:
+    """A tiny policy with the joint energy's margin on `target`, after one backward pass of that margin alone."""
     torch.manual_seed(0)
-    policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on="context"))
+    policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on=target))
     margin, _ = policy.model.context_margin_loss(tiny_batch(policy.config, batch_size=3), torch.Generator())
     margin.backward()
+    return policy
+
+
+def test_context_margin_trains_only_the_context_energy():
+    policy = policy_after_the_context_margin("context")
     assert all(p.grad is None for p in policy.model.backbone.parameters())
     assert all(p.grad is None for p in policy.model.head.parameters())
     assert any(
@@ -157,11 +163,8 @@ def test_context_margin_trains_only_the_context_energy():
 
 
 def test_context_margin_through_the_backbone_trains_the_backbone_and_the_context_energy_not_the_head():
-    torch.manual_seed(0)
-    config = tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on="context_backbone")
-    policy = EBVLAPolicy(config)
-    margin, _ = policy.model.context_margin_loss(tiny_batch(config, batch_size=3), torch.Generator())
-    margin.backward()
+    policy = policy_after_the_context_margin("context_backbone")
+    config = policy.config
     assert policy.model.backbone.state_proj.weight.grad.abs().sum() > 0
     assert all(p.grad is None for p in policy.model.head.parameters())
     # In a training step the margin reads the context of the step's own backbone pass.
@@ -171,11 +174,7 @@ def test_context_margin_through_the_backbone_trains_the_backbone_and_the_context
 
 
 def test_observation_margin_trains_the_observation_encoder_and_the_context_energy_only():
-    torch.manual_seed(0)
-    config = tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on="observation")
-    policy = EBVLAPolicy(config)
-    margin, _ = policy.model.context_margin_loss(tiny_batch(config, batch_size=3), torch.Generator())
-    margin.backward()
+    policy = policy_after_the_context_margin("observation")
     assert all(p.grad is None for p in policy.model.backbone.parameters())
     assert all(p.grad is None for p in policy.model.head.parameters())
     assert policy.model.observation_encoder.state_proj.weight.grad.abs().sum() > 0

@@ -6,9 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from lerobot_policy_ebvla.monitoring.ood_report import OODReportConfig, write_ood_report
 from tests.conftest import load_benchmark
-from tests.test_committed_records import summary_rows
+from tests.test_committed_records import records_report, summary_rows
 
 ROOT = Path(__file__).parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "metaworld_sweep_ood_margin"
@@ -60,6 +59,12 @@ def test_each_margin_lifts_the_pooled_auroc_and_only_the_joint_energy_keeps_the_
 FULL = RESULTS.parent / "metaworld_sweep_margin_full"
 
 
+def never_confidently_under_half(rows: dict, conditions: list[str]) -> bool:
+    """Every condition's interval reaches above 0.5 where its AUROC is under it (the upper bound of "0.38 [0.15, 0.63]")."""
+    below = [c for c in conditions if rows[c]["one_sided"][1] < 0.5]
+    return all(float(rows[c]["one_sided"][0].split(", ")[1].split("]")[0]) > 0.5 for c in below)
+
+
 def success_cutting(rows: dict) -> list[str]:
     """The conditions whose success is 20+ points under vanilla's (issue 32's success-cutting perturbations)."""
     vanilla = rows["vanilla"]["success"]
@@ -100,8 +105,7 @@ def test_the_joint_energy_is_never_confidently_wrong_on_the_full_sweep_but_weak(
     conditions = [c for c in rows if c.endswith(("_s3", "_s5"))]
     inverted = [c for c in conditions if rows[c]["one_sided"][1] < 0.5]
     assert sorted(inverted) == ["blur_s3", "blur_s5", "light_direction_s3", "noise_s3", "noise_s5"]
-    # Each inverted interval reaches above 0.5: the upper bound of "0.38 [0.15, 0.63]".
-    assert all(float(rows[c]["one_sided"][0].split(", ")[1].split("]")[0]) > 0.5 for c in inverted)
+    assert never_confidently_under_half(rows, inverted)
     assert auroc(rows, "all perturbations pooled") == 0.7
     assert round(min(rows[c]["one_sided"][1] for c in success_cutting(rows)), 2) == 0.84
 
@@ -117,7 +121,7 @@ def test_the_joint_energy_through_the_backbone_sees_the_image_shifts_and_keeps_t
     # Two conditions under 0.5, neither confidently (each interval reaches above it).
     inverted = [c for c in rows if c.endswith(("_s3", "_s5")) and rows[c]["one_sided"][1] < 0.5]
     assert sorted(inverted) == ["blur_s3", "light_direction_s3"]
-    assert all(float(rows[c]["one_sided"][0].split(", ")[1].split("]")[0]) > 0.5 for c in inverted)
+    assert never_confidently_under_half(rows, inverted)
     # Success under the shifts as without the term (51% -> 50% of 208); vanilla 62.5% against 70% (40 each).
     assert round(rows["all perturbations pooled"]["success"], 2) == 0.5
     assert round(without["all perturbations pooled"]["success"], 2) == 0.5
@@ -211,21 +215,11 @@ def test_with_60_calibration_rollouts_the_default_monitor_reaches_0_90_on_the_de
     calibration rollouts, 0.905 with 40 more (seeds 4020-4059), never under 0.5; the k-NN's vanilla contexts
     are denser, so held-out vanilla sits nearer them (alarms at T on vanilla 22% -> 12%)."""
     records = FULL / "without" / "records"
-    conditions = sorted(
-        p for p in records.iterdir() if p.name not in ("calibration", "vanilla", "vanilla_extra")
-    )
     rows = {}
     for name, extra in (("20", []), ("60", [str(FULL / "without" / "calibration_extra")])):
-        cfg = OODReportConfig(
-            calibration=[str(records / "calibration"), *extra],
-            vanilla=[str(records / "vanilla")],
-            ood=[str(p) for p in conditions],
-            output_dir=tmp_path / name,
-            n_bootstrap=10,
-            first_chunks=[3],
-            table_iii_first_chunks=0,
-        )
-        rows[name] = summary_rows(write_ood_report(cfg))["context_knn"]
+        calibration = [str(records / "calibration"), *extra]
+        report_text = records_report(records, tmp_path / name, calibration=calibration, first_chunks=[3])
+        rows[name] = summary_rows(report_text)["context_knn"]
     assert rows["20"][0].startswith("0.879") and rows["20"][1] == "22% / 80%"
     assert rows["60"][0].startswith("0.905") and rows["60"][1] == "12% / 76%"
     assert rows["60"][4] == "light_direction 3 0.606" and rows["60"][5] == "none"
@@ -310,8 +304,7 @@ def test_the_observation_energy_is_never_confidently_wrong_on_three_training_see
     for rows in tables:
         conditions = [c for c in rows if c.endswith(("_s3", "_s5"))]
         assert len(conditions) == 26
-        below = [c for c in conditions if rows[c]["one_sided"][1] < 0.5]
-        assert all(float(rows[c]["one_sided"][0].split(", ")[1].split("]")[0]) > 0.5 for c in below)
+        assert never_confidently_under_half(rows, conditions)
     seed1000, seed2000, seed3000 = tables
     assert [c for c in seed1000 if c.endswith(("_s3", "_s5")) and seed1000[c]["one_sided"][1] < 0.5] == [
         "blur_s3"
@@ -327,19 +320,7 @@ def test_on_a_policy_trained_as_the_default_the_context_knn_can_be_confidently_w
     (`context_knn`) pools to 0.807 and is confidently inverted under light_direction 3 (0.28), where the joint
     energy stays at 0.47 (not confidently) and pools to 0.912."""
     records = FULL / "seed2000" / "observation" / "records"
-    conditions = sorted(
-        p for p in records.iterdir() if p.name not in ("calibration", "vanilla", "vanilla_extra")
-    )
-    cfg = OODReportConfig(
-        calibration=[str(records / "calibration")],
-        vanilla=[str(records / "vanilla")],
-        ood=[str(p) for p in conditions],
-        output_dir=tmp_path,
-        n_bootstrap=200,
-        first_chunks=[3],
-        table_iii_first_chunks=0,
-    )
-    rows = summary_rows(write_ood_report(cfg))
+    rows = summary_rows(records_report(records, tmp_path, n_bootstrap=200, first_chunks=[3]))
     assert rows["context_knn"][0].startswith("0.807") and "light_direction 3 0.28!" in rows["context_knn"][5]
     assert rows["final_energy"][0].startswith("0.912") and "!" not in rows["final_energy"][5]
 
@@ -351,21 +332,10 @@ def test_on_two_more_training_seeds_the_observation_energy_stays_safe_and_the_co
         records = FULL / f"seed{seed}" / "observation" / "records"
         rows = report.run_table(records, 3)
         assert auroc(rows, "all perturbations pooled") == 0.91
-        below = [c for c in rows if c.endswith(("_s3", "_s5")) and rows[c]["one_sided"][1] < 0.5]
-        assert all(float(rows[c]["one_sided"][0].split(", ")[1].split("]")[0]) > 0.5 for c in below)
-        conditions = sorted(
-            p for p in records.iterdir() if p.name not in ("calibration", "vanilla", "vanilla_extra")
+        assert never_confidently_under_half(rows, [c for c in rows if c.endswith(("_s3", "_s5"))])
+        summary = summary_rows(
+            records_report(records, tmp_path / str(seed), n_bootstrap=200, first_chunks=[3])
         )
-        cfg = OODReportConfig(
-            calibration=[str(records / "calibration")],
-            vanilla=[str(records / "vanilla")],
-            ood=[str(p) for p in conditions],
-            output_dir=tmp_path / str(seed),
-            n_bootstrap=200,
-            first_chunks=[3],
-            table_iii_first_chunks=0,
-        )
-        summary = summary_rows(write_ood_report(cfg))
         assert summary["context_knn"][0].startswith(knn_pooled)
         assert "!" not in summary["final_energy"][5]
         if seed == 5000:
