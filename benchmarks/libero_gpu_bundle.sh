@@ -10,7 +10,8 @@
 #       --checkpoint=ebvla_paper=outputs/lp/train/ebvla_paper/checkpoints/last   # and what to resume from
 #
 # then the calls of benchmarks/libero_gpu_slices.sh, one part each. Rebuild after the tracked tree grows: each
-# part is 64 MiB less the tracked tree and an 8 MiB margin (for untracked files that travel too).
+# part is 64 MiB less the tracked tree (without benchmarks/results, which `benchmarks/device_travel.sh aside` sets
+# aside for the calls) and an 8 MiB margin (for untracked files that travel too).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # .gitignore ignores both folders: they never travel unless carried, and are never committed.

@@ -12,7 +12,8 @@
 # machine's disk; `start` copies the last, joins and checks the files (SHA-256), installs the wheels into a venv
 # beside the machine's own packages with pip and no index (`benchmarks/gpu_bundle.py install`), unpacks the
 # optional data and checkpoints into the work folder, extracts the EGL libraries, links LIBERO's assets, checks the
-# imports and starts the driver. JOB=libero (the default) records, trains and evaluates; JOB=none only installs.
+# imports and starts the driver. JOB=libero (the default) records, trains and evaluates; JOB=none only installs;
+# JOB=vlm installs a `gpu_bundle.py build --job=vlm` bundle (no LIBERO: two calls), for vlm_bench in the same call.
 #
 # The driver runs detached (its own session), so it lives across calls: record (skipped when the bundle brought
 # the data), train until TRAIN_UNTIL_S after its start (or both runs done; a run with a bundled checkpoint
@@ -69,6 +70,9 @@ case "${1:-}" in
   start)
     copy_part
     python3 benchmarks/gpu_bundle.py install --bundle=$BUNDLE --venv=$VENV --work=$WORK || exit 1
+    if [ "$JOB" = vlm ]; then  # a `--job=vlm` bundle: the latency job alone, no LIBERO
+      $PY -c "import lerobot, lerobot_policy_ebvla; print('imports ok')"; exit $?
+    fi
     for f in $BUNDLE/gl/*.deb; do [ -f "$f" ] && dpkg -x "$f" /; done; ldconfig
     $VENV/bin/ebvla-install-libero-assets || exit 1
     $PY -c "import lerobot, robosuite, libero, mujoco, av, lerobot_policy_ebvla; print('imports ok')" || exit 1
@@ -103,7 +107,7 @@ case "${1:-}" in
   vlm_bench)  # one slice of the latency job: the same call again resumes (--skip-existing); JSONs to $OUT
     out=/tmp/vlm_bench/${BENCH_NAME:-compile_modes}
     # shellcheck disable=SC2086
-    timeout 540 $PY benchmarks/vlm_gpu_bench.py ${BENCH_ARGS:---train-head-steps 300 --batch-sizes 1 8 32 \
+    timeout "${BENCH_TIMEOUT_S:-540}" $PY benchmarks/vlm_gpu_bench.py ${BENCH_ARGS:---train-head-steps 300 --batch-sizes 1 8 32 \
         --train-steps 6 --chunks 20 --profile --compile-modes off reduce-overhead default max-autotune} \
         --out-dir=$out --skip-existing --budget-s=${BUDGET_S:-420}
     $PY benchmarks/vlm_gpu_bench.py --table=/tmp/vlm_bench; tar -C /tmp/vlm_bench -czf "$OUT"/vlm_bench.tgz . ;;

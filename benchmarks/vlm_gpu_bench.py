@@ -29,6 +29,7 @@ import json
 import os
 import statistics
 import time
+import traceback
 from pathlib import Path
 
 import torch
@@ -242,6 +243,7 @@ TABLE_COLUMNS = {
     "compiled_vs_eager_max_abs_action_diff": "max |action diff|",
     "compiled_vs_eager_max_abs_final_energy_diff": "max |energy diff|",
     "head_trained_steps": "head steps",
+    "error": "error",
 }
 
 
@@ -274,6 +276,20 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 8, 32])
+    parser.add_argument(
+        "--train-batch-sizes",
+        type=int,
+        nargs="+",
+        default=None,
+        help="batch sizes of the timed training steps (default: --batch-sizes)",
+    )
+    parser.add_argument(
+        "--order",
+        choices=["mode", "batch"],
+        default="mode",
+        help="chunk configurations mode by mode (each mode at every batch size), or batch size by batch size "
+        "(every mode at the first batch size first: the B=1 target before the rest in a short device call)",
+    )
     parser.add_argument(
         "--compile-modes",
         nargs="+",
@@ -330,10 +346,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def configurations(args) -> list[tuple[str, str | None, int]]:
-    """(JSON name, compile mode or None for training, batch size), eager training first, then mode by mode."""
-    train = [(f"train_b{b}", None, b) for b in args.batch_sizes] if args.train_steps > 0 else []
-    chunks = [(f"chunk_{mode}_b{b}", mode, b) for mode in args.compile_modes for b in args.batch_sizes]
-    return train + chunks
+    """(JSON name, compile mode or None for training, batch size), eager training first, then the chunks in
+    `args.order`."""
+    train_sizes = args.train_batch_sizes or args.batch_sizes
+    train = [(f"train_b{b}", None, b) for b in train_sizes] if args.train_steps > 0 else []
+    pairs = [(mode, b) for mode in args.compile_modes for b in args.batch_sizes]
+    if args.order == "batch":
+        pairs.sort(key=lambda pair: args.batch_sizes.index(pair[1]))  # stable: modes keep their order
+    return train + [(f"chunk_{mode}_b{b}", mode, b) for mode, b in pairs]
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -391,12 +411,17 @@ def main(argv: list[str] | None = None) -> None:
             print(f"Budget of {args.budget_s:.0f} s spent; not started: {name} and later.", flush=True)
             break
         batch = make_batch(config, batch_size, device, dtype)
-        if mode is None:
-            row = train_configuration(policy, optimizer, batch, args, device)
-        else:
-            policy.config.compile_mode = mode
-            observation = {k: v for k, v in batch.items() if k not in (ACTION, "action_is_pad")}
-            row = chunk_configuration(policy, observation, args, device)
+        try:
+            if mode is None:
+                row = train_configuration(policy, optimizer, batch, args, device)
+            else:
+                policy.config.compile_mode = mode
+                observation = {k: v for k, v in batch.items() if k not in (ACTION, "action_is_pad")}
+                row = chunk_configuration(policy, observation, args, device)
+        except Exception as error:  # noqa: BLE001 -- one failing mode must not cost a device call the others
+            traceback.print_exc()
+            row = {"error": f"{type(error).__name__}: {error}"[:2000]}
+            policy.config.compile_mode = "off"
         row = {"configuration": name, "compile_mode": mode, "batch_size": batch_size, **row, **common}
         print(json.dumps(row), flush=True)
         if args.out_dir is not None:

