@@ -39,7 +39,9 @@ def test_every_configuration_ran_on_the_h200_at_full_size():
 )
 def test_the_latency_tables_are_the_records(record, figures):
     row = rows()[record]
-    assert figures[0] == f"{row['select_action_chunk_ms_median']:.1f} ({row['select_action_chunk_ms_min']:.1f})"
+    assert (
+        figures[0] == f"{row['select_action_chunk_ms_median']:.1f} ({row['select_action_chunk_ms_min']:.1f})"
+    )
     assert figures[1] == f"{row['of_which_context_encoding_ms_median']:.1f}"
     for doc in ("BENCHMARKS.md", "docs/vlm_backbone.md"):
         text = (REPO / doc).read_text()
