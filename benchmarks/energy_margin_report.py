@@ -17,6 +17,9 @@ seeds that are not a perturbation) and, on the seeds it shares with the first ru
 against it with the exact sign test: with 40 rollouts a side, two training realizations of one recipe differ by
 10 points.
 
+Conditions re-run on fresh rollouts (`--fresh name=RUN_DIR,FRESH_DIR`) get a last table: each against the
+run's `vanilla_extra/` rollouts, so that neither side took part in choosing them.
+
     python benchmarks/energy_margin_report.py --runs without=DIR1 with=DIR2 --output=table.md
 """
 
@@ -117,6 +120,26 @@ def run_table(folder: Path, chunks: int) -> dict[str, dict]:
     return rows
 
 
+def fresh_table(folder: Path, fresh: Path, chunks: int) -> dict[str, dict]:
+    """The conditions re-run on fresh rollouts (`fresh/<condition>/`, new environment seeds), each scored
+    against the run's `vanilla_extra/` rollouts: neither took part in choosing which conditions to re-run (the
+    sweep's own rollouts against `vanilla/` did), so these AUROCs are free of that selection."""
+    deviation = fit_deviation(episodes(folder / "calibration"))
+    v_raw, v_two = scores(episodes(folder / "vanilla_extra"), chunks, deviation)
+    rows = {}
+    for sub in sorted(p for p in fresh.iterdir() if p.is_dir() and records_file_in(p) is not None):
+        eps = episodes(sub)
+        raw, two = scores(eps, chunks, deviation)
+        rows[sub.name] = {
+            "n": len(eps),
+            "n_vanilla": len(v_raw),
+            "success": np.mean([ep[0].success for ep in eps]),
+            "one_sided": cell(v_raw, raw),
+            "two_sided": cell(v_two, two),
+        }
+    return rows
+
+
 def vanilla_outcomes(folder: Path) -> dict[str, dict]:
     """The success of each vanilla rollout of a run, by rollout seed, in `vanilla/` and `vanilla_extra/`."""
     return {
@@ -173,6 +196,12 @@ def main() -> None:
         default=[],
         help="name=DIR1,DIR2,...: a recipe's runs, one per training seed, for the vanilla success pooled over seeds",
     )
+    parser.add_argument(
+        "--fresh",
+        nargs="*",
+        default=[],
+        help="name=RUN_DIR,FRESH_DIR: conditions re-run on fresh rollouts, against RUN_DIR's vanilla_extra",
+    )
     parser.add_argument("--chunks", type=int, default=3)
     parser.add_argument("--output", type=Path)
     args = parser.parse_args()
@@ -216,6 +245,20 @@ def main() -> None:
         ]
         for name, (successes, n, wins, losses, p) in vanilla_success_over_seeds(seeds).items():
             lines.append(f"| {name} | {success_cell(successes, n)} | +{wins} / -{losses} | {p:.2f} |")
+    if args.fresh:
+        lines += [
+            "",
+            f"| run | re-run condition | success (n) | AUROC E, first {args.chunks}, vs vanilla_extra (n) | AUROC abs(z) |",
+            "|---|---|---|---|---|",
+        ]
+        for item in args.fresh:
+            name, folders = item.split("=", 1)
+            run_folder, fresh_folder = (Path(f) for f in folders.split(","))
+            for condition, row in fresh_table(run_folder, fresh_folder, args.chunks).items():
+                lines.append(
+                    f"| {name} | {condition} | {100 * row['success']:.0f}% ({row['n']}) | "
+                    f"{row['one_sided'][0]} ({row['n_vanilla']}) | {row['two_sided'][0]} |"
+                )
     text = "\n".join(lines)
     print(text)
     if args.output:

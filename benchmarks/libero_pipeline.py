@@ -73,7 +73,8 @@ RUNS = {
 # The two-core protocol (docs/libero.md, "On two cores"). `ebvla_cpu` is the quickstart's light policy
 # (presets.LIGHT_POLICY: D=128, 4 heads, L=2, a 2D FFN, a 2-stage ResNet-18 from scratch, the contrastive term
 # and state dropout, which made it read its camera on MetaWorld) with both cameras at 96 px, one token per task
-# instruction and Table V's K_train 8-15; `diffusion_cpu` is LeRobot's Diffusion Policy with the CPU-sized
+# instruction and Table V's K_train 8-15, without the preset's joint energy on its own encoder (added to the preset
+# after these runs, 2026-11-26); `diffusion_cpu` is LeRobot's Diffusion Policy with the CPU-sized
 # U-Net of the MetaWorld comparison (down_dims 128/256/512), the same 96 px cameras and 8-step chunks.
 EBVLA_CPU = [
     "--policy.type=ebvla",

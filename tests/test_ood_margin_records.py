@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import load_benchmark
-from tests.test_committed_records import records_report, summary_rows
+from tests.test_committed_records import first_chunks_row, records_report, summary_rows
 
 ROOT = Path(__file__).parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "metaworld_sweep_ood_margin"
@@ -340,3 +340,37 @@ def test_on_two_more_training_seeds_the_observation_energy_stays_safe_and_the_co
         assert "!" not in summary["final_energy"][5]
         if seed == 5000:
             assert summary["context_knn"][5].count("!") == 2
+
+
+def test_on_fresh_rollouts_the_observation_energys_near_misses_sit_at_chance_and_one_is_confidently_under(
+    tmp_path,
+):
+    """The eight conditions whose first-3 AUROC was under 0.60 on the five `observation` sweeps, re-run on 24 fresh
+    rollouts each (environment seed 6000) and scored against the 100 `vanilla_extra` rollouts (seed 5000), neither
+    of which took part in choosing them: 0.36-0.59, and light_direction 3 on seed 2000 (a shift that costs no
+    success) confidently under 0.5. Against the sweep's 40 vanilla rollouts the same fresh rollouts give 0.47 there,
+    and neither of the context k-NN's n=8 inversions (0.28, 0.28) comes back (0.58, 0.46)."""
+    runs = {1000: FULL / "observation", **{s: FULL / f"seed{s}" / "observation" for s in (2000, 4000, 5000)}}
+    fresh = {
+        (seed, condition): row
+        for seed, run in runs.items()
+        for condition, row in report.fresh_table(run / "records", run / "fresh", 3).items()
+    }
+    assert len(fresh) == 8 and all(row["n"] == 24 and row["n_vanilla"] == 100 for row in fresh.values())
+    values = {key: round(row["one_sided"][1], 2) for key, row in fresh.items()}
+    assert min(values.values()) == 0.36 and max(values.values()) == 0.59
+    confidently_under = [k for k, row in fresh.items() if not never_confidently_under_half({k: row}, [k])]
+    assert confidently_under == [(2000, "light_direction_s3")]
+    assert fresh[(2000, "light_direction_s3")]["success"] == pytest.approx(16 / 24)
+
+    run = runs[2000]
+    fresh_report = records_report(
+        run / "records", tmp_path, first_chunks=[3], ood=[str(run / "fresh" / "light_direction_s3")]
+    )
+    assert first_chunks_row(fresh_report, "light_direction 3", "final_energy")[0] == 0.465
+    assert first_chunks_row(fresh_report, "light_direction 3", "context_knn")[0] == 0.579
+    run = runs[5000]  # the k-NN's other n=8 inversion, blur 3 on seed 5000 (0.28), on the fresh rollouts
+    fresh_report = records_report(
+        run / "records", tmp_path / "s5000", first_chunks=[3], ood=[str(run / "fresh" / "blur_s3")]
+    )
+    assert first_chunks_row(fresh_report, "blur 3", "context_knn")[0] == 0.463
