@@ -9,6 +9,7 @@ from lerobot_policy_ebvla.training_signal import (
     channel_gain,
     corrupt_observation,
     energy_margin_loss,
+    random_conv,
     shift,
 )
 
@@ -118,6 +119,20 @@ def test_corruptions_depend_on_the_seed_only():
     ]
     for key in outs[0]:
         torch.testing.assert_close(outs[0][key], outs[1][key])
+
+
+def test_random_conv_filters_each_image_with_its_own_kernel_and_rescales_it():
+    images = torch.rand(2, 3, 8, 8, generator=torch.Generator().manual_seed(0))
+    identity = torch.zeros(3, 3, 3, 3)
+    identity[range(3), range(3), 1, 1] = 1.0
+    swap = torch.zeros(3, 3, 3, 3)
+    swap[[0, 1, 2], [2, 1, 0], 1, 1] = 1.0  # red <- blue, blue <- red
+    out = random_conv(images, [identity, swap])
+    low, high = images[0].min(), images[0].max()
+    torch.testing.assert_close(out[0], (images[0] - low) / (high - low))
+    torch.testing.assert_close(
+        out[1, 0], ((images[1] - images[1].min()) / (images[1].max() - images[1].min()))[2]
+    )
 
 
 def test_channel_gain_and_shift_do_what_they_say():

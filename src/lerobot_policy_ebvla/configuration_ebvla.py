@@ -24,7 +24,7 @@ COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune", "max-autot
 FROZEN_WEIGHTS_DTYPES = ("bfloat16", "float32")
 CONTRASTIVE_DTYPES = ("float32", "bfloat16", "auto")
 # The generic corruptions of `training_signal.corrupt_observation` (kept here: the config imports no torch).
-OOD_CORRUPTIONS = ("channel_gain", "patch_swap", "shift", "state_noise")
+OOD_CORRUPTIONS = ("channel_gain", "patch_swap", "shift", "state_noise", "random_conv")
 OOD_MARGIN_CHUNKS = ("expert", "refined")
 OOD_MARGIN_TARGETS = ("head", "context", "context_backbone", "observation")
 
@@ -179,7 +179,9 @@ class EBVLAConfig(PreTrainedConfig):
         energy_ood_corruptions: Corruptions drawn from (one per observation), a non-empty subset of
             `training_signal.CORRUPTIONS`: "channel_gain" (random per-channel gains), "patch_swap" (a
             rectangle from another observation of the batch), "shift" (a translation with a black border),
-            "state_noise" (N(0, 1) added to the normalized state).
+            "state_noise" (N(0, 1) added to the normalized state), "random_conv" (the image through a random
+            3x3 or 5x5 convolution that mixes its channels, rescaled to [0, 1]: RandConv, Xu et al., ICLR 2021,
+            a generic family of colour and texture changes).
         train_mcmc_steps_range: [K_min, K_max] of the number of MCMC steps sampled at every training step.
         inference_mcmc_steps: Number K_inf of MCMC steps at inference.
         num_restarts: Refine this many chains per observation and keep the one with the lowest final

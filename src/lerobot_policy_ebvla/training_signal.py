@@ -36,6 +36,9 @@ PATCH_RANGE = (0.3, 0.6)
 SHIFT_RANGE = (0.1, 0.25)
 # Std of "state_noise" in normalized state units.
 STATE_NOISE_STD = 1.0
+# Kernel sides of "random_conv" (RandConv, Xu et al., ICLR 2021): a random convolution of each image, its weights
+# N(0, 1 / (C k^2)) so that the output keeps the input's scale before it is rescaled to [0, 1].
+RANDOM_CONV_KERNELS = (3, 5)
 
 
 def _uniform(
@@ -66,6 +69,32 @@ def shift(images: Tensor, offsets: list[tuple[int, int]]) -> Tensor:
         src_x, dst_x = slice(max(0, -dx), width - max(0, dx)), slice(max(0, dx), width - max(0, -dx))
         out[i, :, dst_y, dst_x] = images[i, :, src_y, src_x]
     return out
+
+
+def random_conv(images: Tensor, kernels: list[Tensor]) -> Tensor:
+    """Each image (C, H, W) through its own (C, C, k, k) kernel (same padding), then min-max rescaled to [0, 1]:
+    its colours remixed and its local texture filtered, its layout kept."""
+    out = []
+    for image, kernel in zip(images, kernels, strict=True):
+        filtered = torch.nn.functional.conv2d(image[None], kernel, padding=kernel.shape[-1] // 2)[0]
+        low, high = filtered.amin(), filtered.amax()
+        out.append((filtered - low) / (high - low).clamp_min(1e-6))
+    return torch.stack(out)
+
+
+def random_conv_kernels(
+    batch_size: int, channels: int, generator: torch.Generator, ref: Tensor
+) -> list[Tensor]:
+    """One random kernel per observation, its side drawn from `RANDOM_CONV_KERNELS`."""
+    sides = torch.randint(len(RANDOM_CONV_KERNELS), (batch_size,), generator=generator, device=ref.device)
+    kernels = []
+    for side in (RANDOM_CONV_KERNELS[i] for i in sides.tolist()):
+        std = (channels * side * side) ** -0.5
+        weight = torch.randn(
+            (channels, channels, side, side), generator=generator, device=ref.device, dtype=ref.dtype
+        )
+        kernels.append(std * weight)
+    return kernels
 
 
 def corrupt_observation(
@@ -108,6 +137,10 @@ def corrupt_observation(
     ]
     # Another observation of the batch for each one's patch: the batch is shuffled, so its neighbour is random.
     source_index = torch.roll(torch.arange(batch_size, device=device), 1)
+    # Drawn last and only when asked for, so that the other kinds' draws stay those of the sets without it.
+    kernels = (
+        random_conv_kernels(batch_size, first.shape[1], generator, first) if "random_conv" in masks else None
+    )
 
     out = dict(batch)
     for key in camera_keys:
@@ -122,6 +155,9 @@ def corrupt_observation(
             corrupted = torch.where(masks["patch_swap"][:, None, None, None], swapped, corrupted)
         if "shift" in masks:
             corrupted = torch.where(masks["shift"][:, None, None, None], shift(images, offsets), corrupted)
+        if kernels is not None:
+            convolved = random_conv(images, kernels)
+            corrupted = torch.where(masks["random_conv"][:, None, None, None], convolved, corrupted)
         out[key] = corrupted
     if "state_noise" in masks and state_key is not None and state_key in batch:
         state = batch[state_key]
