@@ -71,3 +71,34 @@ def test_the_benchmark_prints_the_records_as_one_table():
     table = vlm_gpu_bench.markdown_table(RECORDS)
     assert table.count("\n") == len(rows()) + 1  # a header, a rule, one row per configuration
     assert "chunk_reduce-overhead_b1" in table
+
+
+def test_a_short_device_call_measures_every_mode_at_batch_1_first():
+    args = vlm_gpu_bench.parse_args(
+        [
+            "--batch-sizes",
+            "1",
+            "8",
+            "--train-batch-sizes",
+            "8",
+            "--order",
+            "batch",
+            "--compile-modes",
+            "off",
+            "reduce-overhead",
+        ]
+    )
+    assert [name for name, _, _ in vlm_gpu_bench.configurations(args)] == [
+        "train_b8",
+        "chunk_off_b1",
+        "chunk_reduce-overhead_b1",
+        "chunk_off_b8",
+        "chunk_reduce-overhead_b8",
+    ]
+    by_mode = vlm_gpu_bench.parse_args(
+        ["--batch-sizes", "1", "8", "--compile-modes", "off", "reduce-overhead"]
+    )
+    assert [name for name, _, _ in vlm_gpu_bench.configurations(by_mode)][3:5] == [
+        "chunk_off_b8",
+        "chunk_reduce-overhead_b1",
+    ]
