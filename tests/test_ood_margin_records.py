@@ -377,17 +377,19 @@ def test_on_fresh_rollouts_the_observation_energys_near_misses_sit_at_chance_and
 
 
 def test_random_convolutions_lift_most_fresh_near_misses_and_leave_the_sweeps_as_they_were():
-    """`observation_randconv` (`random_conv` added to the corruptions) on training seeds 1000, 2000, 4000: on the
-    same fresh rollouts it lifts five of seven conditions (fov 3 on seed 2000 to 0.99, blur 5 on seed 4000 to 0.96)
-    and no condition is confidently under 0.5; the sweeps pool within 0.02 of `observation`'s."""
-    seeds = {1000: FULL, 2000: FULL / "seed2000", 4000: FULL / "seed4000"}
+    """`observation_randconv` (`random_conv` added to the corruptions) on the five training seeds: on the same fresh
+    rollouts it lifts five of eight conditions (fov 3 on seed 2000 to 0.99, blur 5 on seed 4000 to 0.96) and no
+    condition is confidently under 0.5; the sweeps pool at 0.906-0.928 against `observation`'s 0.912-0.953; vanilla
+    success 399/700 against 426/700."""
+    seeds = {1000: FULL, **{s: FULL / f"seed{s}" for s in (2000, 3000, 4000, 5000)}}
     before, after = {}, {}
     for seed, root in seeds.items():
         for name, into in (("observation", before), ("observation_randconv", after)):
             run = root / name
-            for condition, row in report.fresh_table(run / "records", run / "fresh", 3).items():
-                into[(seed, condition)] = row
-    assert set(before) == set(after) and len(after) == 7
+            if (run / "fresh").is_dir():
+                for condition, row in report.fresh_table(run / "records", run / "fresh", 3).items():
+                    into[(seed, condition)] = row
+    assert set(before) == set(after) and len(after) == 8
     lifted = [k for k in after if after[k]["one_sided"][1] > before[k]["one_sided"][1]]
     assert len(lifted) == 5
     assert round(after[(2000, "fov_s3")]["one_sided"][1], 2) == 0.99
@@ -395,22 +397,28 @@ def test_random_convolutions_lift_most_fresh_near_misses_and_leave_the_sweeps_as
     assert never_confidently_under_half(after, list(after))
     assert not never_confidently_under_half(before, list(before))  # seed 2000's light_direction 3
     pooled = {
-        seed: (
-            auroc(report.run_table(root / "observation" / "records", 3), "all perturbations pooled"),
-            auroc(report.run_table(root / "observation_randconv" / "records", 3), "all perturbations pooled"),
+        seed: tuple(
+            round(report.run_table(root / name / "records", 3)["all perturbations pooled"]["one_sided"][1], 3)
+            for name in ("observation", "observation_randconv")
         )
         for seed, root in seeds.items()
     }
-    assert pooled == {1000: (0.93, 0.92), 2000: (0.91, 0.93), 4000: (0.91, 0.91)}
+    assert pooled == {
+        1000: (0.934, 0.923),
+        2000: (0.912, 0.928),
+        3000: (0.953, 0.906),
+        4000: (0.912, 0.909),
+        5000: (0.913, 0.909),
+    }
     success = report.vanilla_success_over_seeds(
         {
             name: [root / name / "records" for root in seeds.values()]
             for name in ("observation", "observation_randconv")
         }
     )
-    assert success["observation"][:2] == (256, 420) and success["observation_randconv"][:4] == (
-        238,
-        420,
-        20,
-        38,
+    assert success["observation"][:2] == (426, 700) and success["observation_randconv"][:4] == (
+        399,
+        700,
+        54,
+        81,
     )
