@@ -72,6 +72,17 @@ def cell(negatives: np.ndarray, positives: np.ndarray) -> tuple[str, float]:
     return f"{value:.2f} [{low:.2f}, {high:.2f}]{mark}", value
 
 
+def condition_row(eps: list[list], rollout_scores: tuple, vanilla_scores: tuple) -> dict:
+    """A condition's n, success and AUROCs against vanilla: its rollouts' and the vanilla rollouts' (raw,
+    two-sided) scores, one-sided from the first, two-sided from the second."""
+    return {
+        "n": len(eps),
+        "success": np.mean([ep[0].success for ep in eps]),
+        "one_sided": cell(vanilla_scores[0], rollout_scores[0]),
+        "two_sided": cell(vanilla_scores[1], rollout_scores[1]),
+    }
+
+
 def run_table(folder: Path, chunks: int) -> dict[str, dict]:
     deviation = fit_deviation(episodes(folder / "calibration"))
     vanilla = episodes(folder / "vanilla")
@@ -84,12 +95,7 @@ def run_table(folder: Path, chunks: int) -> dict[str, dict]:
             continue
         eps = episodes(sub)
         raw, two = scores(eps, chunks, deviation)
-        rows[sub.name] = {
-            "n": len(eps),
-            "success": np.mean([ep[0].success for ep in eps]),
-            "one_sided": cell(v_raw, raw),
-            "two_sided": cell(v_two, two),
-        }
+        rows[sub.name] = condition_row(eps, (raw, two), (v_raw, v_two))
         # Extra vanilla rollouts are not a perturbation.
         group = "vanilla_extra" if sub.name == "vanilla_extra" else "shifted"
         held_out.setdefault(group, []).extend(zip([ep[0].success for ep in eps], raw, two, strict=True))
@@ -125,18 +131,12 @@ def fresh_table(folder: Path, fresh: Path, chunks: int) -> dict[str, dict]:
     against the run's `vanilla_extra/` rollouts: neither took part in choosing which conditions to re-run (the
     sweep's own rollouts against `vanilla/` did), so these AUROCs are free of that selection."""
     deviation = fit_deviation(episodes(folder / "calibration"))
-    v_raw, v_two = scores(episodes(folder / "vanilla_extra"), chunks, deviation)
+    vanilla = scores(episodes(folder / "vanilla_extra"), chunks, deviation)
     rows = {}
     for sub in sorted(p for p in fresh.iterdir() if p.is_dir() and records_file_in(p) is not None):
         eps = episodes(sub)
-        raw, two = scores(eps, chunks, deviation)
-        rows[sub.name] = {
-            "n": len(eps),
-            "n_vanilla": len(v_raw),
-            "success": np.mean([ep[0].success for ep in eps]),
-            "one_sided": cell(v_raw, raw),
-            "two_sided": cell(v_two, two),
-        }
+        rows[sub.name] = condition_row(eps, scores(eps, chunks, deviation), vanilla)
+        rows[sub.name]["n_vanilla"] = len(vanilla[0])
     return rows
 
 

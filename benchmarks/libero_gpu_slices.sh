@@ -13,7 +13,7 @@
 # beside the machine's own packages with pip and no index (`benchmarks/gpu_bundle.py install`), unpacks the
 # optional data and checkpoints into the work folder, extracts the EGL libraries, links LIBERO's assets, checks the
 # imports and starts the driver. JOB=libero (the default) records, trains and evaluates; JOB=none only installs;
-# JOB=vlm installs a `gpu_bundle.py build --job=vlm` bundle (no LIBERO: two calls), for vlm_bench in the same call.
+# JOB=vlm installs a `gpu_bundle.py build --job=vlm` bundle (no LIBERO wheels), for vlm_bench in the same call.
 #
 # The driver runs detached (its own session), so it lives across calls: record (skipped when the bundle brought
 # the data), train until TRAIN_UNTIL_S after its start (or both runs done; a run with a bundled checkpoint

@@ -127,7 +127,7 @@ def test_random_conv_filters_each_image_with_its_own_kernel_and_rescales_it():
     identity[range(3), range(3), 1, 1] = 1.0
     swap = torch.zeros(3, 3, 3, 3)
     swap[[0, 1, 2], [2, 1, 0], 1, 1] = 1.0  # red <- blue, blue <- red
-    out = random_conv(images, [identity, swap])
+    out = random_conv(images, torch.stack([identity, swap]))
     low, high = images[0].min(), images[0].max()
     torch.testing.assert_close(out[0], (images[0] - low) / (high - low))
     torch.testing.assert_close(

@@ -237,13 +237,14 @@ def test_vanilla_success_pools_over_training_seeds_pairing_each_rollout_within_i
     assert table["joint_context"][:4] == (166, 280, 23, 34)
 
 
+def seed_run(seed: int, name: str) -> Path:
+    """A training seed's run folder of `metaworld_sweep_margin_full` (seed 1000's at the top)."""
+    return FULL / name if seed == 1000 else FULL / f"seed{seed}" / name
+
+
 def seed_runs(name: str) -> list[Path]:
-    """A recipe's run folders on training seeds 1000, 2000 and 3000."""
-    return [
-        FULL / name / "records",
-        FULL / "seed2000" / name / "records",
-        FULL / "seed3000" / name / "records",
-    ]
+    """A recipe's records on training seeds 1000, 2000 and 3000."""
+    return [seed_run(seed, name) / "records" for seed in (1000, 2000, 3000)]
 
 
 def test_over_three_training_seeds_the_realization_moves_success_more_than_the_backbone_term_costs():
@@ -342,6 +343,18 @@ def test_on_two_more_training_seeds_the_observation_energy_stays_safe_and_the_co
             assert summary["context_knn"][5].count("!") == 2
 
 
+def fresh_rows(name: str) -> dict[tuple[int, str], dict]:
+    """`energy_margin_report.fresh_table` of every training seed's `name` run with fresh rollouts, by (seed,
+    condition)."""
+    runs = {seed: seed_run(seed, name) for seed in (1000, 2000, 3000, 4000, 5000)}
+    return {
+        (seed, condition): row
+        for seed, run in runs.items()
+        if (run / "fresh").is_dir()
+        for condition, row in report.fresh_table(run / "records", run / "fresh", 3).items()
+    }
+
+
 def test_on_fresh_rollouts_the_observation_energys_near_misses_sit_at_chance_and_one_is_confidently_under(
     tmp_path,
 ):
@@ -350,12 +363,8 @@ def test_on_fresh_rollouts_the_observation_energys_near_misses_sit_at_chance_and
     of which took part in choosing them: 0.36-0.59, and light_direction 3 on seed 2000 (a shift that costs no
     success) confidently under 0.5. Against the sweep's 40 vanilla rollouts the same fresh rollouts give 0.47 there,
     and neither of the context k-NN's n=8 inversions (0.28, 0.28) comes back (0.58, 0.46)."""
-    runs = {1000: FULL / "observation", **{s: FULL / f"seed{s}" / "observation" for s in (2000, 4000, 5000)}}
-    fresh = {
-        (seed, condition): row
-        for seed, run in runs.items()
-        for condition, row in report.fresh_table(run / "records", run / "fresh", 3).items()
-    }
+    runs = {seed: seed_run(seed, "observation") for seed in (1000, 2000, 4000, 5000)}
+    fresh = fresh_rows("observation")
     assert len(fresh) == 8 and all(row["n"] == 24 and row["n_vanilla"] == 100 for row in fresh.values())
     values = {key: round(row["one_sided"][1], 2) for key, row in fresh.items()}
     assert min(values.values()) == 0.36 and max(values.values()) == 0.59
@@ -381,14 +390,8 @@ def test_random_convolutions_lift_most_fresh_near_misses_and_leave_the_sweeps_as
     rollouts it lifts five of eight conditions (fov 3 on seed 2000 to 0.99, blur 5 on seed 4000 to 0.96) and no
     condition is confidently under 0.5; the sweeps pool at 0.906-0.928 against `observation`'s 0.912-0.953; vanilla
     success 399/700 against 426/700."""
-    seeds = {1000: FULL, **{s: FULL / f"seed{s}" for s in (2000, 3000, 4000, 5000)}}
-    before, after = {}, {}
-    for seed, root in seeds.items():
-        for name, into in (("observation", before), ("observation_randconv", after)):
-            run = root / name
-            if (run / "fresh").is_dir():
-                for condition, row in report.fresh_table(run / "records", run / "fresh", 3).items():
-                    into[(seed, condition)] = row
+    seeds = (1000, 2000, 3000, 4000, 5000)
+    before, after = fresh_rows("observation"), fresh_rows("observation_randconv")
     assert set(before) == set(after) and len(after) == 8
     lifted = [k for k in after if after[k]["one_sided"][1] > before[k]["one_sided"][1]]
     assert len(lifted) == 5
@@ -398,10 +401,15 @@ def test_random_convolutions_lift_most_fresh_near_misses_and_leave_the_sweeps_as
     assert not never_confidently_under_half(before, list(before))  # seed 2000's light_direction 3
     pooled = {
         seed: tuple(
-            round(report.run_table(root / name / "records", 3)["all perturbations pooled"]["one_sided"][1], 3)
+            round(
+                report.run_table(seed_run(seed, name) / "records", 3)["all perturbations pooled"][
+                    "one_sided"
+                ][1],
+                3,
+            )
             for name in ("observation", "observation_randconv")
         )
-        for seed, root in seeds.items()
+        for seed in seeds
     }
     assert pooled == {
         1000: (0.934, 0.923),
@@ -412,7 +420,7 @@ def test_random_convolutions_lift_most_fresh_near_misses_and_leave_the_sweeps_as
     }
     success = report.vanilla_success_over_seeds(
         {
-            name: [root / name / "records" for root in seeds.values()]
+            name: [seed_run(seed, name) / "records" for seed in seeds]
             for name in ("observation", "observation_randconv")
         }
     )

@@ -620,6 +620,11 @@ class EBVLAConfig(PreTrainedConfig):
         self.action_feature_names = _names(features, ACTION)
 
     @property
+    def context_energy_on_own_encoder(self) -> bool:
+        """Whether the policy adds the joint energy's E_c(C) read through its own copy of the backbone."""
+        return context_energy_on_own_encoder(self.energy_ood_margin_on, self.energy_ood_margin_weight)
+
+    @property
     def action_dim(self) -> int:
         return self.action_feature.shape[0]
 
@@ -639,6 +644,11 @@ class EBVLAConfig(PreTrainedConfig):
     @property
     def reward_delta_indices(self) -> None:
         return None
+
+
+def context_energy_on_own_encoder(margin_on: str, margin_weight: float) -> bool:
+    """The rule of `EBVLAConfig.context_energy_on_own_encoder` from the two fields, for a saved `config.json`."""
+    return margin_weight > 0 and margin_on == "observation"
 
 
 def _names(features: dict[str, dict], key: str) -> list[str] | None:

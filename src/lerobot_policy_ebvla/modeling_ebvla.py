@@ -344,7 +344,7 @@ class EBVLA(nn.Module):
         self.observation_encoder = None
         if config.energy_ood_margin_weight > 0 and config.energy_ood_margin_on != "head":
             self.context_energy = EBVLAContextEnergy(self.backbone.context_dim)
-        if self.context_energy is not None and config.energy_ood_margin_on == "observation":
+        if config.context_energy_on_own_encoder:
             self.observation_encoder = make_backbone(config)
 
     def training_generator(self, device: torch.device) -> torch.Generator:

@@ -71,30 +71,37 @@ def shift(images: Tensor, offsets: list[tuple[int, int]]) -> Tensor:
     return out
 
 
-def random_conv(images: Tensor, kernels: list[Tensor]) -> Tensor:
-    """Each image (C, H, W) through its own (C, C, k, k) kernel (same padding), then min-max rescaled to [0, 1]:
-    its colours remixed and its local texture filtered, its layout kept."""
-    out = []
-    for image, kernel in zip(images, kernels, strict=True):
-        filtered = torch.nn.functional.conv2d(image[None], kernel, padding=kernel.shape[-1] // 2)[0]
-        low, high = filtered.amin(), filtered.amax()
-        out.append((filtered - low) / (high - low).clamp_min(1e-6))
-    return torch.stack(out)
+def random_conv(images: Tensor, kernels: Tensor) -> Tensor:
+    """Each image (C, H, W) of (B, C, H, W) through its own (C, C, k, k) kernel of (B, C, C, k, k) (same padding,
+    one grouped convolution), then min-max rescaled to [0, 1]: its colours remixed and its local texture
+    filtered, its layout kept."""
+    batch, channels, height, width = images.shape
+    side = kernels.shape[-1]
+    filtered = torch.nn.functional.conv2d(
+        images.reshape(1, batch * channels, height, width),
+        kernels.reshape(batch * channels, channels, side, side),
+        padding=side // 2,
+        groups=batch,
+    ).view_as(images)
+    low = filtered.amin(dim=(1, 2, 3), keepdim=True)
+    high = filtered.amax(dim=(1, 2, 3), keepdim=True)
+    return (filtered - low) / (high - low).clamp_min(1e-6)
 
 
-def random_conv_kernels(
-    batch_size: int, channels: int, generator: torch.Generator, ref: Tensor
-) -> list[Tensor]:
-    """One random kernel per observation, its side drawn from `RANDOM_CONV_KERNELS`."""
+def random_conv_kernels(batch_size: int, channels: int, generator: torch.Generator, ref: Tensor) -> Tensor:
+    """One random kernel per observation, its side drawn from `RANDOM_CONV_KERNELS`, as (B, C, C, k_max, k_max):
+    a smaller kernel sits zero-padded in the middle, which filters exactly as it would alone."""
     sides = torch.randint(len(RANDOM_CONV_KERNELS), (batch_size,), generator=generator, device=ref.device)
+    largest = max(RANDOM_CONV_KERNELS)
     kernels = []
     for side in (RANDOM_CONV_KERNELS[i] for i in sides.tolist()):
         std = (channels * side * side) ** -0.5
         weight = torch.randn(
             (channels, channels, side, side), generator=generator, device=ref.device, dtype=ref.dtype
         )
-        kernels.append(std * weight)
-    return kernels
+        border = (largest - side) // 2
+        kernels.append(torch.nn.functional.pad(std * weight, (border,) * 4))
+    return torch.stack(kernels)
 
 
 def corrupt_observation(

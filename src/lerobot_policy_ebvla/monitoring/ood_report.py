@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..configuration_ebvla import EBVLAConfig, context_energy_on_own_encoder
 from ..runtime.calibration import OOD_CALIBRATION_FILENAME, THRESHOLD_RULES, OODCalibration
 from ..runtime.scores import SCORE_AGGREGATIONS, SCORES
 from ..runtime.statistics import DEFAULT_KNN_K
@@ -88,8 +89,9 @@ def joint_energy_on_own_encoder(checkpoint: Path | None) -> bool:
     if config is None or not config.is_file():
         return False
     fields = json.loads(config.read_text())
-    return (
-        fields.get("energy_ood_margin_on") == "observation" and fields.get("energy_ood_margin_weight", 0) > 0
+    return context_energy_on_own_encoder(
+        fields.get("energy_ood_margin_on", EBVLAConfig.energy_ood_margin_on),
+        fields.get("energy_ood_margin_weight", EBVLAConfig.energy_ood_margin_weight),
     )
 
 
@@ -404,7 +406,7 @@ def _saved_score_note(cfg: OODReportConfig, saved_score: str) -> str:
     if cfg.score is None and cfg.calibrate_to is not None:
         if saved_score == DEFAULT_SCORE:
             why = f"`{DEFAULT_SCORE}`, the best held out on the MetaWorld sweep (docs/monitoring.md)."
-        elif joint_energy_on_own_encoder(cfg.calibrate_to):
+        elif saved_score == DEFAULT_JOINT_ENERGY_SCORE:
             why = "the checkpoint's joint energy has its own encoder, and its final energy is the safest score there."
         else:
             why = f"these records have no context features, so the best energy-only score, not `{DEFAULT_SCORE}`."
