@@ -32,6 +32,10 @@ from best_of_n_closed_loop import paired_against, success_cell
 from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_interval
 from lerobot_policy_ebvla.monitoring.records import group_by_episode, read_energy_records, records_file_in
 from lerobot_policy_ebvla.runtime.scores import PhaseEnergyDeviation, VanillaRollouts, score_rollout
+from lerobot_policy_ebvla.runtime.threshold import MeanStd, exceeds
+
+# k of the alarm threshold T = mu + k sigma in the fresh table: `ebvla-ood-report --calibrate_to`'s default.
+ALARM_K = 1.0
 
 
 def episodes(folder: Path) -> list[list]:
@@ -129,14 +133,27 @@ def run_table(folder: Path, chunks: int) -> dict[str, dict]:
 def fresh_table(folder: Path, fresh: Path, chunks: int) -> dict[str, dict]:
     """The conditions re-run on fresh rollouts (`fresh/<condition>/`, new environment seeds), each scored
     against the run's `vanilla_extra/` rollouts: neither took part in choosing which conditions to re-run (the
-    sweep's own rollouts against `vanilla/` did), so these AUROCs are free of that selection."""
-    deviation = fit_deviation(episodes(folder / "calibration"))
-    vanilla = scores(episodes(folder / "vanilla_extra"), chunks, deviation)
+    sweep's own rollouts against `vanilla/` did), so these AUROCs are free of that selection.
+
+    Beside the first chunks' AUROCs: the raw final energy's AUROC over the whole episode, and the share of each
+    side's rollouts over the threshold a user ships, T = mu + k sigma of the calibration rollouts' first-chunk
+    scores (`--calibrate_to`'s default rule, k = `ALARM_K`), set on the calibration rollouts alone."""
+    calibration = episodes(folder / "calibration")
+    deviation = fit_deviation(calibration)
+    threshold = MeanStd.fit(scores(calibration, chunks, deviation)[0]).threshold(ALARM_K)
+    vanilla_episodes = episodes(folder / "vanilla_extra")
+    vanilla = scores(vanilla_episodes, chunks, deviation)
+    vanilla_whole = scores(vanilla_episodes, None, deviation)[0]
     rows = {}
     for sub in sorted(p for p in fresh.iterdir() if p.is_dir() and records_file_in(p) is not None):
         eps = episodes(sub)
-        rows[sub.name] = condition_row(eps, scores(eps, chunks, deviation), vanilla)
-        rows[sub.name]["n_vanilla"] = len(vanilla[0])
+        first = scores(eps, chunks, deviation)
+        row = condition_row(eps, first, vanilla)
+        row["n_vanilla"] = len(vanilla[0])
+        row["whole_episode"] = cell(vanilla_whole, scores(eps, None, deviation)[0])
+        row["alarms"] = exceeds(first[0], threshold).mean()
+        row["vanilla_alarms"] = exceeds(vanilla[0], threshold).mean()
+        rows[sub.name] = row
     return rows
 
 
@@ -185,6 +202,14 @@ def vanilla_success_over_seeds(runs: dict[str, list[Path]]) -> dict[str, tuple[i
             for name, folders in runs.items()
         }
     )
+
+
+def emit(lines: list[str], output: Path | None) -> None:
+    """Print a table's lines, and write them to `output` when given."""
+    text = "\n".join(lines)
+    print(text)
+    if output:
+        output.write_text(text + "\n")
 
 
 def main() -> None:
@@ -248,8 +273,9 @@ def main() -> None:
     if args.fresh:
         lines += [
             "",
-            f"| run | re-run condition | success (n) | AUROC E, first {args.chunks}, vs vanilla_extra (n) | AUROC abs(z) |",
-            "|---|---|---|---|---|",
+            f"| run | re-run condition | success (n) | AUROC E, first {args.chunks}, vs vanilla_extra (n) | AUROC abs(z) "
+            f"| AUROC E, whole episode | alarms at T, condition / vanilla_extra |",
+            "|---|---|---|---|---|---|---|",
         ]
         for item in args.fresh:
             name, folders = item.split("=", 1)
@@ -257,12 +283,10 @@ def main() -> None:
             for condition, row in fresh_table(run_folder, fresh_folder, args.chunks).items():
                 lines.append(
                     f"| {name} | {condition} | {100 * row['success']:.0f}% ({row['n']}) | "
-                    f"{row['one_sided'][0]} ({row['n_vanilla']}) | {row['two_sided'][0]} |"
+                    f"{row['one_sided'][0]} ({row['n_vanilla']}) | {row['two_sided'][0]} | "
+                    f"{row['whole_episode'][0]} | {100 * row['alarms']:.0f}% / {100 * row['vanilla_alarms']:.0f}% |"
                 )
-    text = "\n".join(lines)
-    print(text)
-    if args.output:
-        args.output.write_text(text + "\n")
+    emit(lines, args.output)
 
 
 if __name__ == "__main__":

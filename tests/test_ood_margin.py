@@ -4,11 +4,13 @@ import pytest
 import torch
 
 from lerobot_policy_ebvla import EBVLAPolicy
+from lerobot_policy_ebvla.modeling_ebvla import pooled_context
 from lerobot_policy_ebvla.training_signal import (
     CORRUPTIONS,
     channel_gain,
     corrupt_observation,
     energy_margin_loss,
+    graded_corruption,
     random_conv,
     shift,
 )
@@ -135,6 +137,88 @@ def test_random_conv_filters_each_image_with_its_own_kernel_and_rescales_it():
     )
 
 
+def test_full_strength_is_the_corruption_itself_with_the_same_draws():
+    config = tiny_config()
+    batch = tiny_batch(config, batch_size=4)
+    cameras = list(config.image_features)
+    full, strengths = graded_corruption(
+        batch, cameras, CORRUPTIONS, torch.Generator().manual_seed(5), "observation.state"
+    )
+    plain = corrupt_observation(
+        batch, cameras, CORRUPTIONS, torch.Generator().manual_seed(5), "observation.state"
+    )
+    assert strengths is None
+    for key in plain:
+        torch.testing.assert_close(full[key], plain[key])
+
+
+def test_graded_corruption_moves_each_observation_its_strength_of_the_way():
+    config = tiny_config()
+    batch = tiny_batch(config, batch_size=6)
+    cameras = list(config.image_features)
+    graded, strengths = graded_corruption(
+        batch, cameras, CORRUPTIONS, torch.Generator().manual_seed(1), "observation.state", (0.2, 0.6)
+    )
+    # The corruption's own draws come first, so the same seed gives the full corruption it interpolates to.
+    full = corrupt_observation(
+        batch, cameras, CORRUPTIONS, torch.Generator().manual_seed(1), "observation.state"
+    )
+    assert strengths.shape == (6,) and (strengths >= 0.2).all() and (strengths <= 0.6).all()
+    for key in [*cameras, "observation.state"]:
+        s = strengths.view(-1, *([1] * (batch[key].dim() - 1)))
+        torch.testing.assert_close(graded[key], batch[key] + s * (full[key] - batch[key]))
+    for key in cameras:
+        assert graded[key].min() >= 0.0 and graded[key].max() <= 1.0
+    torch.testing.assert_close(graded["action"], batch["action"])
+
+
+def test_margin_loss_takes_one_margin_per_observation():
+    clean = torch.zeros(3)
+    corrupted = torch.tensor([0.1, 0.5, 2.0])
+    loss = energy_margin_loss(clean, corrupted, margin=torch.tensor([0.2, 0.4, 1.0]))
+    assert loss.item() == pytest.approx(0.1 / 3)
+
+
+@pytest.mark.parametrize("target", ["observation", "head"])
+def test_graded_corruption_asks_each_observation_for_its_strength_of_the_margin(target):
+    """At strength s the hinge compares the gap with s m, on the copy moved s of the way (here s = 0.3 for
+    all, so the loss is computed from the same draws by hand)."""
+    torch.manual_seed(0)
+    config = tiny_config(
+        energy_ood_margin_weight=1.0,
+        energy_ood_margin=2.0,
+        energy_ood_margin_on=target,
+        energy_ood_corruptions=("state_noise", "channel_gain"),
+        energy_ood_corruption_strength=(0.3, 0.3),
+    )
+    policy = EBVLAPolicy(config).eval()
+    model = policy.model
+    batch = tiny_batch(config, batch_size=4)
+    shifted_batch, strengths = graded_corruption(
+        batch,
+        list(config.image_features),
+        config.energy_ood_corruptions,
+        torch.Generator().manual_seed(7),
+        "observation.state",
+        config.energy_ood_corruption_strength,
+    )
+    torch.testing.assert_close(strengths, torch.full((4,), 0.3))
+    with torch.no_grad():
+        if target == "observation":
+            loss, _ = model.context_margin_loss(batch, torch.Generator().manual_seed(7))
+            energy = model.context_energy
+            clean = energy(pooled_context(model.observation_encoder(batch)))
+            shifted = energy(pooled_context(model.observation_encoder(shifted_batch)))
+            expected = torch.relu(0.6 - (shifted - clean)).mean() + clean.pow(2).mean()
+        else:
+            kv = model.encode_context(batch)
+            loss, _ = model.ood_margin_loss(batch, kv, batch["action"], torch.Generator().manual_seed(7), [])
+            clean = model.head(batch["action"], kv).mean(dim=-1)
+            shifted = model.head(batch["action"], model.encode_context(shifted_batch)).mean(dim=-1)
+            expected = torch.relu(0.6 - (shifted - clean)).mean()
+    torch.testing.assert_close(loss, expected)
+
+
 def test_channel_gain_and_shift_do_what_they_say():
     images = torch.full((1, 3, 4, 4), 0.5)
     torch.testing.assert_close(
@@ -152,6 +236,9 @@ def test_channel_gain_and_shift_do_what_they_say():
         ("energy_ood_corruptions", ("fog",)),
         ("energy_ood_margin_chunk", "prior"),
         ("energy_ood_margin_on", "action"),
+        ("energy_ood_corruption_strength", (0.0, 1.0)),
+        ("energy_ood_corruption_strength", (0.6, 0.3)),
+        ("energy_ood_corruption_strength", (0.5, 1.5)),
     ],
 )
 def test_margin_fields_are_validated_by_name(field, value):

@@ -39,8 +39,8 @@ from .runtime.threshold import OODDecision
 from .training_signal import (
     EBVLAContextEnergy,
     contrastive_in_bf16,
-    corrupt_observation,
     energy_margin_loss,
+    graded_corruption,
 )
 
 logger = logging.getLogger(__name__)
@@ -630,13 +630,11 @@ class EBVLA(nn.Module):
         of the observation encoder, which the margin alone trains.
         """
         cfg = self.config
-        corrupted_batch = corrupt_observation(
-            batch, list(cfg.image_features), cfg.energy_ood_corruptions, generator, state_key=OBS_STATE
-        )
+        corrupted_batch, margin = self._corrupted_copy(batch, generator)
         if self.observation_encoder is not None:
             clean_features = pooled_context(self.observation_encoder(batch))
             corrupted_features = pooled_context(self.observation_encoder(corrupted_batch))
-            return self._context_margin(clean_features, corrupted_features)
+            return self._context_margin(clean_features, corrupted_features, margin)
         through_backbone = cfg.energy_ood_margin_on == "context_backbone"
         with torch.set_grad_enabled(through_backbone):
             if clean_features is None:
@@ -644,11 +642,30 @@ class EBVLA(nn.Module):
             corrupted_features = pooled_context(self.backbone(corrupted_batch))
         if not through_backbone:
             clean_features = clean_features.detach()
-        return self._context_margin(clean_features, corrupted_features)
+        return self._context_margin(clean_features, corrupted_features, margin)
 
-    def _context_margin(self, clean_features: Tensor, corrupted_features: Tensor) -> tuple[Tensor, float]:
+    def _corrupted_copy(
+        self, batch: dict[str, Tensor], generator: torch.Generator
+    ) -> tuple[dict[str, Tensor], float | Tensor]:
+        """The batch's corrupted copy and the margin each corrupted observation must clear: m, or s m at
+        strength s (`energy_ood_corruption_strength`)."""
+        cfg = self.config
+        corrupted_batch, strengths = graded_corruption(
+            batch,
+            list(cfg.image_features),
+            cfg.energy_ood_corruptions,
+            generator,
+            state_key=OBS_STATE,
+            strength_range=cfg.energy_ood_corruption_strength,
+        )
+        margin = cfg.energy_ood_margin if strengths is None else cfg.energy_ood_margin * strengths.float()
+        return corrupted_batch, margin
+
+    def _context_margin(
+        self, clean_features: Tensor, corrupted_features: Tensor, margin: float | Tensor
+    ) -> tuple[Tensor, float]:
         clean, shifted = self.context_energy(clean_features), self.context_energy(corrupted_features)
-        loss = energy_margin_loss(clean, shifted, self.config.energy_ood_margin) + clean.float().pow(2).mean()
+        loss = energy_margin_loss(clean, shifted, margin) + clean.float().pow(2).mean()
         return loss, (shifted - clean).mean().item()
 
     def ood_margin_loss(
@@ -667,9 +684,7 @@ class EBVLA(nn.Module):
         that of the training chain's own refined chunk `chunk` under C, so that min_a E(a, C~) rises.
         """
         cfg = self.config
-        corrupted_batch = corrupt_observation(
-            batch, list(cfg.image_features), cfg.energy_ood_corruptions, generator, state_key=OBS_STATE
-        )
+        corrupted_batch, margin = self._corrupted_copy(batch, generator)
         corrupted_kv = self.encode_context(corrupted_batch)
         corrupted_chunk = chunk
         if cfg.energy_ood_margin_chunk == "refined":
@@ -678,7 +693,7 @@ class EBVLA(nn.Module):
             corrupted_chunk = self._refine(detached_kv, initial, step_sizes, generator).actions.detach()
         clean = self.head(chunk, kv).mean(dim=-1)
         shifted = self.head(corrupted_chunk, corrupted_kv).mean(dim=-1)
-        loss = energy_margin_loss(clean, shifted, cfg.energy_ood_margin)
+        loss = energy_margin_loss(clean, shifted, margin)
         return loss, (shifted - clean).mean().item()
 
     def contrastive_energy_loss(self, kv: ContextKV, target: Tensor, generator: torch.Generator) -> Tensor:
