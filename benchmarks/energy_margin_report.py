@@ -31,11 +31,9 @@ from best_of_n_closed_loop import paired_against, success_cell
 
 from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_interval
 from lerobot_policy_ebvla.monitoring.records import group_by_episode, read_energy_records, records_file_in
+from lerobot_policy_ebvla.runtime.calibration import OODCalibration
 from lerobot_policy_ebvla.runtime.scores import PhaseEnergyDeviation, VanillaRollouts, score_rollout
-from lerobot_policy_ebvla.runtime.threshold import MeanStd, exceeds
-
-# k of the alarm threshold T = mu + k sigma in the fresh table: `ebvla-ood-report --calibrate_to`'s default.
-ALARM_K = 1.0
+from lerobot_policy_ebvla.runtime.threshold import exceeds
 
 
 def episodes(folder: Path) -> list[list]:
@@ -57,16 +55,20 @@ def fit_deviation(calibration: list[list]) -> PhaseEnergyDeviation:
     )
 
 
+def mean_energies(eps: list[list], chunks: int | None) -> np.ndarray:
+    """Each episode's raw final energy, the mean over its first `chunks` chunks (None: the whole episode)."""
+    return np.array([energies(ep[:chunks]).mean() for ep in eps])
+
+
 def scores(eps: list[list], chunks: int, deviation: PhaseEnergyDeviation) -> tuple[np.ndarray, np.ndarray]:
     """Each episode's raw final energy and `phase_energy_deviation`, both the mean over its first chunks."""
-    raw, two_sided = [], []
-    for ep in eps:
-        e = energies(ep[:chunks])
-        raw.append(e.mean())
-        two_sided.append(
-            score_rollout(deviation, deviation.components(e, indices(ep[:chunks]), None), "mean")
+    two_sided = [
+        score_rollout(
+            deviation, deviation.components(energies(ep[:chunks]), indices(ep[:chunks]), None), "mean"
         )
-    return np.array(raw), np.array(two_sided)
+        for ep in eps
+    ]
+    return mean_energies(eps, chunks), np.array(two_sided)
 
 
 def cell(negatives: np.ndarray, positives: np.ndarray) -> tuple[str, float]:
@@ -136,21 +138,21 @@ def fresh_table(folder: Path, fresh: Path, chunks: int) -> dict[str, dict]:
     sweep's own rollouts against `vanilla/` did), so these AUROCs are free of that selection.
 
     Beside the first chunks' AUROCs: the raw final energy's AUROC over the whole episode, and the share of each
-    side's rollouts over the threshold a user ships, T = mu + k sigma of the calibration rollouts' first-chunk
-    scores (`--calibrate_to`'s default rule, k = `ALARM_K`), set on the calibration rollouts alone."""
+    side's rollouts over the threshold a user ships: `OODCalibration.fit` on the calibration rollouts' first-chunk
+    scores, as `--calibrate_to` saves it by default (T = mu_v + 1.0 sigma_v), set on the calibration alone."""
     calibration = episodes(folder / "calibration")
     deviation = fit_deviation(calibration)
-    threshold = MeanStd.fit(scores(calibration, chunks, deviation)[0]).threshold(ALARM_K)
+    threshold = OODCalibration.fit(mean_energies(calibration, chunks)).threshold
     vanilla_episodes = episodes(folder / "vanilla_extra")
     vanilla = scores(vanilla_episodes, chunks, deviation)
-    vanilla_whole = scores(vanilla_episodes, None, deviation)[0]
+    vanilla_whole = mean_energies(vanilla_episodes, None)
     rows = {}
     for sub in sorted(p for p in fresh.iterdir() if p.is_dir() and records_file_in(p) is not None):
         eps = episodes(sub)
         first = scores(eps, chunks, deviation)
         row = condition_row(eps, first, vanilla)
         row["n_vanilla"] = len(vanilla[0])
-        row["whole_episode"] = cell(vanilla_whole, scores(eps, None, deviation)[0])
+        row["whole_episode"] = cell(vanilla_whole, mean_energies(eps, None))
         row["alarms"] = exceeds(first[0], threshold).mean()
         row["vanilla_alarms"] = exceeds(vanilla[0], threshold).mean()
         rows[sub.name] = row
