@@ -6,6 +6,10 @@ grid. Each cell is titled with the mean absolute pixel difference to the vanilla
 
     MUJOCO_GL=egl python benchmarks/metaworld_perturbation_gallery.py \\
         --task push-v3 --severities 1 3 5 --output docs/figures/metaworld_perturbations.png
+
+`--training_corruptions` adds a row per image corruption the energy's outlier-exposure margin trains on
+(`training_signal.CORRUPTIONS`), applied to the vanilla frame at strength s = severity / 5 (as
+`energy_ood_corruption_strength` blends them): what the energy was shown, beside what it is evaluated on.
 """
 
 import argparse
@@ -32,8 +36,22 @@ def first_frame(task: str, perturbation: str, severity: int, seed: int) -> tuple
     return observation["pixels"], observation["agent_pos"]
 
 
+def corrupted_frames(frame: np.ndarray, kind: str, strengths: list[float], seed: int) -> list[np.ndarray]:
+    """`frame` under the training corruption `kind`, blended in at each strength (one draw for all)."""
+    import torch
+
+    from lerobot_policy_ebvla.training_signal import corrupt_observation
+
+    images = torch.from_numpy(frame).permute(2, 0, 1)[None].float() / 255.0
+    generator = torch.Generator().manual_seed(seed)
+    corrupted = corrupt_observation({"image": images}, ["image"], (kind,), generator)["image"]
+    blends = [images + s * (corrupted - images) for s in strengths]
+    return [(255.0 * b[0].permute(1, 2, 0)).round().to(torch.uint8).numpy() for b in blends]
+
+
 def main() -> None:
-    from lerobot_policy_ebvla.envs.perturbations import PERTURBATIONS
+    from lerobot_policy_ebvla.envs.perturbations import MAX_SEVERITY, PERTURBATIONS
+    from lerobot_policy_ebvla.training_signal import CORRUPTIONS
 
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -42,6 +60,11 @@ def main() -> None:
     parser.add_argument("--severities", type=int, nargs="+", default=[1, 3, 5])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--output", type=Path, default=Path("docs/figures/metaworld_perturbations.png"))
+    parser.add_argument(
+        "--training_corruptions",
+        action="store_true",
+        help="Also a row per image corruption of the energy's outlier-exposure margin, at strength severity / 5.",
+    )
     args = parser.parse_args()
     os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -53,18 +76,28 @@ def main() -> None:
     start = time.perf_counter()
     vanilla, vanilla_pos = first_frame(args.task, "none", 0, args.seed)
     perturbations = [p for p in PERTURBATIONS if p != "none"]
+    corruptions = [c for c in CORRUPTIONS if c != "state_noise"] if args.training_corruptions else []
     columns = [0, *args.severities]
-    fig, axes = plt.subplots(
-        len(perturbations), len(columns), figsize=(1.7 * len(columns), 1.9 * len(perturbations))
-    )
-    for row, perturbation in enumerate(perturbations):
+    rows = perturbations + [f"train:{c}" for c in corruptions]
+    fig, axes = plt.subplots(len(rows), len(columns), figsize=(1.7 * len(columns), 1.9 * len(rows)))
+    for row, perturbation in enumerate(rows):
+        if perturbation.startswith("train:"):
+            strengths = [severity / MAX_SEVERITY for severity in columns]
+            corrupted = corrupted_frames(vanilla, perturbation.removeprefix("train:"), strengths, args.seed)
         for col, severity in enumerate(columns):
             if severity == 0:
                 frame, pos = vanilla, vanilla_pos
+            elif perturbation.startswith("train:"):
+                frame, pos = corrupted[col], vanilla_pos
             else:
                 frame, pos = first_frame(args.task, perturbation, severity, args.seed)
             difference = np.abs(frame.astype(float) - vanilla.astype(float)).mean()
-            title = f"{perturbation} s={severity}\n|dpix| {difference:.1f}"
+            level = (
+                f"strength {severity / MAX_SEVERITY:.1f}"
+                if perturbation.startswith("train:")
+                else f"s={severity}"
+            )
+            title = f"{perturbation} {level}\n|dpix| {difference:.1f}"
             if perturbation == "robot_init":
                 title += f", hand {100 * np.linalg.norm(pos[:3] - vanilla_pos[:3]):.1f} cm"
             print(title.replace("\n", "  "), flush=True)
@@ -76,6 +109,10 @@ def main() -> None:
     fig.tight_layout(rect=(0, 0, 1, 0.985))
     args.output.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.output, dpi=90, pil_kwargs={"optimize": True})
+    # A palette of 128 colours keeps the grid readable at about a third of the file size.
+    from PIL import Image
+
+    Image.open(args.output).convert("RGB").quantize(colors=128).save(args.output, optimize=True)
     print(f"Saved {args.output} ({time.perf_counter() - start:.0f} s)")
 
 

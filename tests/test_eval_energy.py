@@ -15,7 +15,7 @@ from torch import nn
 from torch.utils.hooks import RemovableHandle
 
 from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
-from lerobot_policy_ebvla.modeling_ebvla import EnergyReadout
+from lerobot_policy_ebvla.modeling_ebvla import EBVLAPolicy, EnergyReadout
 from lerobot_policy_ebvla.monitoring.baselines import available_scores
 from lerobot_policy_ebvla.monitoring.recorder import EnergyRecorder
 from lerobot_policy_ebvla.monitoring.records import read_energy_records, write_energy_records
@@ -237,3 +237,24 @@ def test_metaworld_eval_config_applies_the_perturbation_and_the_extra_options(tm
     assert (cfg.env.perturbation, cfg.env.perturbation_severity) == ("light_dim", 4)
     assert cfg.env.task == "push-v3" and cfg.env.fast_render and cfg.env.max_episode_steps == 40
     assert (cfg.eval.n_episodes, cfg.eval.batch_size, cfg.seed) == (3, 1, 2000)
+
+
+def test_recorder_records_the_joint_energys_context_term_apart(tmp_path):
+    """A joint-energy policy's records carry E_c (`context_energy`), that of each chunk's own observation."""
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on="observation"))
+    _, recorder, batch = recorded_actions(policy)
+    records = recorder.records_from_successes({("g", 0): [True, False]}, n_episodes=2)
+    with torch.no_grad():
+        expected = policy.model.context_energy_of(batch, None).tolist()
+    assert [r.context_energy for r in records] == pytest.approx(
+        [expected[0]] * 2 + [expected[1]] * 2, abs=1e-5
+    )
+    read = read_energy_records(write_energy_records(tmp_path / "energy_records.jsonl", records))
+    assert [r.context_energy for r in read] == pytest.approx([r.context_energy for r in records])
+
+
+def test_records_of_a_policy_without_a_joint_energy_have_no_context_term(tiny_policy):
+    _, recorder, _ = recorded_actions(tiny_policy)
+    records = recorder.records_from_successes({("g", 0): [True, True]}, n_episodes=2)
+    assert all(r.context_energy is None for r in records)

@@ -57,6 +57,15 @@ def test_mcmc_chains_round_trip_and_old_rows_read_without_them(tmp_path):
     assert [r.mcmc_chains for r in read_energy_records(path)] == [4, None]
 
 
+def test_context_energy_round_trips_and_old_rows_read_without_it(tmp_path):
+    records = [dataclasses.replace(record(chunk=0), context_energy=-0.25), record(chunk=1)]
+    path = write_energy_records(tmp_path / ENERGY_RECORDS_FILENAME, records)
+    assert "context_energy" not in path.read_text().splitlines()[1]
+    assert [r.context_energy for r in read_energy_records(path)] == [-0.25, None]
+    with pytest.raises(ValueError, match="context_energy"):
+        record_from_json({**json.loads(record_to_json(records[0])), "context_energy": "high"}, "row 1")
+
+
 def test_restart_spread_and_context_features_round_trip(tmp_path):
     records = [
         dataclasses.replace(

@@ -1,5 +1,6 @@
 """The outlier-exposure margin (issue 32): E(a*, corrupted C) is pushed above E(a*, C), off by default."""
 
+import numpy as np
 import pytest
 import torch
 
@@ -12,10 +13,12 @@ from lerobot_policy_ebvla.training_signal import (
     energy_margin_loss,
     graded_corruption,
     random_conv,
+    shading,
+    shading_log_gains,
     shift,
 )
 
-from .conftest import tiny_batch, tiny_config
+from .conftest import load_benchmark, tiny_batch, tiny_config
 
 
 def test_margin_term_is_off_by_default_and_adds_nothing():
@@ -228,6 +231,22 @@ def test_channel_gain_and_shift_do_what_they_say():
     assert moved[0, 0, 0].eq(0).all() and torch.equal(moved[0, 0, 1], torch.arange(4.0))
 
 
+def test_shading_scales_every_channel_by_one_smooth_field_of_both_signs():
+    images = torch.full((16, 3, 32, 32), 0.4)
+    fields = shading_log_gains(16, 32, 32, torch.Generator().manual_seed(0), images)
+    out = shading(images, fields)
+    # Achromatic: where nothing clips, every channel is the image times the same gain.
+    torch.testing.assert_close(out[:, 0], out[:, 1])
+    unclipped = out[:, 0] < 1.0
+    torch.testing.assert_close(out[:, 0][unclipped], (0.4 * fields.exp())[unclipped])
+    # Smooth: a field changes little from one pixel to the next and much across the image.
+    assert (fields[:, 1:] - fields[:, :-1]).abs().max() < 0.3
+    spread = fields.amax(dim=(1, 2)) - fields.amin(dim=(1, 2))
+    assert spread.min() > 0.3
+    # Brighter and darker sides alike.
+    assert (fields.mean(dim=(1, 2)) > 0).any() and (fields.mean(dim=(1, 2)) < 0).any()
+
+
 @pytest.mark.parametrize(
     ("field", "value"),
     [
@@ -316,6 +335,8 @@ def test_joint_final_energy_is_the_head_energy_plus_the_context_energy(target):
     head = policy.score_action_chunks(batch, chunk[:, None])[:, 0]
     context = policy.model.context_energy_of(batch, policy.context_features(batch))
     torch.testing.assert_close(readout.final_energy, head + context, rtol=1e-4, atol=1e-4)
+    # The readout carries E_c apart, so that records can split the joint energy.
+    torch.testing.assert_close(readout.context_energy, context, rtol=1e-5, atol=1e-5)
     if target == "observation":  # E_c reads the observation encoder's context, not the policy's
         other = policy.model.context_energy(policy.context_features(batch))
         assert not torch.allclose(context, other)
@@ -323,4 +344,39 @@ def test_joint_final_energy_is_the_head_energy_plus_the_context_energy(target):
 
 def test_without_the_context_variant_the_policy_has_no_context_energy():
     assert EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0)).model.context_energy is None
-    assert EBVLAPolicy(tiny_config(energy_ood_margin_on="context")).model.context_energy is None
+    policy = EBVLAPolicy(tiny_config(energy_ood_margin_on="context")).eval()
+    assert policy.model.context_energy is None
+    batch = tiny_batch(policy.config, batch_size=2, with_action=False)
+    _, readout = policy.predict_action_chunk(batch, return_energy=True)
+    assert readout.context_energy is None
+
+
+def test_adaptive_restarts_keep_the_observations_context_energy():
+    """E_c depends on the observation only: a restarted chunk keeps it, and the readout still splits."""
+    torch.manual_seed(0)
+    config = tiny_config(
+        energy_ood_margin_weight=1.0,
+        energy_ood_margin_on="observation",
+        num_restarts=3,
+        restart_energy_threshold=-1e9,
+    )
+    policy = EBVLAPolicy(config).eval()
+    batch = tiny_batch(config, batch_size=2, with_action=False)
+    chunk, readout = policy.predict_action_chunk(
+        batch, generator=torch.Generator().manual_seed(0), return_energy=True
+    )
+    assert readout.chains.tolist() == [3, 3]
+    context = policy.model.context_energy_of(batch, None)
+    torch.testing.assert_close(readout.context_energy, context)
+    head = policy.score_action_chunks(batch, chunk[:, None])[:, 0]
+    torch.testing.assert_close(readout.final_energy, head + context, rtol=1e-4, atol=1e-4)
+
+
+def test_gallery_blends_a_training_corruption_in_by_its_strength():
+    gallery = load_benchmark("metaworld_perturbation_gallery")
+    frame = np.random.default_rng(0).integers(40, 200, (16, 16, 3), dtype=np.uint8)
+    none, half, full = gallery.corrupted_frames(frame, "shading", [0.0, 0.5, 1.0], seed=0)
+    np.testing.assert_array_equal(none, frame)
+    change_half = np.abs(half.astype(float) - frame).mean()
+    change_full = np.abs(full.astype(float) - frame).mean()
+    assert 0.4 * change_full < change_half < 0.6 * change_full and change_full > 5

@@ -24,7 +24,7 @@ COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune", "max-autot
 FROZEN_WEIGHTS_DTYPES = ("bfloat16", "float32")
 CONTRASTIVE_DTYPES = ("float32", "bfloat16", "auto")
 # The generic corruptions of `training_signal.corrupt_observation` (kept here: the config imports no torch).
-OOD_CORRUPTIONS = ("channel_gain", "patch_swap", "shift", "state_noise", "random_conv")
+OOD_CORRUPTIONS = ("channel_gain", "patch_swap", "shift", "state_noise", "random_conv", "shading")
 OOD_MARGIN_CHUNKS = ("expert", "refined")
 OOD_MARGIN_TARGETS = ("head", "context", "context_backbone", "observation")
 
@@ -181,7 +181,8 @@ class EBVLAConfig(PreTrainedConfig):
             rectangle from another observation of the batch), "shift" (a translation with a black border),
             "state_noise" (N(0, 1) added to the normalized state), "random_conv" (the image through a random
             3x3 or 5x5 convolution that mixes its channels, rescaled to [0, 1]: RandConv, Xu et al., ICLR 2021,
-            a generic family of colour and texture changes).
+            a generic family of colour and texture changes), "shading" (the image times a smooth random
+            achromatic gain field, a log-linear gradient plus one Gaussian blob: light falling unevenly).
         energy_ood_corruption_strength: Range [s_min, s_max] of each corruption's strength s, drawn per
             observation: the observation is moved the fraction s of the way to its corrupted copy (images and
             state, `training_signal.graded_corruption`) and its margin is s m, so that the energy learns to

@@ -58,11 +58,16 @@ class EnergyReadout:
             refinement hit a non-finite energy or gradient.
         chains: (B,) how many MCMC chains were refined for each observation: `num_restarts`, or with
             `restart_energy_threshold` 1, and `num_restarts` where the first chunk's energy was above it.
+        context_energy: E_c(C), (B,), the joint energy's context term, already inside `final_energy`; None
+            for a policy without one (`energy_ood_margin_on` "context" or "observation"). Recorded apart
+            because its rise under a shift can be small beside the spread of the head's part
+            (docs/energy_study.md, section 8.8).
     """
 
     initial_energy: Tensor
     final_energy: Tensor
     chains: Tensor | None = None
+    context_energy: Tensor | None = None
 
 
 # hook(policy, batch, readout, decision), called after each refined chunk the policy returns.
@@ -506,7 +511,9 @@ class EBVLA(nn.Module):
             rows = torch.arange(batch_size, device=best.device) * chains + best
             actions, initial_energy, final_energy = actions[rows], initial_energy[rows], final_energy[rows]
         counts = torch.full((batch_size,), chains, dtype=torch.long, device=final_energy.device)
-        return actions, EnergyReadout(initial_energy, final_energy, chains=counts)
+        return actions, EnergyReadout(
+            initial_energy, final_energy, chains=counts, context_energy=context_energy
+        )
 
     def _restart_unsure_chunks(
         self,
@@ -546,7 +553,7 @@ class EBVLA(nn.Module):
         initial[rows], final[rows] = more.initial_energy[better], more.final_energy[better]
         chains = readout.chains.clone()
         chains[unsure] = cfg.num_restarts
-        return actions, EnergyReadout(initial, final, chains=chains)
+        return actions, EnergyReadout(initial, final, chains=chains, context_energy=readout.context_energy)
 
     def compute_loss(
         self, batch: dict[str, Tensor], generator: torch.Generator | None = None

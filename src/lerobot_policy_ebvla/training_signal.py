@@ -39,6 +39,10 @@ STATE_NOISE_STD = 1.0
 # Kernel sides of "random_conv" (RandConv, Xu et al., ICLR 2021): a random convolution of each image, its weights
 # N(0, 1 / (C k^2)) so that the output keeps the input's scale before it is rescaled to [0, 1].
 RANDOM_CONV_KERNELS = (3, 5)
+# "shading": log g(y, x) = A (x cos(theta) + y sin(theta)) + B exp(-|(y, x) - c|^2 / (2 sigma^2)) on [-1, 1]^2,
+# |A| and |B| in LOG_GAIN_RANGE (so that, as for "channel_gain", no image is left looking like the data) and
+# sigma in SHADING_BLOB_RANGE: a brighter or darker side and one brighter or darker pool, alike on every channel.
+SHADING_BLOB_RANGE = (0.2, 0.6)
 
 
 def _uniform(
@@ -104,6 +108,39 @@ def random_conv_kernels(batch_size: int, channels: int, generator: torch.Generat
     return torch.stack(kernels)
 
 
+def shading(images: Tensor, log_gains: Tensor) -> Tensor:
+    """Each image (C, H, W) times its own gain field exp(log_gains) (B, H, W), alike on every channel, clipped to
+    [0, 1]."""
+    return (images * log_gains.exp()[:, None]).clamp(0.0, 1.0)
+
+
+def shading_log_gains(
+    batch_size: int, height: int, width: int, generator: torch.Generator, ref: Tensor
+) -> Tensor:
+    """One smooth log-gain field (B, H, W) per observation: a linear ramp in a random direction plus one
+    Gaussian blob, each of a random sign (the constants above)."""
+    draws = torch.rand((batch_size, 8), generator=generator, device=ref.device, dtype=ref.dtype)
+    theta, signs, magnitudes, sigma, centre = (
+        draws[:, 0],
+        draws[:, 1:3],
+        draws[:, 3:5],
+        draws[:, 5],
+        draws[:, 6:],
+    )
+    signs = torch.where(signs < 0.5, -1.0, 1.0)
+    low, high = LOG_GAIN_RANGE
+    ramp, blob = (signs * (low + (high - low) * magnitudes)).unbind(1)
+    sigma = SHADING_BLOB_RANGE[0] + (SHADING_BLOB_RANGE[1] - SHADING_BLOB_RANGE[0]) * sigma
+    centre_y, centre_x = (2 * centre - 1).unbind(1)
+    theta = 2 * torch.pi * theta
+    y = torch.linspace(-1.0, 1.0, height, device=ref.device, dtype=ref.dtype)[None, :, None]
+    x = torch.linspace(-1.0, 1.0, width, device=ref.device, dtype=ref.dtype)[None, None, :]
+    along = x * theta.cos()[:, None, None] + y * theta.sin()[:, None, None]
+    distance2 = (y - centre_y[:, None, None]) ** 2 + (x - centre_x[:, None, None]) ** 2
+    pool = torch.exp(-distance2 / (2 * sigma[:, None, None] ** 2))
+    return ramp[:, None, None] * along + blob[:, None, None] * pool
+
+
 def corrupt_observation(
     batch: dict[str, Tensor],
     camera_keys: list[str],
@@ -148,6 +185,7 @@ def corrupt_observation(
     kernels = (
         random_conv_kernels(batch_size, first.shape[1], generator, first) if "random_conv" in masks else None
     )
+    fields = shading_log_gains(batch_size, height, width, generator, first) if "shading" in masks else None
 
     out = dict(batch)
     for key in camera_keys:
@@ -165,6 +203,9 @@ def corrupt_observation(
         if kernels is not None:
             convolved = random_conv(images, kernels)
             corrupted = torch.where(masks["random_conv"][:, None, None, None], convolved, corrupted)
+        if fields is not None:
+            shaded = shading(images, fields)
+            corrupted = torch.where(masks["shading"][:, None, None, None], shaded, corrupted)
         out[key] = corrupted
     if "state_noise" in masks and state_key is not None and state_key in batch:
         state = batch[state_key]

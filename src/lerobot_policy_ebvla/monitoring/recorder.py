@@ -53,6 +53,7 @@ class _Chunk:
     normalized_energy: float | None = None
     held: bool | None = None
     mcmc_chains: int | None = None
+    context_energy: float | None = None
     context_feature: np.ndarray | None = None
 
 
@@ -200,6 +201,9 @@ class EnergyRecorder:
         held = None if decision is None else decision.held.reshape(-1).tolist()
         chains = getattr(readout, "chains", None)
         chains = None if chains is None else chains.reshape(-1).tolist()
+        context_energy = getattr(readout, "context_energy", None)
+        if context_energy is not None:
+            context_energy = context_energy.detach().float().cpu().reshape(-1).tolist()
         for i in np.flatnonzero(~env.done):
             self.chunks.append(
                 _Chunk(
@@ -216,6 +220,7 @@ class EnergyRecorder:
                     normalized_energy=None if normalized is None else normalized[i],
                     held=None if held is None else bool(held[i]),
                     mcmc_chains=None if chains is None else int(chains[i]),
+                    context_energy=None if context_energy is None else context_energy[i],
                     context_feature=None if features is None else features[i],
                 )
             )
@@ -269,6 +274,7 @@ class EnergyRecorder:
                 normalized_energy=chunk.normalized_energy,
                 held=chunk.held,
                 mcmc_chains=chunk.mcmc_chains,
+                context_energy=chunk.context_energy,
                 context_feature=chunk.context_feature,
             )
             for chunk in chunks

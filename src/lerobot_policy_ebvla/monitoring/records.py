@@ -88,6 +88,8 @@ class EnergyRecord:
             chunk's compute; None when not recorded.
         held: Whether the policy's OOD response (`EBVLAConfig.ood_response="hold"`) replaced this chunk by
             the hold action; None when the policy has no OOD response.
+        context_energy: E_c(C), the joint energy's context term, already inside `final_energy` (its head's
+            part is the difference); None for a policy without one.
         context_feature: Baseline: the (D,) pooled backbone context of the observation; None when not
             recorded. Stored in the `.features.npy` file beside the records, not in the JSON row.
     """
@@ -106,6 +108,7 @@ class EnergyRecord:
     normalized_energy: float | None = None
     held: bool | None = None
     mcmc_chains: int | None = None
+    context_energy: float | None = None
     context_feature: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     @property
@@ -149,6 +152,8 @@ def record_to_json(record: EnergyRecord) -> str:
         row["held"] = record.held
     if record.mcmc_chains is not None:
         row["mcmc_chains"] = record.mcmc_chains
+    if record.context_energy is not None:
+        row["context_energy"] = _energy_to_json(record.context_energy)
     return json.dumps(row, allow_nan=False)
 
 
@@ -303,6 +308,9 @@ def record_from_json(row: dict[str, Any], where: str = "record") -> EnergyRecord
         mcmc_chains=None
         if row.get("mcmc_chains") is None
         else _parse_int(row["mcmc_chains"], "mcmc_chains", where),
+        context_energy=None
+        if row.get("context_energy") is None
+        else _parse_float(row["context_energy"], "context_energy", where),
     )
 
 
