@@ -1,8 +1,9 @@
 """The joint energy split: its context term E_c(C) and the head's part, each scored apart on a sweep (issue 32).
 
-A policy with a joint energy (`energy_ood_margin_on` "context" or "observation") reports the final energy
-E(a^(K_inf), C) + E_c(C), and its records hold E_c apart (`EnergyRecord.context_energy`). For each sweep condition
-(a folder of `metaworld_perturbation_sweep.py` records beside `calibration/` and `vanilla/`), and for each of
+A policy with a joint energy (`energy_ood_margin_on` "context", "context_backbone" or "observation") reports the
+final energy E(a^(K_inf), C) + E_c(C), and its records hold E_c apart (`EnergyRecord.context_energy`). For each
+sweep condition (a folder of `metaworld_perturbation_sweep.py` records beside `calibration/` and `vanilla/`), and
+for each of
 
 - "joint": the final energy, the paper's score on this policy;
 - "head": the head's part, final energy - E_c;
