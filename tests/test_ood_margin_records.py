@@ -597,3 +597,21 @@ def test_on_full_rollouts_the_context_term_flags_shifts_not_failures():
     assert [r["E_c"]["failed vs successful"][:4] for r in results.values()] == ["0.50", "0.43"]
     # The joint energy of these rollouts is the sweep's own: its pooled AUROC is energy_margin_report's.
     assert [r["joint"]["pooled"][:4] for r in results.values()] == ["0.89", "0.95"]
+
+
+def test_on_two_untouched_training_seeds_the_two_sided_context_term_passes_the_rule_written_before_them():
+    """Seeds 10000 and 11000, trained after the rule was written (summary.md, "The untouched check"): |z| E_c is
+    never confidently under 0.5, pools >= 0.90, sees every success-cutting shift and alarms on <= 20% of vanilla;
+    the shipped sum is confidently under 0.5 on seed 11000's light_direction 3."""
+    results = {
+        seed: split.run_split(seed_run(seed, "observation") / "context_energy_full", 3)["summary"]
+        for seed in (10000, 11000)
+    }
+    for summary in results.values():
+        two_sided = summary["|z| E_c"]
+        assert two_sided["confidently under"] == []
+        assert float(two_sided["pooled"][:4]) >= 0.90 and two_sided["cutting min"] >= 0.85
+        assert two_sided["alarms vanilla"] <= 0.20
+    assert [r["|z| E_c"]["pooled"][:4] for r in results.values()] == ["0.98", "0.97"]
+    assert results[11000]["joint"]["confidently under"] == ["light_direction_s3"]
+    assert results[11000]["E_c"]["confidently under"] == ["light_direction_s3"]
