@@ -31,8 +31,8 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+from energy_margin_report import cell, emit
 
-from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_interval
 from lerobot_policy_ebvla.monitoring.records import group_by_episode, read_energy_records, records_file_in
 from lerobot_policy_ebvla.runtime.calibration import OODCalibration
 from lerobot_policy_ebvla.runtime.threshold import exceeds
@@ -78,13 +78,6 @@ def with_two_sided(scores: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 def success_rate(folder: Path) -> float:
     """The share of a folder's episodes that succeeded."""
     return float(np.mean([ep[0].success for ep in load(folder, 1).values()]))
-
-
-def cell(negatives: np.ndarray, positives: np.ndarray) -> tuple[str, float, float]:
-    """'AUROC [low, high]' and the AUROC and upper bound."""
-    value = auroc(negatives, positives)
-    low, high = bootstrap_auroc_interval(negatives, positives)
-    return f"{value:.2f} [{low:.2f}, {high:.2f}]", value, high
 
 
 def run_split(folder: Path, chunks: int, outcomes_dir: Path | None = None) -> dict:
@@ -175,10 +168,7 @@ def markdown(results: dict[str, dict], chunks: int) -> str:
             "|---|---|" + "---|" * len(PARTS),
         ]
         for name, row in result["rows"].items():
-            cells = [
-                f"{row[p][0]}{' **inv**' if row[p][1] < 0.5 else ''}, {100 * row[f'{p} alarms']:.0f}%"
-                for p in PARTS
-            ]
+            cells = [f"{row[p][0]}, {100 * row[f'{p} alarms']:.0f}%" for p in PARTS]
             lines.append(f"| {name} | {100 * row['success']:.0f}% ({row['n']}) | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -198,10 +188,7 @@ def main() -> None:
         name, dirs = spec.split("=", 1)
         records, _, full = dirs.partition(",")
         results[name] = run_split(Path(records), args.chunks, Path(full) if full else None)
-    text = markdown(results, args.chunks)
-    print(text)
-    if args.output:
-        args.output.write_text(text)
+    emit(markdown(results, args.chunks).splitlines(), args.output)
 
 
 if __name__ == "__main__":

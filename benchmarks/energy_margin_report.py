@@ -71,11 +71,13 @@ def scores(eps: list[list], chunks: int, deviation: PhaseEnergyDeviation) -> tup
     return mean_energies(eps, chunks), np.array(two_sided)
 
 
-def cell(negatives: np.ndarray, positives: np.ndarray) -> tuple[str, float]:
+def cell(negatives: np.ndarray, positives: np.ndarray) -> tuple[str, float, float]:
+    """'AUROC [low, high]' (marked **inv** under 0.5), the AUROC, and the interval's upper bound (under 0.5:
+    confidently under)."""
     value = auroc(negatives, positives)
     low, high = bootstrap_auroc_interval(negatives, positives)
     mark = " **inv**" if value < 0.5 else ""
-    return f"{value:.2f} [{low:.2f}, {high:.2f}]{mark}", value
+    return f"{value:.2f} [{low:.2f}, {high:.2f}]{mark}", value, high
 
 
 def condition_row(eps: list[list], rollout_scores: tuple, vanilla_scores: tuple) -> dict:

@@ -40,12 +40,12 @@ def corrupted_frames(frame: np.ndarray, kind: str, strengths: list[float], seed:
     """`frame` under the training corruption `kind`, blended in at each strength (one draw for all)."""
     import torch
 
-    from lerobot_policy_ebvla.training_signal import corrupt_observation
+    from lerobot_policy_ebvla.training_signal import blend, corrupt_observation
 
     images = torch.from_numpy(frame).permute(2, 0, 1)[None].float() / 255.0
     generator = torch.Generator().manual_seed(seed)
     corrupted = corrupt_observation({"image": images}, ["image"], (kind,), generator)["image"]
-    blends = [images + s * (corrupted - images) for s in strengths]
+    blends = [blend(images, corrupted, torch.tensor([s])) for s in strengths]
     return [(255.0 * b[0].permute(1, 2, 0)).round().to(torch.uint8).numpy() for b in blends]
 
 
@@ -78,25 +78,26 @@ def main() -> None:
     perturbations = [p for p in PERTURBATIONS if p != "none"]
     corruptions = [c for c in CORRUPTIONS if c != "state_noise"] if args.training_corruptions else []
     columns = [0, *args.severities]
-    rows = perturbations + [f"train:{c}" for c in corruptions]
-    fig, axes = plt.subplots(len(rows), len(columns), figsize=(1.7 * len(columns), 1.9 * len(rows)))
-    for row, perturbation in enumerate(rows):
-        if perturbation.startswith("train:"):
-            strengths = [severity / MAX_SEVERITY for severity in columns]
-            corrupted = corrupted_frames(vanilla, perturbation.removeprefix("train:"), strengths, args.seed)
-        for col, severity in enumerate(columns):
-            if severity == 0:
-                frame, pos = vanilla, vanilla_pos
-            elif perturbation.startswith("train:"):
-                frame, pos = corrupted[col], vanilla_pos
-            else:
-                frame, pos = first_frame(args.task, perturbation, severity, args.seed)
+    # (row name, [(frame, hand position, level)] per column): the sweep's perturbations, then the training
+    # corruptions blended in at strength severity / 5.
+    grid = []
+    for perturbation in perturbations:
+        frames = [
+            (vanilla, vanilla_pos)
+            if severity == 0
+            else first_frame(args.task, perturbation, severity, args.seed)
+            for severity in columns
+        ]
+        grid.append((perturbation, [(f, p, f"s={s}") for (f, p), s in zip(frames, columns, strict=True)]))
+    for kind in corruptions:
+        strengths = [severity / MAX_SEVERITY for severity in columns]
+        frames = corrupted_frames(vanilla, kind, strengths, args.seed)
+        cells = [(f, vanilla_pos, f"strength {s:.1f}") for f, s in zip(frames, strengths, strict=True)]
+        grid.append((f"train:{kind}", cells))
+    fig, axes = plt.subplots(len(grid), len(columns), figsize=(1.7 * len(columns), 1.9 * len(grid)))
+    for row, (perturbation, cells) in enumerate(grid):
+        for col, (frame, pos, level) in enumerate(cells):
             difference = np.abs(frame.astype(float) - vanilla.astype(float)).mean()
-            level = (
-                f"strength {severity / MAX_SEVERITY:.1f}"
-                if perturbation.startswith("train:")
-                else f"s={severity}"
-            )
             title = f"{perturbation} {level}\n|dpix| {difference:.1f}"
             if perturbation == "robot_init":
                 title += f", hand {100 * np.linalg.norm(pos[:3] - vanilla_pos[:3]):.1f} cm"

@@ -216,6 +216,12 @@ def corrupt_observation(
     return out
 
 
+def blend(clean: Tensor, corrupted: Tensor, strengths: Tensor) -> Tensor:
+    """o + s (o~ - o) for each observation: its strength s of (B,) over all its other dimensions."""
+    s = strengths.to(clean.dtype).view(-1, *([1] * (clean.dim() - 1)))
+    return clean + s * (corrupted - clean)
+
+
 def graded_corruption(
     batch: dict[str, Tensor],
     camera_keys: list[str],
@@ -244,10 +250,8 @@ def graded_corruption(
     strengths = _uniform(*strength_range, (ref.shape[0],), generator, ref)
     blended = dict(corrupted)
     for key in [*camera_keys, state_key]:
-        if key is None or key not in batch:
-            continue
-        s = strengths.to(batch[key].dtype).view(-1, *([1] * (batch[key].dim() - 1)))
-        blended[key] = batch[key] + s * (corrupted[key] - batch[key])
+        if key is not None and key in batch:
+            blended[key] = blend(batch[key], corrupted[key], strengths)
     return blended, strengths
 
 
