@@ -85,7 +85,7 @@ def test_a_context_calibration_needs_the_context_features():
 
 
 def test_a_context_calibration_needs_one_context_per_chunk():
-    with pytest.raises(ValueError, match="one pooled context per chunk"):
+    with pytest.raises(ValueError, match="`context_features` has 2 row.*one per chunk"):
         context_calibration().chunk_score(torch.zeros(3), context_features=np.zeros((2, D)))
 
 

@@ -108,7 +108,7 @@ def test_invalid_context_neighbours_are_refused(features, k, match):
 
 
 def test_context_knn_is_a_calibrated_context_score():
-    assert SCORES["context_knn"].needs_context_features and knn_calibration().needs_context_features
+    assert "context_features" in SCORES["context_knn"].reads and knn_calibration().needs_context_features
 
 
 def test_a_context_knn_calibration_scores_a_chunk_by_its_knn_distance():

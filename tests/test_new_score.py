@@ -15,6 +15,7 @@ from lerobot_policy_ebvla.monitoring.ood_report import OODReportConfig, write_oo
 from lerobot_policy_ebvla.monitoring.records import load_episodes
 from lerobot_policy_ebvla.runtime import (
     SCORES,
+    ChunkInputs,
     ChunkScore,
     EnergyOODError,
     EnergyOODMonitor,
@@ -22,7 +23,6 @@ from lerobot_policy_ebvla.runtime import (
     OODCalibration,
     VanillaRollouts,
 )
-from lerobot_policy_ebvla.runtime.threshold import as_array
 
 from .conftest import tiny_config, write_calibration_vanilla_and_ood
 
@@ -42,8 +42,8 @@ class PooledEnergyZ(ChunkScore):
         energies = np.concatenate(vanilla.final_energies)
         return cls(float(energies.mean()), float(energies.std()))
 
-    def components(self, final_energy, chunk_index, context_features) -> np.ndarray:
-        return ((as_array(final_energy) - self.mean) / self.std)[:, None]
+    def components(self, chunks: ChunkInputs) -> np.ndarray:
+        return ((chunks.final_energy - self.mean) / self.std)[:, None]
 
     def to_json(self) -> dict:
         return {"mean": self.mean, "std": self.std}

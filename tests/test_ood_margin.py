@@ -6,6 +6,8 @@ import torch
 
 from lerobot_policy_ebvla import EBVLAPolicy
 from lerobot_policy_ebvla.modeling_ebvla import pooled_context
+from lerobot_policy_ebvla.runtime import EnergyOODResponse, OODCalibration
+from lerobot_policy_ebvla.runtime.scores import ContextEnergyTwoSided
 from lerobot_policy_ebvla.training_signal import (
     CORRUPTIONS,
     channel_gain,
@@ -370,6 +372,21 @@ def test_adaptive_restarts_keep_the_observations_context_energy():
     torch.testing.assert_close(readout.context_energy, context)
     head = policy.score_action_chunks(batch, chunk[:, None])[:, 0]
     torch.testing.assert_close(readout.final_energy, head + context, rtol=1e-4, atol=1e-4)
+
+
+def test_the_policy_monitors_its_context_energy_on_either_side_of_the_vanilla_band():
+    """A context-energy calibration reads the readout's E_c: a chunk whose E_c lies far *under* the band is
+    flagged by the two-sided score."""
+    torch.manual_seed(0)
+    policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on="observation")).eval()
+    batch = tiny_batch(policy.config, batch_size=2, with_action=False)
+    context = policy.model.context_energy_of(batch, None).detach().double().numpy()
+    score = ContextEnergyTwoSided(mean=float(context.mean()) + 1.0, std=0.1)
+    policy.ood_response = EnergyOODResponse(policy.config, OODCalibration(mu_v=0.0, sigma_v=1.0, score=score))
+    policy.predict_action_chunk(batch)
+    decision = policy.last_ood_decision
+    np.testing.assert_allclose(decision.scores.numpy(), np.abs(context - score.mean) / score.std, rtol=1e-4)
+    assert decision.flagged.all()
 
 
 def test_gallery_blends_a_training_corruption_in_by_its_strength():

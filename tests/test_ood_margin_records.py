@@ -615,3 +615,28 @@ def test_on_two_untouched_training_seeds_the_two_sided_context_term_passes_the_r
     assert [r["|z| E_c"]["pooled"][:4] for r in results.values()] == ["0.98", "0.97"]
     assert results[11000]["joint"]["confidently under"] == ["light_direction_s3"]
     assert results[11000]["E_c"]["confidently under"] == ["light_direction_s3"]
+
+
+summaries = load_benchmark("score_summaries")
+
+
+def section(markdown: str, run: str) -> str:
+    return markdown.split(f"## {run}\n\n")[1].split("\n## ")[0].strip()
+
+
+def test_the_run_time_context_energy_score_is_never_confidently_wrong_on_four_training_seeds():
+    """context_energy_default.md, recomputed for seed 11000 (where the shipped final energy and the one-sided E_c
+    are confidently under 0.5 on light_direction 3): the default of a joint-energy checkpoint,
+    context_energy_two_sided, is under 0.5 nowhere there and confidently nowhere on any of the four seeds."""
+    committed = (FULL / "context_energy_default.md").read_text()
+    recomputed = summaries.score_summary(seed_run(11000, "observation") / "context_energy_full")
+    assert recomputed == section(committed, "seed11000")
+    for seed in (6000, 9000, 10000, 11000):
+        rows = summary_rows(f"## Score summary\n{section(committed, f'seed{seed}')}")
+        two_sided = rows["context_energy_two_sided"]
+        assert "!" not in two_sided[5] and "!" not in two_sided[6], seed
+        assert float(two_sided[0].split()[0]) >= 0.96 and two_sided[7].endswith("min 1.000"), seed
+    rows = summary_rows(f"## Score summary\n{section(committed, 'seed11000')}")
+    assert "light_direction 3 0.24!" in rows["final_energy"][5]
+    assert "light_direction 3 0.21!" in rows["context_energy"][5]
+    assert rows["context_energy_two_sided"][5] == "none"

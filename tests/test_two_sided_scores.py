@@ -18,6 +18,9 @@ from lerobot_policy_ebvla.monitoring.ood_report import (
 )
 from lerobot_policy_ebvla.runtime import SCORES, EnergyOODMonitor, OODCalibration, VanillaRollouts
 from lerobot_policy_ebvla.runtime.scores import (
+    ChunkInputs,
+    ContextEnergy,
+    ContextEnergyTwoSided,
     EnergyTwoSidedAndContextKNN,
     FinalEnergy,
     FinalEnergyTwoSided,
@@ -33,32 +36,30 @@ N_CHUNKS, DIM = 6, 4
 
 
 def vanilla(n=12, seed=0) -> VanillaRollouts:
-    """Vanilla rollouts whose final energy falls with the task's phase (5, 4.8, ...) and whose contexts are
-    standard normal."""
+    """Vanilla rollouts whose final energy falls with the task's phase (5, 4.8, ...), whose contexts are
+    standard normal and whose joint energy's context term E_c is near 0."""
     rng = np.random.default_rng(seed)
     phase = 5.0 - 0.2 * np.arange(N_CHUNKS)
-    return VanillaRollouts(
-        [phase + rng.normal(0, 0.1, N_CHUNKS) for _ in range(n)],
-        [np.arange(N_CHUNKS) for _ in range(n)],
-        [rng.normal(0, 1, (N_CHUNKS, DIM)) for _ in range(n)],
-    )
+    energies = [phase + rng.normal(0, 0.1, N_CHUNKS) for _ in range(n)]
+    features = [rng.normal(0, 1, (N_CHUNKS, DIM)) for _ in range(n)]
+    context_energies = [rng.normal(0, 0.1, N_CHUNKS) for _ in range(n)]
+    series = zip(energies, features, context_energies, strict=True)
+    return VanillaRollouts([ChunkInputs.of(e, np.arange(N_CHUNKS), c, ec) for e, c, ec in series])
 
 
 def calibrated(score_class, rollouts: VanillaRollouts) -> OODCalibration:
     """The calibration of a score on the vanilla rollouts (each scored by the score fitted without it)."""
     scores = []
-    for i in range(len(rollouts)):
+    for i, chunks in enumerate(rollouts.rollouts):
         score = score_class.fit(rollouts.without(i))
-        components = score.components(
-            rollouts.final_energies[i], rollouts.chunk_indices[i], rollouts.context_features[i]
-        )
-        scores.append(score_rollout(score, components, "mean"))
+        scores.append(score_rollout(score, score.components(chunks), "mean"))
     return OODCalibration.fit(scores, score=score_class.fit(rollouts))
 
 
-def rollout_score(calibration: OODCalibration, energies, features=None) -> float:
+def rollout_score(calibration: OODCalibration, energies, features=None, context_energy=None) -> float:
     features = np.zeros((len(energies), DIM)) if features is None else features
-    components = calibration.chunk_components(np.asarray(energies), np.arange(len(energies)), features)
+    context_energy = np.zeros(len(energies)) if context_energy is None else context_energy
+    components = calibration.chunk_components(energies, np.arange(len(energies)), features, context_energy)
     return calibration.score_rollout(components)
 
 
@@ -90,8 +91,8 @@ def test_the_two_sided_phase_energy_is_the_magnitude_of_the_phase_energy():
     rollouts = vanilla()
     one, two = PhaseEnergy.fit(rollouts), PhaseEnergyTwoSided.fit(rollouts)
     energies = np.array([4.0, 5.5, 3.0])
-    z = one.components(energies, np.arange(3), None)
-    assert two.components(energies, np.arange(3), None) == pytest.approx(z)
+    z = one.components(ChunkInputs.of(energies, np.arange(3)))
+    assert two.components(ChunkInputs.of(energies, np.arange(3))) == pytest.approx(z)
     assert score_rollout(two, z, "mean") == pytest.approx(abs(z.mean()))
 
 
@@ -108,15 +109,14 @@ def test_the_phase_energy_deviation_flags_a_rollout_on_both_sides_that_the_aggre
     both_sides = np.array(phase.mean[:N_CHUNKS]) + z_t * np.array(phase.std[:N_CHUNKS])
     assert rollout_score(aggregate, both_sides) < aggregate.threshold
     assert rollout_score(deviation, both_sides) > deviation.threshold
-    assert deviation.score.components(both_sides, np.arange(N_CHUNKS), None)[:, 0] == pytest.approx(
-        np.abs(z_t)
-    )
+    chunks = ChunkInputs.of(both_sides, np.arange(N_CHUNKS))
+    assert deviation.score.components(chunks)[:, 0] == pytest.approx(np.abs(z_t))
 
 
 def test_the_energy_and_context_knn_flags_a_low_energy_and_a_far_context():
     calibration = calibrated(EnergyTwoSidedAndContextKNN, vanilla())
-    typical = vanilla(seed=2)
-    energies, features = typical.final_energies[0], typical.context_features[0]
+    typical = vanilla(seed=2).rollouts[0]
+    energies, features = typical.final_energy, typical.context_features
     assert rollout_score(calibration, energies, features) < calibration.threshold
     assert rollout_score(calibration, np.full(N_CHUNKS, 3.0), features) > calibration.threshold
     assert rollout_score(calibration, energies, features + 6.0) > calibration.threshold
@@ -124,7 +124,13 @@ def test_the_energy_and_context_knn_flags_a_low_energy_and_a_far_context():
 
 @pytest.mark.parametrize(
     "score_class",
-    [FinalEnergyTwoSided, PhaseEnergyTwoSided, PhaseEnergyDeviation, EnergyTwoSidedAndContextKNN],
+    [
+        FinalEnergyTwoSided,
+        PhaseEnergyTwoSided,
+        PhaseEnergyDeviation,
+        EnergyTwoSidedAndContextKNN,
+        ContextEnergyTwoSided,
+    ],
 )
 def test_a_two_sided_calibration_is_saved_and_loaded_back_and_monitors_the_same(score_class, tmp_path):
     assert SCORES[score_class.name] is score_class
@@ -132,10 +138,10 @@ def test_a_two_sided_calibration_is_saved_and_loaded_back_and_monitors_the_same(
     calibration.save(tmp_path)
     loaded = OODCalibration.load(tmp_path)
     assert loaded == calibration and type(loaded.score) is score_class
-    energies = np.full(N_CHUNKS, 3.0)
+    energies, context_energy = np.full(N_CHUNKS, 3.0), np.full(N_CHUNKS, -2.0)
     features = np.ones((N_CHUNKS, DIM))
-    expected = rollout_score(calibration, energies, features)
-    decision = EnergyOODMonitor(loaded).check_rollout(energies, context_features=features)
+    expected = rollout_score(calibration, energies, features, context_energy)
+    decision = EnergyOODMonitor(loaded).check_rollout(energies, features, context_energy)
     assert decision.energy == pytest.approx(expected) and decision.is_ood
 
 
@@ -188,25 +194,105 @@ def test_without_context_features_the_default_is_the_best_energy_only_score(reco
     assert calibration.score.name == DEFAULT_ENERGY_SCORE == "phase_energy_two_sided"
 
 
+def with_context_energy(record_dirs, root) -> list:
+    """The record folders again, each chunk with a context energy E_c (as a joint-energy policy records it)."""
+    from lerobot_policy_ebvla.monitoring.records import read_energy_records
+
+    folders = []
+    for i, folder in enumerate(record_dirs):
+        records = [
+            dataclasses.replace(r, context_energy=0.1 * r.final_energy) for r in read_energy_records(folder)
+        ]
+        folders.append(write_records(root / f"joint{i}", records))
+    return folders
+
+
+OWN_ENCODER = {"energy_ood_margin_on": "observation", "energy_ood_margin_weight": 0.01}
+
+
 @pytest.mark.parametrize(
-    ("fields", "expected"),
+    ("fields", "context_energy", "expected"),
     [
-        ({"energy_ood_margin_on": "observation", "energy_ood_margin_weight": 0.01}, "final_energy"),
-        ({"energy_ood_margin_on": "observation", "energy_ood_margin_weight": 0.0}, "context_knn"),
-        ({"energy_ood_margin_on": "context_backbone", "energy_ood_margin_weight": 1.0}, "context_knn"),
+        (OWN_ENCODER, True, "context_energy_two_sided"),
+        (OWN_ENCODER, False, "final_energy"),
+        ({"energy_ood_margin_on": "observation", "energy_ood_margin_weight": 0.0}, False, "context_knn"),
+        ({"energy_ood_margin_on": "context_backbone", "energy_ood_margin_weight": 1.0}, True, "context_knn"),
     ],
 )
-def test_a_checkpoint_with_the_joint_energy_on_its_own_encoder_defaults_to_its_final_energy(
-    record_dirs, tmp_path, fields, expected
+def test_a_checkpoint_with_the_joint_energy_on_its_own_encoder_defaults_to_its_two_sided_context_energy(
+    record_dirs, tmp_path, fields, context_energy, expected
 ):
+    """... or to its final energy when the records hold no E_c; other checkpoints keep the context k-NN."""
     checkpoint = tmp_path / "pretrained_model"
     checkpoint.mkdir()
     (checkpoint / "config.json").write_text(json.dumps({"type": "ebvla", **fields}))
-    text, calibration = report(record_dirs, tmp_path)
+    folders = with_context_energy(record_dirs, tmp_path / "records") if context_energy else record_dirs
+    text, calibration = report(folders, tmp_path)
     assert calibration.score.name == expected
     assert f"Without `--score`, `--calibrate_to` saves `{expected}`" in text
+    if fields is OWN_ENCODER and not context_energy:
+        assert "hold no `context_energy`" in text
+
+
+def test_a_context_energy_score_on_records_without_it_is_refused_by_name(record_dirs, tmp_path):
+    with pytest.raises(
+        ValueError, match="context_energy_two_sided.*context energy E_c.*energy_ood_margin_on"
+    ):
+        report(record_dirs, tmp_path, score="context_energy_two_sided")
 
 
 def test_the_papers_final_energy_stays_available(record_dirs, tmp_path):
     _, calibration = report(record_dirs, tmp_path, score="final_energy")
     assert calibration.score == FinalEnergy()
+
+
+def test_a_context_energy_under_vanilla_is_flagged_two_sided_and_missed_one_sided():
+    """Issue 32: some shifts put the joint energy's context term E_c *under* the data's; only |z| E_c flags
+    them. The final energy plays no part in either score."""
+    rollouts = vanilla()
+    one, two = calibrated(ContextEnergy, rollouts), calibrated(ContextEnergyTwoSided, rollouts)
+    energies = vanilla(seed=1).rollouts[0].final_energy
+    # Ten vanilla sigmas either side of the vanilla E_c (around 0).
+    under, over, typical = np.full(N_CHUNKS, -1.0), np.full(N_CHUNKS, 1.0), np.zeros(N_CHUNKS)
+    assert rollout_score(one, energies, context_energy=under) < one.threshold
+    assert rollout_score(two, energies, context_energy=under) > two.threshold
+    for calibration in (one, two):
+        assert rollout_score(calibration, energies, context_energy=over) > calibration.threshold
+        assert rollout_score(calibration, energies, context_energy=typical) < calibration.threshold
+        assert rollout_score(calibration, energies + 100.0, context_energy=under) == pytest.approx(
+            rollout_score(calibration, energies, context_energy=under)
+        )
+
+
+def test_the_two_sided_context_energy_compares_each_chunk_with_vanilla_at_its_index():
+    """E_c follows the task's phase (here it rises chunk by chunk). A rollout whose E_c stays at the vanilla
+    episode's overall mean is off at every chunk index: flagged, though one band for every chunk would pass it."""
+    rng = np.random.default_rng(0)
+    rising = 0.5 * np.arange(N_CHUNKS)
+    rollouts = VanillaRollouts(
+        [
+            ChunkInputs.of(
+                np.zeros(N_CHUNKS), np.arange(N_CHUNKS), None, rising + rng.normal(0, 0.05, N_CHUNKS)
+            )
+            for _ in range(12)
+        ]
+    )
+    calibration = calibrated(ContextEnergyTwoSided, rollouts)
+    np.testing.assert_allclose(calibration.score.phase.mean[:N_CHUNKS], rising, atol=0.05)
+    energies = np.zeros(N_CHUNKS)
+    flat = np.full(N_CHUNKS, rising.mean())
+    first_three = ChunkInputs.of(energies[:3], np.arange(3), None, flat[:3])
+    assert calibration.score_rollout(calibration.score.components(first_three)) > calibration.threshold
+    assert rollout_score(calibration, energies, context_energy=rising) < calibration.threshold
+
+
+@pytest.mark.parametrize("score_class", [ContextEnergy, ContextEnergyTwoSided])
+def test_a_context_energy_score_without_the_context_energy_says_where_it_comes_from(score_class):
+    calibration = calibrated(score_class, vanilla())
+    with pytest.raises(ValueError, match=f"{score_class.name} score needs each chunk's context energy E_c"):
+        calibration.chunk_score(1.0, 0)
+    with pytest.raises(ValueError, match="`context_energy` has 2 row"):
+        calibration.chunk_score(np.ones(3), 0, context_energy=np.zeros(2))
+    bare = VanillaRollouts([ChunkInputs.of(r.final_energy, r.chunk_index) for r in vanilla().rollouts])
+    with pytest.raises(ValueError, match="energy_ood_margin_on"):
+        score_class.fit(bare)

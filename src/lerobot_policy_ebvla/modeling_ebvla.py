@@ -225,7 +225,14 @@ class EBVLAPolicy(PreTrainedPolicy):
         self.last_energy = readout
         chunk_index, self.chunk_index = self.chunk_index, self.chunk_index + 1
         actions, self.last_ood_decision = respond_to_energy(
-            self.ood_response, self.config, actions, readout.final_energy, batch, chunk_index, features
+            self.ood_response,
+            self.config,
+            actions,
+            readout.final_energy,
+            batch,
+            chunk_index,
+            features,
+            readout.context_energy,
         )
         for hook in list(self._chunk_hooks.values()):
             hook(self, batch, readout, self.last_ood_decision)

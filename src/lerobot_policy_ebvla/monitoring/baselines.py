@@ -47,6 +47,7 @@ import numpy as np
 
 from ..runtime.scores import (
     SCORES,
+    ChunkInputs,
     ChunkScore,
     ContextDistance,
     ContextKNN,
@@ -159,20 +160,38 @@ class PhaseEnergyModel:
         return statistics.z(final_energies, chunk_indices)
 
 
+def chunk_inputs(episode: Episode) -> ChunkInputs:
+    """An episode's chunks as a run-time score reads them: each optional input when every chunk recorded it."""
+
+    def every(values: list):
+        return None if any(v is None for v in values) else values
+
+    features = every([r.context_feature for r in episode])
+    context_energy = every([r.context_energy for r in episode])
+    return ChunkInputs.of(
+        np.array([r.final_energy for r in episode], dtype=np.float64),
+        np.array([r.chunk_index for r in episode]),
+        None if features is None else np.stack(features),
+        None if context_energy is None else np.array(context_energy, dtype=np.float64),
+    )
+
+
+def recorded_inputs(episodes: Sequence[Episode]) -> set[str]:
+    """The `ChunkInputs` fields every chunk of `episodes` has: what the run-time scores can read from them."""
+    records = [r for episode in episodes for r in episode]
+    inputs = {"final_energy", "chunk_index"}
+    if records and all(r.context_feature is not None for r in records):
+        inputs.add("context_features")
+    if records and all(r.context_energy is not None for r in records):
+        inputs.add("context_energy")
+    return inputs
+
+
 def vanilla_rollouts(
     episodes: Mapping[Hashable, Episode], aggregation: str = "mean", knn_k: int = DEFAULT_KNN_K
 ) -> VanillaRollouts:
-    """The calibration episodes as a run-time score is fitted on them (their pooled contexts when every chunk
-    has one)."""
-    chunks = list(episodes.values())
-    with_features = all(r.context_feature is not None for episode in chunks for r in episode)
-    return VanillaRollouts(
-        [np.array([r.final_energy for r in episode], dtype=np.float64) for episode in chunks],
-        [np.array([r.chunk_index for r in episode]) for episode in chunks],
-        [np.stack([r.context_feature for r in episode]) for episode in chunks] if with_features else None,
-        aggregation,
-        knn_k,
-    )
+    """The calibration episodes as a run-time score is fitted on them (`chunk_inputs`)."""
+    return VanillaRollouts([chunk_inputs(episode) for episode in episodes.values()], aggregation, knn_k)
 
 
 class RegisteredScoreModel:
@@ -202,11 +221,7 @@ class RegisteredScoreModel:
     def components(self, episode: Episode, episode_id: Hashable = None) -> tuple[ChunkScore, np.ndarray]:
         """The fitted score of the episode and its chunks' components, (N, n_components), in chunk order."""
         fitted = self.fitted_for(episode_id)
-        features = None
-        if fitted.needs_context_features:
-            features = np.stack([r.context_feature for r in episode])
-        energies = np.array([r.final_energy for r in episode], dtype=np.float64)
-        return fitted, fitted.components(energies, np.array([r.chunk_index for r in episode]), features)
+        return fitted, fitted.components(chunk_inputs(episode))
 
 
 @dataclass

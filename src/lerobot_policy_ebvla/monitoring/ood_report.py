@@ -26,7 +26,7 @@ import numpy as np
 
 from ..configuration_ebvla import EBVLAConfig, context_energy_on_own_encoder
 from ..runtime.calibration import OOD_CALIBRATION_FILENAME, THRESHOLD_RULES, OODCalibration
-from ..runtime.scores import SCORE_AGGREGATIONS, SCORES
+from ..runtime.scores import INPUT_SOURCES, SCORE_AGGREGATIONS, SCORES
 from ..runtime.statistics import DEFAULT_KNN_K
 from .baselines import (
     COMBINED_FROM,
@@ -34,6 +34,7 @@ from .baselines import (
     FEATURE_SCORES,
     available_scores,
     fit_score_reference,
+    recorded_inputs,
     registered_scores,
     vanilla_rollouts,
 )
@@ -76,11 +77,14 @@ logger = logging.getLogger(__name__)
 # below 0.5). It reads the pooled context; records without it get the best energy-only score by the same rule.
 DEFAULT_SCORE = "context_knn"
 DEFAULT_ENERGY_SCORE = "phase_energy_two_sided"
-# ... unless the checkpoint's joint energy has its own encoder (`energy_ood_margin_on="observation"`): its final
-# energy there pools higher than the context k-NN on the sweeps of five training seeds (0.91-0.95 against 0.77-0.92)
-# and alarms on more shifted rollouts at the calibrated threshold (benchmarks/results/metaworld_sweep_margin_full/
-# summary.md, the last two sections).
-DEFAULT_JOINT_ENERGY_SCORE = "final_energy"
+# ... unless the checkpoint's joint energy has its own encoder (`energy_ood_margin_on="observation"`): its context
+# term E_c, two-sided against the vanilla E_c at each chunk index, pools 0.96-0.98 over the first 3 chunks on the
+# sweeps of four training seeds with no condition confidently inverted, where the final energy pools 0.89-0.95 and
+# is confidently inverted on one (benchmarks/results/metaworld_sweep_margin_full/summary.md, "The run-time
+# context-energy score"). Records without E_c (a recorder before 2026-11-26) keep the final energy, which beats
+# the context k-NN there (0.91-0.95 against 0.77-0.92 on five seeds).
+DEFAULT_JOINT_ENERGY_SCORE = "context_energy_two_sided"
+JOINT_ENERGY_WITHOUT_CONTEXT_ENERGY = "final_energy"
 
 
 def joint_energy_on_own_encoder(checkpoint: Path | None) -> bool:
@@ -95,11 +99,13 @@ def joint_energy_on_own_encoder(checkpoint: Path | None) -> bool:
     )
 
 
-def default_score(cfg: "OODReportConfig", has_features: bool) -> str:
-    """The score `--calibrate_to` saves without `--score`."""
+def default_score(cfg: "OODReportConfig", inputs: set[str]) -> str:
+    """The score `--calibrate_to` saves without `--score`, given the `ChunkInputs` every record has."""
     if joint_energy_on_own_encoder(cfg.calibrate_to):
-        return DEFAULT_JOINT_ENERGY_SCORE
-    return DEFAULT_SCORE if has_features else DEFAULT_ENERGY_SCORE
+        if "context_energy" in inputs:
+            return DEFAULT_JOINT_ENERGY_SCORE
+        return JOINT_ENERGY_WITHOUT_CONTEXT_ENERGY
+    return DEFAULT_SCORE if "context_features" in inputs else DEFAULT_ENERGY_SCORE
 
 
 @dataclass
@@ -153,16 +159,19 @@ class OODReportConfig:
     # The chunk score the saved calibration is of, a name of `runtime.scores.SCORES` and a row of the report.
     # None (default): context_knn, the best held out on the MetaWorld sweep (pooled first-3-chunk AUROC 0.842,
     # no condition confidently inverted; the final energy 0.585, confidently inverted under dim light), or
-    # phase_energy_two_sided when the records have no context features, final_energy when the checkpoint's joint
-    # energy has its own encoder (`energy_ood_margin_on="observation"`). final_energy is the paper's score;
+    # phase_energy_two_sided when the records have no context features, context_energy_two_sided when the
+    # checkpoint's joint energy has its own encoder (`energy_ood_margin_on="observation"`; final_energy for records
+    # without `context_energy`). final_energy is the paper's score;
     # phase_energy the final energy against the calibration rollouts' at the same chunk index;
     # final_energy_two_sided and phase_energy_two_sided their |z|, high on either side of the vanilla band;
     # context_distance the chunk's pooled context against the calibration contexts (Mahalanobis);
     # energy_and_context the larger of the final energy and the context distance, each standardized on the
     # calibration rollouts; context_knn the chunk's standardized pooled context against its knn_k-th nearest
     # calibration context (saves every calibration context beside the JSON); energy_two_sided_and_context_knn
-    # the larger of the two-sided phase energy and the context k-NN distance, standardized. The context scores
-    # need records with context features.
+    # the larger of the two-sided phase energy and the context k-NN distance, standardized; context_energy the
+    # joint energy's context term E_c and context_energy_two_sided its |z| against the calibration rollouts' E_c
+    # at the same chunk index. The context scores need records with context features, the context-energy scores
+    # records of a joint-energy policy.
     score: str | None = None
     # k saved in the calibration.
     k: float = 1.0
@@ -260,13 +269,16 @@ def write_ood_report(cfg: OODReportConfig) -> str:
     chunk_names = available_scores([*calibration_set.values(), *vanilla.values(), *ood.values()])
     has_features = all(name in chunk_names for name in FEATURE_SCORES)
     can_combine = all(name in chunk_names for name in COMBINED_FROM)
-    registered = [n for n in registered_scores() if has_features or not SCORES[n].needs_context_features]
+    inputs = recorded_inputs([*calibration_set.values(), *vanilla.values(), *ood.values()])
+    registered = [n for n in registered_scores() if set(SCORES[n].reads) <= inputs]
     names = _beside_one_sided([*chunk_names, *(COMBINED_SCORES if can_combine else ()), *registered])
-    saved_score = cfg.score or default_score(cfg, has_features)
+    saved_score = cfg.score or default_score(cfg, inputs)
     if saved_score not in names:
+        missing = [name for name in SCORES[saved_score].reads if name not in inputs]
         raise ValueError(
-            f"`--score={saved_score}` needs the context feature of every chunk of every set: record them with "
-            "`ebvla-eval --record_context_features=true`."
+            f"`--score={saved_score}` needs, in every chunk of every set, "
+            + "; ".join(INPUT_SOURCES[name] for name in missing)
+            + "."
         )
     reference = fit_score_reference(calibration_set, cfg.knn_k, has_features, registered, cfg.aggregation)
 
@@ -407,7 +419,17 @@ def _saved_score_note(cfg: OODReportConfig, saved_score: str) -> str:
         if saved_score == DEFAULT_SCORE:
             why = f"`{DEFAULT_SCORE}`, the best held out on the MetaWorld sweep (docs/monitoring.md)."
         elif saved_score == DEFAULT_JOINT_ENERGY_SCORE:
-            why = "the checkpoint's joint energy has its own encoder, and its final energy is the safest score there."
+            why = (
+                "the checkpoint's joint energy has its own encoder, and its context term, two-sided at each chunk "
+                "index, is the safest score there (docs/monitoring.md)."
+            )
+        elif saved_score == JOINT_ENERGY_WITHOUT_CONTEXT_ENERGY and joint_energy_on_own_encoder(
+            cfg.calibrate_to
+        ):
+            why = (
+                "the checkpoint's joint energy has its own encoder, but these records hold no `context_energy` "
+                f"for `{DEFAULT_JOINT_ENERGY_SCORE}` (record them again with this version): the final energy."
+            )
         else:
             why = f"these records have no context features, so the best energy-only score, not `{DEFAULT_SCORE}`."
         default = f"\n\nWithout `--score`, `--calibrate_to` saves `{saved_score}`: " + why

@@ -4,9 +4,10 @@
   quantile of a stated false-alarm rate, and `OODDecision`, its verdict on a batch of scores.
 - `statistics`: what the chunk scores measure against, fitted on vanilla rollouts (`PhaseStatistics`,
   `ContextStatistics`, `ContextNeighbours`, `CombinedStatistics`).
-- `scores`: the `ChunkScore` protocol, one class per OOD score (final energy and phase energy, each also
-  two-sided, context distance, energy and context, context k-NN, two-sided energy and context k-NN), and
-  `SCORES`, the registry that names them.
+- `scores`: `ChunkInputs` (what the policy reports about a chunk, every score's input), the `ChunkScore`
+  protocol, one class per OOD score (final energy and phase energy, each also two-sided, context distance,
+  energy and context, context k-NN, two-sided energy and context k-NN, a joint energy's context term, also
+  two-sided), and `SCORES`, the registry that names them.
 - `calibration`: `OODCalibration`, the threshold statistics of one chunk score (`ood_calibration.json` beside
   the weights, the score's statistics in safetensors files beside it).
 - `monitor`: `EnergyOODMonitor`, which applies a calibration to chunks and rollouts as they come.
@@ -24,13 +25,14 @@ from .calibration import OOD_CALIBRATION_FILENAME, OODCalibration
 from .failure_alarm import FAILURE_ALARM_FILENAME, EnergyFailureMonitor, FailureAlarm, FailureDecision
 from .monitor import EnergyOODMonitor
 from .response import EnergyOODError, EnergyOODResponse, HoldAction, respond_to_energy
-from .scores import SCORES, ChunkScore, VanillaRollouts, rollout_score
+from .scores import SCORES, ChunkInputs, ChunkScore, VanillaRollouts, rollout_score
 from .statistics import PhaseStatistics
 from .threshold import MeanStd, OODDecision, conformal_threshold, exceeds, mean_std_threshold
 
 __all__ = [
     "FAILURE_ALARM_FILENAME",
     "SCORES",
+    "ChunkInputs",
     "ChunkScore",
     "EnergyFailureMonitor",
     "FailureAlarm",

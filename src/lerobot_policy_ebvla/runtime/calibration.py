@@ -26,9 +26,8 @@ import numpy as np
 from torch import Tensor
 
 from .checkpoint_files import CheckpointJSON
-from .scores import SCORE_AGGREGATIONS, SCORES, ChunkScore, FinalEnergy, score_rollout
-from .statistics import float64
-from .threshold import ArrayLike, MeanStd, as_array, conformal_threshold, mean_std_threshold
+from .scores import SCORE_AGGREGATIONS, SCORES, ChunkInputs, ChunkScore, FinalEnergy, score_rollout
+from .threshold import ArrayLike, MeanStd, conformal_threshold, mean_std_threshold
 
 OOD_CALIBRATION_FILENAME = "ood_calibration.json"
 THRESHOLD_RULES = ("mean_std", "conformal")
@@ -136,13 +135,14 @@ class OODCalibration(CheckpointJSON):
     @property
     def needs_context_features(self) -> bool:
         """Whether `chunk_score` needs each chunk's pooled context (`EBVLAPolicy.context_features`)."""
-        return self.score.needs_context_features
+        return "context_features" in self.score.reads
 
     def chunk_components(
         self,
         final_energy: ArrayLike | float,
         chunk_index: ArrayLike | int | None = None,
         context_features: ArrayLike | None = None,
+        context_energy: ArrayLike | float | None = None,
     ) -> np.ndarray:
         """What a rollout's score is aggregated from, one row per chunk: (B, n), the score's n components
         (the chunk score itself for most scores; the final energy and the context distance for
@@ -150,47 +150,37 @@ class OODCalibration(CheckpointJSON):
 
         Arguments and errors as in `chunk_score`.
         """
-        name = self.score.name
-        if self.score.needs_chunk_index and chunk_index is None:
-            raise ValueError(f"The {name} score needs the chunk's index in its episode (`chunk_index`).")
-        energies = as_array(final_energy)
-        if self.score.needs_context_features:
-            if context_features is None:
-                raise ValueError(
-                    f"The {name} score needs each chunk's pooled context (`context_features`, (B, D), from "
-                    "`EBVLAPolicy.context_features`)."
-                )
-            n_rows = np.atleast_2d(float64(context_features)).shape[0]
-            if n_rows != energies.size:
-                raise ValueError(
-                    f"`context_features` has {n_rows} row(s) and `final_energy` {energies.size} entries: give "
-                    "one pooled context per chunk."
-                )
-        return self.score.components(energies, chunk_index, context_features)
+        chunks = ChunkInputs.of(final_energy, chunk_index, context_features, context_energy)
+        for name in self.score.reads:  # every missing input is named before any is read
+            chunks.get(name, self.score.name)
+        return self.score.components(chunks)
 
     def chunk_score(
         self,
         final_energy: ArrayLike | float,
         chunk_index: ArrayLike | int | None = None,
         context_features: ArrayLike | None = None,
+        context_energy: ArrayLike | float | None = None,
     ) -> float | np.ndarray:
         """The calibrated score of a chunk, the score of a rollout of that one chunk: what `threshold` applies to.
 
         Args:
             final_energy: One final energy, or one per environment ((B,) array or tensor).
             chunk_index: The chunk's index in its episode: an int, or one per environment. Needed by a score
-                whose `needs_chunk_index` (the phase energy).
+                that reads it (the phase energy).
             context_features: The chunk's pooled context, (D,), or one per environment, (B, D). Needed by a
-                score whose `needs_context_features` (the context scores).
+                score that reads it (the context scores).
+            context_energy: The joint energy's context term E_c(C), one or one per environment
+                (`EnergyReadout.context_energy`). Needed by the context-energy scores.
 
         Returns:
-            A float when every input given is one chunk's, else an array with one score per chunk.
+            A float when `final_energy` is one chunk's, else an array with one score per chunk.
 
         Raises:
-            ValueError: The score's input (`chunk_index`, `context_features`) is missing, or the context
-                features are not one D-dimensional row per final energy.
+            ValueError: An input the score reads is missing, or an input is not one row per final energy.
         """
-        scores = self.score.combine(self.chunk_components(final_energy, chunk_index, context_features))
+        components = self.chunk_components(final_energy, chunk_index, context_features, context_energy)
+        scores = self.score.combine(components)
         one_chunk = _ndim(final_energy) == 0 and np.ndim(chunk_index) == 0
         if context_features is not None and self.needs_context_features:
             one_chunk = _ndim(context_features) == 1

@@ -181,16 +181,17 @@ class EnergyOODResponse:
         batch: dict[str, Tensor],
         chunk_index: int = 0,
         context_features: Tensor | None = None,
+        context_energy: Tensor | None = None,
     ) -> tuple[Tensor, OODDecision]:
         """Checks each chunk (B, H, action_dim) against T and continues, holds or raises.
 
         `chunk_index` is the chunk's index in its episode, for a score that reads it; `context_features`,
-        (B, D), the pooled context of each chunk's observation, for a score that reads it. Returns the chunks to
-        execute (held ones replaced) and the decision.
+        (B, D), the pooled context of each chunk's observation, and `context_energy`, (B,) E_c(C) of a joint
+        energy, for a score that reads them. Returns the chunks to execute (held ones replaced) and the decision.
         """
         response, threshold = self.config.ood_response, self.threshold
         energies = final_energy.detach().float().cpu().reshape(-1)
-        scores = self.calibration.chunk_score(energies, chunk_index, context_features)
+        scores = self.calibration.chunk_score(energies, chunk_index, context_features, context_energy)
         decision = OODDecision.of(torch.as_tensor(scores, dtype=torch.float32), threshold, response)
         flagged, held = decision.flagged, decision.held
         if not flagged.any():
@@ -226,10 +227,12 @@ def respond_to_energy(
     batch: dict[str, Tensor],
     chunk_index: int = 0,
     context_features: Tensor | None = None,
+    context_energy: Tensor | None = None,
 ) -> tuple[Tensor, OODDecision | None]:
     """The policy's entry point: applies `response`, or checks that none is needed without a calibration.
 
-    `context_features` is the chunks' pooled context, (B, D), when `response.needs_context_features`.
+    `context_features` is the chunks' pooled context, (B, D), when `response.needs_context_features`;
+    `context_energy` the joint energy's E_c(C), (B,), when the policy has one.
 
     Raises:
         ValueError: `config.ood_response` is "hold" or "raise" and the policy has no calibrated response.
@@ -242,4 +245,4 @@ def respond_to_energy(
                 "(or call `policy.configure_ood_response(<checkpoint>)`)."
             )
         return actions, None
-    return response(actions, final_energy, batch, chunk_index, context_features)
+    return response(actions, final_energy, batch, chunk_index, context_features, context_energy)

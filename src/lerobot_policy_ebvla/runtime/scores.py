@@ -1,7 +1,8 @@
 """The chunk scores a run-time OOD calibration can apply, one class each, and the registry that names them.
 
-A `ChunkScore` turns what the policy reports about a chunk (its final energy, its index in the episode, its
-pooled context) into components; a rollout's score aggregates each component over its chunks
+A `ChunkScore` turns what the policy reports about a chunk (`ChunkInputs`: its final energy, its index in the
+episode, its pooled context, the context term of a joint energy) into components; a rollout's score aggregates
+each component over its chunks
 (`rollout_score`: mean, max, last or median) and combines the aggregates (`score_rollout`). The threshold
 T = mu_v + k sigma_v (Eq. 5) or the conformal one is then set on the vanilla rollouts' scores
 (`OODCalibration`). A score is fitted on vanilla rollouts (`VanillaRollouts`) and saved in
@@ -37,8 +38,19 @@ the vanilla band, |z| of the rollout's aggregated z (a typicality test, Nalisnic
 - "energy_two_sided_and_context_knn" (`EnergyTwoSidedAndContextKNN`): the two-sided phase energy and the
   context k-NN distance, each standardized by the vanilla rollouts' mean and std, and the larger counts.
 
+A policy trained with a joint energy (`energy_ood_margin_on`) reports its context term E_c(C) apart
+(`EnergyReadout.context_energy`, already inside the final energy), and two scores read it alone:
+
+- "context_energy" (`ContextEnergy`): E_c(C), high off the data by training.
+- "context_energy_two_sided" (`ContextEnergyTwoSided`): |z| of E_c against the vanilla E_c at the same chunk
+  index, as the two-sided phase energy is of the final energy. Issue 32's sweeps put some shifts *under* the
+  vanilla E_c (blur, a light from another side); on four training seeds this form was never confidently wrong
+  (docs/energy_study.md section 8.9).
+
 A new score is one class here and one entry in `SCORES`: the calibration, its file, the monitors, the policy's
-`ood_response` and `ebvla-ood-report --score=<name>` find it there.
+`ood_response` and `ebvla-ood-report --score=<name>` find it there. A new input is one field of `ChunkInputs`
+(and its line in `INPUT_SOURCES`), a keyword of the methods that pass it on (`OODCalibration.chunk_score`, the
+monitor's, the response's), filled where the policy or the records hold it.
 """
 
 from collections.abc import Sequence
@@ -100,50 +112,123 @@ def rollout_score(chunk_energies: ArrayLike, aggregation: str = "mean") -> float
     return float(reduce(energies))
 
 
+# Where each input a score may read comes from: what a missing one's error tells the user to give.
+INPUT_SOURCES = {
+    "chunk_index": "the chunk's index in its episode (`chunk_index`)",
+    "context_features": (
+        "each chunk's pooled context (`context_features`, (B, D), from `EBVLAPolicy.context_features`; in "
+        "records, `ebvla-eval --record_context_features=true`)"
+    ),
+    "context_energy": (
+        "each chunk's context energy E_c(C) (`context_energy`, (B,), `EnergyReadout.context_energy`), which only "
+        "a policy trained with a joint energy (`energy_ood_margin_on`) reports"
+    ),
+}
+
+
 @dataclass(frozen=True)
-class VanillaRollouts:
-    """What a score is fitted on: the chunks of vanilla calibration rollouts, one entry per rollout.
+class ChunkInputs:
+    """What the policy reports about B chunks: every score's input. Build it with `of`.
 
     Args:
-        final_energies: Each rollout's chunk final energies, (N_r,), in chunk order.
-        chunk_indices: Each rollout's chunk indices in its episode, (N_r,).
-        context_features: Each rollout's pooled contexts, (N_r, D); None when they were not recorded.
+        final_energy: E(a^(K_inf), C) of each chunk, (B,).
+        chunk_index: Each chunk's 0-based index t in its episode, (B,); None when not known.
+        context_features: Each chunk's pooled last-block context c, (B, D); None when not computed.
+        context_energy: E_c(C) of each chunk's observation, the joint energy's context term, (B,); None for a
+            policy without one.
+    """
+
+    final_energy: np.ndarray
+    chunk_index: np.ndarray | None = None
+    context_features: np.ndarray | None = None
+    context_energy: np.ndarray | None = None
+
+    @classmethod
+    def of(
+        cls,
+        final_energy: ArrayLike | float,
+        chunk_index: ArrayLike | int | None = None,
+        context_features: ArrayLike | None = None,
+        context_energy: ArrayLike | float | None = None,
+    ) -> "ChunkInputs":
+        """The inputs of B chunks from scalars, arrays or tensors: one chunk index may stand for all B, and one
+        (D,) context for one chunk.
+
+        Raises:
+            ValueError: An input's rows are not one per final energy.
+        """
+        energies = as_array(final_energy)
+        n = energies.size
+        index = None
+        if chunk_index is not None:
+            index = np.asarray(chunk_index)
+            index = np.full(n, int(index)) if index.ndim == 0 else index.reshape(-1)
+        features = None if context_features is None else np.atleast_2d(float64(context_features))
+        context = None if context_energy is None else as_array(context_energy)
+        for name, rows in (
+            ("chunk_index", None if index is None else index.size),
+            ("context_features", None if features is None else features.shape[0]),
+            ("context_energy", None if context is None else context.size),
+        ):
+            if rows is not None and rows != n:
+                raise ValueError(
+                    f"`{name}` has {rows} row(s) and `final_energy` {n} entries: give one per chunk."
+                )
+        return cls(energies, index, features, context)
+
+    def get(self, name: str, score: str) -> np.ndarray:
+        """The input `name` (a field), which the score `score` reads.
+
+        Raises:
+            ValueError: It was not given, saying where it comes from.
+        """
+        value = getattr(self, name)
+        if value is None:
+            raise ValueError(f"The {score} score needs {INPUT_SOURCES[name]}.")
+        return value
+
+
+@dataclass(frozen=True)
+class VanillaRollouts:
+    """What a score is fitted on: the chunks of vanilla calibration rollouts, one `ChunkInputs` per rollout
+    (its N_r chunks in order).
+
+    Args:
+        rollouts: Each rollout's chunk inputs, in chunk order.
         aggregation: How the calibration aggregates a rollout's chunks (`rollout_score`).
         knn_k: Which nearest vanilla context the context k-NN distance measures to.
     """
 
-    final_energies: Sequence[np.ndarray]
-    chunk_indices: Sequence[np.ndarray]
-    context_features: Sequence[np.ndarray] | None = None
+    rollouts: Sequence[ChunkInputs]
     aggregation: str = "mean"
     knn_k: int = DEFAULT_KNN_K
 
     def __len__(self) -> int:
-        return len(self.final_energies)
+        return len(self.rollouts)
+
+    @property
+    def final_energies(self) -> list[np.ndarray]:
+        """Each rollout's chunk final energies, (N_r,)."""
+        return [r.final_energy for r in self.rollouts]
+
+    def series(self, name: str, score: str) -> list[np.ndarray]:
+        """Each rollout's input `name` (a `ChunkInputs` field), which `score` is fitted on.
+
+        Raises:
+            ValueError: A rollout lacks it, saying where it comes from.
+        """
+        return [r.get(name, score) for r in self.rollouts]
 
     def features(self, score: str) -> tuple[np.ndarray, np.ndarray]:
         """Every chunk's pooled context, (N, D), and the rollout of each, (N,)."""
-        if self.context_features is None:
-            raise ValueError(
-                f"The {score} score is fitted on the vanilla rollouts' pooled contexts: record them "
-                "(`ebvla-eval --record_context_features=true`)."
-            )
-        rollout = np.concatenate([np.full(len(f), i) for i, f in enumerate(self.context_features)])
-        return np.concatenate([float64(f) for f in self.context_features]), rollout
+        features = self.series("context_features", score)
+        rollout = np.concatenate([np.full(len(f), i) for i, f in enumerate(features)])
+        return np.concatenate([float64(f) for f in features]), rollout
 
     def without(self, rollout: int) -> "VanillaRollouts":
         """The same rollouts but one: what a calibration rollout is scored against (leave-one-out)."""
-
-        def others(values: Sequence | None) -> list | None:
-            return None if values is None else [v for i, v in enumerate(values) if i != rollout]
-
-        return VanillaRollouts(
-            others(self.final_energies),
-            others(self.chunk_indices),
-            others(self.context_features),
-            self.aggregation,
-            self.knn_k,
-        )
+        others = [r for i, r in enumerate(self.rollouts) if i != rollout]
+        return VanillaRollouts(others, self.aggregation, self.knn_k)
 
 
 class ChunkScore(Protocol):
@@ -156,9 +241,8 @@ class ChunkScore(Protocol):
 
     # The name in `SCORES`, in `ood_calibration.json`'s `score` and in every report.
     name: ClassVar[str]
-    # Which inputs beside the final energy `components` reads.
-    needs_chunk_index: ClassVar[bool] = False
-    needs_context_features: ClassVar[bool] = False
+    # The `ChunkInputs` fields beside the final energy that `components` reads.
+    reads: ClassVar[tuple[str, ...]] = ()
     # Columns of `components`, each aggregated over a rollout before `combine`.
     n_components: ClassVar[int] = 1
     # Its plain JSON fields, and the statistics it saves beside the JSON (`to_json` gives them as objects).
@@ -167,17 +251,14 @@ class ChunkScore(Protocol):
 
     @classmethod
     def fit(cls, vanilla: VanillaRollouts) -> Self:
-        """Fits the score's statistics on vanilla rollouts."""
+        """Fits the score's statistics on vanilla rollouts (here none, once they are checked to hold what the
+        score reads)."""
+        for name in cls.reads:
+            vanilla.series(name, cls.name)
         return cls()
 
-    def components(
-        self,
-        final_energy: np.ndarray,
-        chunk_index: ArrayLike | int | None,
-        context_features: ArrayLike | None,
-    ) -> np.ndarray:
-        """(B, n_components) from B chunks: final energies (B,), indices (an int or (B,)), contexts (B, D)
-        (or one (D,)). An input the score does not read may be None."""
+    def components(self, chunks: ChunkInputs) -> np.ndarray:
+        """(B, n_components) from the inputs of B chunks; the inputs of `reads` are there (`ChunkInputs.get`)."""
         ...
 
     def combine(self, aggregates: np.ndarray) -> np.ndarray:
@@ -234,18 +315,22 @@ class FinalEnergy(ChunkScore):
 
     name = "final_energy"
 
-    def components(self, final_energy, chunk_index, context_features) -> np.ndarray:
-        return as_array(final_energy)[:, None]
+    def components(self, chunks: ChunkInputs) -> np.ndarray:
+        return chunks.final_energy[:, None]
 
 
 @dataclass(frozen=True)
 class PhaseEnergy(ChunkScore):
-    """(E_t - mu_v[t]) / sigma_v[t] at the chunk's 0-based index t in its episode."""
+    """(E_t - mu_v[t]) / sigma_v[t] at the chunk's 0-based index t in its episode.
+
+    A subclass may standardize another per-chunk input (`input`, a `ChunkInputs` field) the same way.
+    """
 
     phase: PhaseStatistics
 
     name = "phase_energy"
-    needs_chunk_index = True
+    input: ClassVar[str] = "final_energy"
+    reads = ("chunk_index",)
     json_fields = ("phase_mean", "phase_std")
 
     def __post_init__(self):
@@ -253,18 +338,20 @@ class PhaseEnergy(ChunkScore):
 
     @classmethod
     def fit(cls, vanilla: VanillaRollouts) -> "PhaseEnergy":
-        series = zip(vanilla.final_energies, vanilla.chunk_indices, strict=True)
-        return cls(PhaseStatistics.fit([energies_by_index(e, t) for e, t in series]))
+        values = vanilla.series(cls.input, cls.name)
+        series = zip(values, vanilla.series("chunk_index", cls.name), strict=True)
+        return cls(PhaseStatistics.fit([energies_by_index(x, t) for x, t in series]))
 
-    def components(self, final_energy, chunk_index, context_features) -> np.ndarray:
-        return self.phase.z(final_energy, chunk_index)[:, None]
+    def components(self, chunks: ChunkInputs) -> np.ndarray:
+        values = chunks.get(self.input, self.name)
+        return self.phase.z(values, chunks.get("chunk_index", self.name))[:, None]
 
     def to_json(self) -> dict[str, Any]:
-        return {"phase_mean": self.phase.mean, "phase_std": self.phase.std}
+        return dict(zip(self.json_fields, (self.phase.mean, self.phase.std), strict=True))
 
     @classmethod
-    def from_json(cls, fields: dict[str, Any]) -> "PhaseEnergy":
-        return cls(PhaseStatistics(*_pair(fields, "phase_mean", "phase_std", cls.name, PhaseStatistics)))
+    def from_json(cls, fields: dict[str, Any]) -> Self:
+        return cls(PhaseStatistics(*_pair(fields, *cls.json_fields, cls.name, PhaseStatistics)))
 
 
 @dataclass(frozen=True)
@@ -275,7 +362,7 @@ class ContextDistance(ChunkScore):
     context: ContextStatistics = field(compare=False)
 
     name = "context_distance"
-    needs_context_features = True
+    reads = ("context_features",)
     side_files = (CONTEXT_FILE,)
 
     def __post_init__(self):
@@ -285,8 +372,8 @@ class ContextDistance(ChunkScore):
     def fit(cls, vanilla: VanillaRollouts) -> "ContextDistance":
         return cls(ContextStatistics.fit(vanilla.features(cls.name)[0]))
 
-    def components(self, final_energy, chunk_index, context_features) -> np.ndarray:
-        return self.context.distance(context_features)[:, None]
+    def components(self, chunks: ChunkInputs) -> np.ndarray:
+        return self.context.distance(chunks.get("context_features", self.name))[:, None]
 
     def to_json(self) -> dict[str, Any]:
         return {CONTEXT_FILE.field: self.context}
@@ -307,7 +394,7 @@ class EnergyAndContext(ChunkScore):
     combined: CombinedStatistics
 
     name = "energy_and_context"
-    needs_context_features = True
+    reads = ("context_features",)
     n_components = 2
     json_fields = ("combined_mean", "combined_std")
     side_files = (CONTEXT_FILE,)
@@ -330,8 +417,9 @@ class EnergyAndContext(ChunkScore):
             distances.append(rollout_score(left_out.distance(features[own]), vanilla.aggregation))
         return cls(ContextStatistics.fit(features), CombinedStatistics.fit(energies, distances))
 
-    def components(self, final_energy, chunk_index, context_features) -> np.ndarray:
-        return np.stack([as_array(final_energy), self.context.distance(context_features)], axis=1)
+    def components(self, chunks: ChunkInputs) -> np.ndarray:
+        distance = self.context.distance(chunks.get("context_features", self.name))
+        return np.stack([chunks.final_energy, distance], axis=1)
 
     def combine(self, aggregates: np.ndarray) -> np.ndarray:
         return self.combined.combine(aggregates[:, 0], aggregates[:, 1])
@@ -359,7 +447,7 @@ class ContextKNN(ChunkScore):
     neighbours: ContextNeighbours = field(compare=False)
 
     name = "context_knn"
-    needs_context_features = True
+    reads = ("context_features",)
     side_files = (NEIGHBOURS_FILE,)
 
     def __post_init__(self):
@@ -369,8 +457,8 @@ class ContextKNN(ChunkScore):
     def fit(cls, vanilla: VanillaRollouts) -> "ContextKNN":
         return cls(ContextNeighbours.fit(vanilla.features(cls.name)[0], vanilla.knn_k))
 
-    def components(self, final_energy, chunk_index, context_features) -> np.ndarray:
-        return self.neighbours.distance(context_features)[:, None]
+    def components(self, chunks: ChunkInputs) -> np.ndarray:
+        return self.neighbours.distance(chunks.get("context_features", self.name))[:, None]
 
     def to_json(self) -> dict[str, Any]:
         return {NEIGHBOURS_FILE.field: self.neighbours}
@@ -378,6 +466,17 @@ class ContextKNN(ChunkScore):
     @classmethod
     def from_json(cls, fields: dict[str, Any]) -> "ContextKNN":
         return cls(fields.get(NEIGHBOURS_FILE.field))
+
+
+@dataclass(frozen=True)
+class ContextEnergy(ChunkScore):
+    """E_c(C), the joint energy's context term alone: trained to rise off the data, without the head's part."""
+
+    name = "context_energy"
+    reads = ("context_energy",)
+
+    def components(self, chunks: ChunkInputs) -> np.ndarray:
+        return chunks.get("context_energy", self.name)[:, None]
 
 
 @dataclass(frozen=True)
@@ -405,8 +504,8 @@ class FinalEnergyTwoSided(ChunkScore):
             raise ValueError(f"The {cls.name} score needs a finite vanilla final energy.")
         return cls(float(energies.mean()), max(float(energies.std()), MIN_SIGMA))
 
-    def components(self, final_energy, chunk_index, context_features) -> np.ndarray:
-        return ((as_array(final_energy) - self.mean) / self.std)[:, None]
+    def components(self, chunks: ChunkInputs) -> np.ndarray:
+        return ((chunks.final_energy - self.mean) / self.std)[:, None]
 
     def combine(self, aggregates: np.ndarray) -> np.ndarray:
         return np.abs(aggregates[:, 0])
@@ -437,8 +536,24 @@ class PhaseEnergyDeviation(PhaseEnergy):
 
     name = "phase_energy_deviation"
 
-    def components(self, final_energy, chunk_index, context_features) -> np.ndarray:
-        return np.abs(super().components(final_energy, chunk_index, context_features))
+    def components(self, chunks: ChunkInputs) -> np.ndarray:
+        return np.abs(super().components(chunks))
+
+
+@dataclass(frozen=True)
+class ContextEnergyTwoSided(PhaseEnergyTwoSided):
+    """|z| of the joint energy's context term against the vanilla E_c at the same chunk indices,
+    z_t = (E_c,t - mu_v[t]) / sigma_v[t], aggregated over the rollout: an observation the context term puts
+    *under* the data (issue 32's blur, a light from another side) is flagged too.
+
+    Per chunk index, not one band for every chunk: E_c follows the task's phase, and against one band the first
+    chunks of a shifted rollout can land nearer its centre than vanilla's own (docs/energy_study.md section 8.9).
+    """
+
+    name = "context_energy_two_sided"
+    input = "context_energy"
+    reads = ("chunk_index", "context_energy")
+    json_fields = ("context_energy_phase_mean", "context_energy_phase_std")
 
 
 @dataclass(frozen=True)
@@ -455,8 +570,7 @@ class EnergyTwoSidedAndContextKNN(ChunkScore):
     combined: CombinedStatistics
 
     name = "energy_two_sided_and_context_knn"
-    needs_chunk_index = True
-    needs_context_features = True
+    reads = ("chunk_index", "context_features")
     n_components = 2
     json_fields = ("phase_mean", "phase_std", "combined_mean", "combined_std")
     side_files = (NEIGHBOURS_FILE,)
@@ -473,14 +587,10 @@ class EnergyTwoSidedAndContextKNN(ChunkScore):
         rollout)."""
         features, rollout_of = vanilla.features(cls.name)
         neighbours = ContextNeighbours.fit(features, vanilla.knn_k)
-        series = [
-            energies_by_index(e, t)
-            for e, t in zip(vanilla.final_energies, vanilla.chunk_indices, strict=True)
-        ]
+        indices_of = vanilla.series("chunk_index", cls.name)
+        series = [energies_by_index(e, t) for e, t in zip(vanilla.final_energies, indices_of, strict=True)]
         energies, distances = [], []
-        for i, (chunk_energies, indices) in enumerate(
-            zip(vanilla.final_energies, vanilla.chunk_indices, strict=True)
-        ):
+        for i, (chunk_energies, indices) in enumerate(zip(vanilla.final_energies, indices_of, strict=True)):
             others = [s for j, s in enumerate(series) if j != i] or series
             z = PhaseStatistics.fit(others).z(chunk_energies, indices)
             energies.append(abs(rollout_score(z, vanilla.aggregation)))
@@ -490,9 +600,10 @@ class EnergyTwoSidedAndContextKNN(ChunkScore):
             )
         return cls(PhaseStatistics.fit(series), neighbours, CombinedStatistics.fit(energies, distances))
 
-    def components(self, final_energy, chunk_index, context_features) -> np.ndarray:
-        z = self.phase.z(final_energy, chunk_index)
-        return np.stack([z, self.neighbours.distance(context_features)], axis=1)
+    def components(self, chunks: ChunkInputs) -> np.ndarray:
+        z = self.phase.z(chunks.final_energy, chunks.get("chunk_index", self.name))
+        distance = self.neighbours.distance(chunks.get("context_features", self.name))
+        return np.stack([z, distance], axis=1)
 
     def combine(self, aggregates: np.ndarray) -> np.ndarray:
         return self.combined.combine(np.abs(aggregates[:, 0]), aggregates[:, 1])
@@ -528,5 +639,7 @@ SCORES: dict[str, type[ChunkScore]] = {
         PhaseEnergyTwoSided,
         PhaseEnergyDeviation,
         EnergyTwoSidedAndContextKNN,
+        ContextEnergy,
+        ContextEnergyTwoSided,
     )
 }

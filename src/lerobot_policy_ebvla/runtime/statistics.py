@@ -82,7 +82,9 @@ class PhaseStatistics:
         pooled = np.concatenate(series) if series else np.zeros(0)
         pooled = pooled[np.isfinite(pooled)]
         if pooled.size == 0:
-            raise ValueError("Cannot fit phase statistics without a finite vanilla final energy.")
+            raise ValueError(
+                "Cannot fit phase statistics without a finite vanilla value (a final energy, E_c)."
+            )
         floor = max(PHASE_SIGMA_FLOOR * float(pooled.std()), MIN_SIGMA)
         previous = (float(pooled.mean()), max(float(pooled.std()), floor))
         means, stds = [], []
