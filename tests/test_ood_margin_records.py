@@ -640,3 +640,24 @@ def test_the_run_time_context_energy_score_is_never_confidently_wrong_on_four_tr
     assert "light_direction 3 0.24!" in rows["final_energy"][5]
     assert "light_direction 3 0.21!" in rows["context_energy"][5]
     assert rows["context_energy_two_sided"][5] == "none"
+
+
+def test_on_four_untouched_training_seeds_the_default_passes_three_and_is_confidently_wrong_on_one():
+    """context_energy_default_untouched.md (seeds 12000-15000, trained after the rule was written), recomputed for
+    seed 12000: context_energy_two_sided is confidently under 0.5 there (light_direction 3, 0.16), where the final
+    energy is not; on 13000-15000 it passes (no condition confidently under, pooled >= 0.90, <= 20% vanilla alarms)."""
+    committed = (FULL / "context_energy_default_untouched.md").read_text()
+    recomputed = summaries.score_summary(seed_run(12000, "observation") / "context_energy_full")
+    assert recomputed == section(committed, "seed12000")
+    rows = {
+        seed: summary_rows(f"## Score summary\n{section(committed, f'seed{seed}')}")
+        for seed in range(12000, 16000, 1000)
+    }
+    assert "light_direction 3 0.16!" in rows[12000]["context_energy_two_sided"][5]
+    assert "!" not in rows[12000]["final_energy"][5]
+    for seed in (13000, 14000, 15000):
+        two_sided = rows[seed]["context_energy_two_sided"]
+        assert "!" not in two_sided[5] and float(two_sided[0].split()[0]) >= 0.90, seed
+        assert int(two_sided[1].split("%")[0]) <= 20, seed
+    assert [rows[s]["context_energy_two_sided"][0][:5] for s in rows] == ["0.912", "0.947", "0.991", "0.962"]
+    assert [rows[s]["final_energy"][0][:5] for s in rows] == ["0.890", "0.873", "0.914", "0.910"]

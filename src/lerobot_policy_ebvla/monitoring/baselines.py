@@ -176,15 +176,18 @@ def chunk_inputs(episode: Episode) -> ChunkInputs:
     )
 
 
+def every_chunk_has(episodes: Sequence[Episode], field: str) -> bool:
+    """Whether every chunk record of `episodes` (at least one) has the optional `field`."""
+    records = [r for episode in episodes for r in episode]
+    return bool(records) and all(getattr(r, field) is not None for r in records)
+
+
 def recorded_inputs(episodes: Sequence[Episode]) -> set[str]:
     """The `ChunkInputs` fields every chunk of `episodes` has: what the run-time scores can read from them."""
-    records = [r for episode in episodes for r in episode]
-    inputs = {"final_energy", "chunk_index"}
-    if records and all(r.context_feature is not None for r in records):
-        inputs.add("context_features")
-    if records and all(r.context_energy is not None for r in records):
-        inputs.add("context_energy")
-    return inputs
+    optional = {"context_features": "context_feature", "context_energy": "context_energy"}
+    return {"final_energy", "chunk_index"} | {
+        name for name, field in optional.items() if every_chunk_has(episodes, field)
+    }
 
 
 def vanilla_rollouts(
@@ -241,13 +244,9 @@ def registered_scores() -> list[str]:
 
 def available_scores(episodes: Sequence[Episode]) -> list[str]:
     """The chunk scores of `SCORE_NAMES` every chunk of `episodes` has the data for, in that order."""
-    records = [r for episode in episodes for r in episode]
     names = ["final_energy", "phase_energy", "initial_energy"]
-    if records and all(r.normalized_energy is not None for r in records):
-        names.append("normalized_energy")
-    if records and all(r.restart_spread is not None for r in records):
-        names.append("restart_spread")
-    if records and all(r.context_feature is not None for r in records):
+    names += [name for name in ("normalized_energy", "restart_spread") if every_chunk_has(episodes, name)]
+    if every_chunk_has(episodes, "context_feature"):
         names += list(FEATURE_SCORES)
     return names
 

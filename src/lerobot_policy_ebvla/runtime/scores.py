@@ -44,8 +44,8 @@ A policy trained with a joint energy (`energy_ood_margin_on`) reports its contex
 - "context_energy" (`ContextEnergy`): E_c(C), high off the data by training.
 - "context_energy_two_sided" (`ContextEnergyTwoSided`): |z| of E_c against the vanilla E_c at the same chunk
   index, as the two-sided phase energy is of the final energy. Issue 32's sweeps put some shifts *under* the
-  vanilla E_c (blur, a light from another side); on four training seeds this form was never confidently wrong
-  (docs/energy_study.md section 8.9).
+  vanilla E_c (blur, a light from another side); this form is confidently wrong on one of eight training seeds'
+  sweeps (first 3 chunks), the final energy on one too, E_c one-sided on three (docs/energy_study.md section 8.9).
 
 A new score is one class here and one entry in `SCORES`: the calibration, its file, the monitors, the policy's
 `ood_response` and `ebvla-ood-report --score=<name>` find it there. A new input is one field of `ChunkInputs`
