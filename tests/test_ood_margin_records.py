@@ -661,3 +661,30 @@ def test_on_four_untouched_training_seeds_the_default_passes_three_and_is_confid
         assert int(two_sided[1].split("%")[0]) <= 20, seed
     assert [rows[s]["context_energy_two_sided"][0][:5] for s in rows] == ["0.912", "0.947", "0.991", "0.962"]
     assert [rows[s]["final_energy"][0][:5] for s in rows] == ["0.890", "0.873", "0.914", "0.910"]
+
+
+def test_on_fresh_rollouts_the_default_is_confidently_under_on_three_mild_shifts_that_cost_no_success():
+    """context_energy_fresh.md, recomputed for seed 12000: 24 fresh rollouts of each near miss against 100 fresh
+    vanilla ones; context_energy_two_sided is confidently under 0.5 on seed 12000's light_direction 3 and noise 3
+    and seed 15000's blur 3, where the final energy is at chance; none of the shifts costs success."""
+    committed = (FULL / "context_energy_fresh.md").read_text()
+    fresh = seed_run(12000, "observation") / "context_energy_fresh"
+    calibration = seed_run(12000, "observation") / "context_energy_full" / "calibration"
+    assert summaries.score_summary(fresh, calibration=calibration) == section(committed, "seed12000_fresh")
+    rows = {
+        seed: summary_rows(f"## Score summary\n{section(committed, f'seed{seed}_fresh')}")
+        for seed in (6000, 9000, 12000, 13000, 15000)
+    }
+    confident = {
+        seed: [c for c in row["context_energy_two_sided"][5].split(", ") if c.endswith("!")]
+        for seed, row in rows.items()
+    }
+    assert confident == {
+        6000: [],
+        9000: [],
+        12000: ["light_direction 3 0.18!", "noise 3 0.33!"],
+        13000: [],
+        15000: ["blur 3 0.36!"],
+    }
+    assert all("!" not in row["final_energy"][5] for row in rows.values())
+    assert all(row["context_energy_two_sided"][7] == "no such condition" for row in rows.values())
