@@ -6,7 +6,7 @@ import torch
 
 from lerobot_policy_ebvla import EBVLAPolicy
 from lerobot_policy_ebvla.modeling_ebvla import pooled_context
-from lerobot_policy_ebvla.runtime import EnergyOODResponse, OODCalibration
+from lerobot_policy_ebvla.runtime import EnergyOODResponse, OODCalibration, PhaseStatistics
 from lerobot_policy_ebvla.runtime.scores import ContextEnergyTwoSided
 from lerobot_policy_ebvla.training_signal import (
     CORRUPTIONS,
@@ -381,11 +381,13 @@ def test_the_policy_monitors_its_context_energy_on_either_side_of_the_vanilla_ba
     policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on="observation")).eval()
     batch = tiny_batch(policy.config, batch_size=2, with_action=False)
     context = policy.model.context_energy_of(batch, None).detach().double().numpy()
-    score = ContextEnergyTwoSided(mean=float(context.mean()) + 1.0, std=0.1)
-    policy.ood_response = EnergyOODResponse(policy.config, OODCalibration(mu_v=0.0, sigma_v=1.0, score=score))
+    # The vanilla band at chunk index 0 sits one unit above this batch's E_c, 0.1 wide.
+    band = PhaseStatistics(mean=(float(context.mean()) + 1.0,), std=(0.1,))
+    calibration = OODCalibration(mu_v=0.0, sigma_v=1.0, score=ContextEnergyTwoSided(band))
+    policy.ood_response = EnergyOODResponse(policy.config, calibration)
     policy.predict_action_chunk(batch)
     decision = policy.last_ood_decision
-    np.testing.assert_allclose(decision.scores.numpy(), np.abs(context - score.mean) / score.std, rtol=1e-4)
+    np.testing.assert_allclose(decision.scores.numpy(), np.abs(context - band.mean[0]) / 0.1, rtol=1e-4)
     assert decision.flagged.all()
 
 
