@@ -80,10 +80,11 @@ DEFAULT_ENERGY_SCORE = "phase_energy_two_sided"
 # ... unless the checkpoint's joint energy has its own encoder (`energy_ood_margin_on="observation"`): its context
 # term E_c, two-sided against the vanilla E_c at each chunk index, pools 0.91-0.99 over the first 3 chunks on the
 # sweeps of eight training seeds, above the final energy's 0.87-0.95 on every one, with 0-2% alarms on held-out
-# vanilla (the final energy 5-25%); each is confidently inverted on one seed
-# (benchmarks/results/metaworld_sweep_margin_full/summary.md, its last two sections). Records without E_c (a
-# recorder before 2026-11-26) keep the final energy, which beats the context k-NN there (0.91-0.95 against
-# 0.77-0.92 on five seeds).
+# vanilla (the final energy 5-25%). Neither is never wrong: each is confidently inverted on one seed's sweep, and
+# on fresh rollouts E_c under three mild shifts that cost no success (benchmarks/results/metaworld_sweep_margin_full/
+# summary.md, "The run-time context-energy score" to "Fresh rollouts of the default's near misses"). Records
+# without E_c (a recorder before 2026-11-26) keep the final energy, which beats the context k-NN there (0.91-0.95
+# against 0.77-0.92 on five seeds).
 DEFAULT_JOINT_ENERGY_SCORE = "context_energy_two_sided"
 JOINT_ENERGY_WITHOUT_CONTEXT_ENERGY = "final_energy"
 
