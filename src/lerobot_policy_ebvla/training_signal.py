@@ -218,8 +218,7 @@ def corrupt_observation(
 
 def blend(clean: Tensor, corrupted: Tensor, strengths: Tensor) -> Tensor:
     """o + s (o~ - o) for each observation: its strength s of (B,) over all its other dimensions."""
-    s = strengths.to(clean.dtype).view(-1, *([1] * (clean.dim() - 1)))
-    return clean + s * (corrupted - clean)
+    return torch.lerp(clean, corrupted, strengths.to(clean.dtype).view(-1, *([1] * (clean.dim() - 1))))
 
 
 def graded_corruption(

@@ -160,26 +160,24 @@ class PhaseEnergyModel:
         return statistics.z(final_energies, chunk_indices)
 
 
-def chunk_inputs(episode: Episode) -> ChunkInputs:
-    """An episode's chunks as a run-time score reads them: each optional input when every chunk recorded it."""
-
-    def every(values: list):
-        return None if any(v is None for v in values) else values
-
-    features = every([r.context_feature for r in episode])
-    context_energy = every([r.context_energy for r in episode])
-    return ChunkInputs.of(
-        np.array([r.final_energy for r in episode], dtype=np.float64),
-        np.array([r.chunk_index for r in episode]),
-        None if features is None else np.stack(features),
-        None if context_energy is None else np.array(context_energy, dtype=np.float64),
-    )
-
-
 def every_chunk_has(episodes: Sequence[Episode], field: str) -> bool:
     """Whether every chunk record of `episodes` (at least one) has the optional `field`."""
     records = [r for episode in episodes for r in episode]
     return bool(records) and all(getattr(r, field) is not None for r in records)
+
+
+def chunk_inputs(episode: Episode) -> ChunkInputs:
+    """An episode's chunks as a run-time score reads them: each optional input when every chunk recorded it."""
+    features, context_energy = (
+        [getattr(r, field) for r in episode] if every_chunk_has([episode], field) else None
+        for field in ("context_feature", "context_energy")
+    )
+    return ChunkInputs.of(
+        np.array([r.final_energy for r in episode], dtype=np.float64),
+        np.array([r.chunk_index for r in episode]),
+        None if features is None else np.stack(features),
+        context_energy,
+    )
 
 
 def recorded_inputs(episodes: Sequence[Episode]) -> set[str]:

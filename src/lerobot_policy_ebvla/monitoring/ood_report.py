@@ -268,10 +268,11 @@ def write_ood_report(cfg: OODReportConfig) -> str:
     _check_vanilla_only("--vanilla", vanilla)
     conditions = _conditions(ood)
 
-    chunk_names = available_scores([*calibration_set.values(), *vanilla.values(), *ood.values()])
-    has_features = all(name in chunk_names for name in FEATURE_SCORES)
+    every_episode = [*calibration_set.values(), *vanilla.values(), *ood.values()]
+    chunk_names = available_scores(every_episode)
+    inputs = recorded_inputs(every_episode)
+    has_features = "context_features" in inputs
     can_combine = all(name in chunk_names for name in COMBINED_FROM)
-    inputs = recorded_inputs([*calibration_set.values(), *vanilla.values(), *ood.values()])
     registered = [n for n in registered_scores() if set(SCORES[n].reads) <= inputs]
     names = _beside_one_sided([*chunk_names, *(COMBINED_SCORES if can_combine else ()), *registered])
     saved_score = cfg.score or default_score(cfg, inputs)

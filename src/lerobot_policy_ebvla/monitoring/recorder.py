@@ -100,6 +100,11 @@ class WatchedVecEnv:
         self._env.close()
 
 
+def _per_env(values: Any) -> list[float] | None:
+    """A (B,) energy tensor as one float per environment; None stays None."""
+    return None if values is None else values.detach().float().cpu().reshape(-1).tolist()
+
+
 def _task_name(env: Any, default: str) -> str:
     for attribute in ("task", "task_description"):
         try:
@@ -191,8 +196,7 @@ class EnergyRecorder:
         env = self.watching
         if env is None:
             raise RuntimeError("Energies were produced for an env that `EnergyRecorder.watch` did not wrap.")
-        initial = readout.initial_energy.detach().float().cpu().reshape(-1).tolist()
-        final = readout.final_energy.detach().float().cpu().reshape(-1).tolist()
+        initial, final = _per_env(readout.initial_energy), _per_env(readout.final_energy)
         if len(initial) != env.num_envs or len(final) != env.num_envs:
             raise ValueError(
                 f"Expected energies of shape ({env.num_envs},), got {len(initial)} and {len(final)}."
@@ -201,9 +205,7 @@ class EnergyRecorder:
         held = None if decision is None else decision.held.reshape(-1).tolist()
         chains = getattr(readout, "chains", None)
         chains = None if chains is None else chains.reshape(-1).tolist()
-        context_energy = getattr(readout, "context_energy", None)
-        if context_energy is not None:
-            context_energy = context_energy.detach().float().cpu().reshape(-1).tolist()
+        context_energy = _per_env(getattr(readout, "context_energy", None))
         for i in np.flatnonzero(~env.done):
             self.chunks.append(
                 _Chunk(

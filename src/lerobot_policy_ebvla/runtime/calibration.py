@@ -151,8 +151,7 @@ class OODCalibration(CheckpointJSON):
         Arguments and errors as in `chunk_score`.
         """
         chunks = ChunkInputs.of(final_energy, chunk_index, context_features, context_energy)
-        for name in self.score.reads:  # every missing input is named before any is read
-            chunks.get(name, self.score.name)
+        chunks.require(self.score.reads, self.score.name)
         return self.score.components(chunks)
 
     def chunk_score(

@@ -176,16 +176,24 @@ class ChunkInputs:
                 )
         return cls(energies, index, features, context)
 
+    def require(self, names: Sequence[str], score: str) -> None:
+        """Checks that the inputs `names` (fields), which the score `score` reads, were given.
+
+        Raises:
+            ValueError: Naming every missing one and where it comes from.
+        """
+        missing = [INPUT_SOURCES[name] for name in names if getattr(self, name) is None]
+        if missing:
+            raise ValueError(f"The {score} score needs {'; and '.join(missing)}.")
+
     def get(self, name: str, score: str) -> np.ndarray:
         """The input `name` (a field), which the score `score` reads.
 
         Raises:
             ValueError: It was not given, saying where it comes from.
         """
-        value = getattr(self, name)
-        if value is None:
-            raise ValueError(f"The {score} score needs {INPUT_SOURCES[name]}.")
-        return value
+        self.require([name], score)
+        return getattr(self, name)
 
 
 @dataclass(frozen=True)
