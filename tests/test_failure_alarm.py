@@ -141,6 +141,18 @@ def test_the_monitor_reads_the_energy_of_its_metric_from_a_readout():
     assert [start.update(r)[0].alarm for r in readouts] == [None, True]
 
 
+def test_the_monitor_reads_the_context_energy_for_a_context_slope_and_names_it_when_missing():
+    context = EnergyFailureMonitor(FailureAlarm("context", 2, 2, 0.0, 0.0, 1.0, 2))
+    readouts = [
+        SimpleNamespace(final_energy=torch.tensor([0.0]), context_energy=torch.tensor([v]))
+        for v in (0.0, 3.0)
+    ]
+    assert [context.update(r)[0].alarm for r in readouts] == [None, True]
+    context.reset()
+    with pytest.raises(ValueError, match="slope of `context_energy`, which this readout does not have"):
+        context.update(SimpleNamespace(final_energy=torch.tensor([0.0]), context_energy=None))
+
+
 def test_the_monitor_refuses_a_changed_number_of_environments_and_forgets_on_reset():
     monitor = EnergyFailureMonitor(ALARM)
     monitor.update(torch.zeros(2))

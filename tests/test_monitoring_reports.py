@@ -298,6 +298,34 @@ def test_ood_report_saves_a_phase_energy_calibration_when_asked(record_dirs, tmp
     assert calibration.n_rollouts == 12 and abs(calibration.mu_v) < 1.0  # z-scores of vanilla rollouts
 
 
+def test_ood_report_saves_the_held_out_vanilla_scores_as_the_window_tests_reference(record_dirs, tmp_path):
+    checkpoint = tmp_path / "pretrained_model"
+    checkpoint.mkdir()
+    ood_report.main(
+        [*ood_args(*record_dirs, tmp_path / "out"), f"--calibrate_to={checkpoint}", "--score=phase_energy"]
+    )
+    calibration_set, vanilla = load_episodes([record_dirs[0]]), load_episodes([record_dirs[1]])
+    reference = fit_score_reference(calibration_set, features=False)
+    expected = episode_scores(vanilla, "phase_energy", reference=reference)
+    saved = OODCalibration.load(checkpoint).reference_scores
+    # The --vanilla rollouts scored against the calibration's fit, not the calibration rollouts themselves.
+    assert len(saved) == 12 and np.allclose(saved, expected)
+
+
+def test_ood_report_saves_no_window_reference_from_in_sample_vanilla(record_dirs, tmp_path):
+    checkpoint = tmp_path / "pretrained_model"
+    checkpoint.mkdir()
+    _, vanilla, ood = record_dirs
+    args = [
+        f"--vanilla=[{vanilla}]",
+        f"--ood=[{ood}]",
+        f"--output_dir={tmp_path / 'out'}",
+        "--in_sample=true",
+    ]
+    ood_report.main([*args, f"--calibrate_to={checkpoint}", "--score=final_energy"])
+    assert OODCalibration.load(checkpoint).reference_scores is None
+
+
 def test_ood_report_saves_a_context_distance_calibration_when_asked(record_dirs, tmp_path):
     checkpoint = tmp_path / "pretrained_model"
     checkpoint.mkdir()
@@ -354,6 +382,44 @@ def test_failure_report_chooses_on_calibration_and_reports_held_out(tmp_path, ca
     assert "12 held-out episodes (4 failed)" in out
     assert out.count("| Bal. Acc. (calibration) |") == 2
     assert (tmp_path / "out" / "energy_over_time.png").read_bytes()[:8] == PNG_MAGIC
+
+
+def with_context_energy(records, rising_when_failed=True):
+    """The records with a context energy E_c that rises chunk by chunk in failed episodes (flat otherwise)."""
+    rng = np.random.default_rng(3)
+    return [
+        dataclasses.replace(
+            r,
+            context_energy=float(
+                (1.0 * r.chunk_index if rising_when_failed and not r.success else 0.0) + rng.normal(0, 0.1)
+            ),
+        )
+        for r in records
+    ]
+
+
+def test_failure_report_adds_the_context_energys_slope_when_the_records_carry_it(tmp_path, capsys):
+    calibration = write(tmp_path, "cal", with_context_energy(rollouts(12, 5.0, seed=5)))
+    held_out = write(tmp_path, "held", with_context_energy(rollouts(12, 5.0, seed=7)))
+    args = [f"--calibration=[{calibration}]", f"--records=[{held_out}]", "--max_step=6", "--max_window=4"]
+    failure_report.main([*args, f"--output_dir={tmp_path / 'out'}", "--n_bootstrap=100"])
+    out = capsys.readouterr().out
+    assert "### Slope Final" in out and "### Slope Start" in out and "### Slope Context" in out
+    assert "## Lead time, Slope Context" in out
+    # E_c rises by 1 a chunk in failed episodes: from step 2 on its slope separates them perfectly.
+    context = out.split("### Slope Context")[1].split("###")[0]
+    step_3 = next(line for line in context.splitlines() if line.startswith("| 3 |"))
+    assert "1.000 [1.000, 1.000]" in step_3
+    # Without E_c in every record there is no context slope.
+    failure_report.main(
+        [
+            f"--calibration=[{write(tmp_path, 'plain', rollouts(12, 5.0, seed=5))}]",
+            *args[1:],
+            "--n_bootstrap=100",
+        ]
+        + [f"--output_dir={tmp_path / 'out2'}"]
+    )
+    assert "Slope Context" not in capsys.readouterr().out
 
 
 def test_failure_report_judges_episodes_at_equal_elapsed_time_unless_carried_forward(tmp_path, capsys):

@@ -14,6 +14,8 @@ Everything here studies rollouts; it imports the policy and `runtime/`, and neit
 - `failure`: energy-slope failure prediction and Table IV, in-sample or held out, and the one-check alarm
   chosen on calibration (`select_check_step`, `failure_alarm`); `failure_report` builds
   `ebvla-failure-report`'s report and saves that alarm with `--calibrate_to`.
+- `window_report`: the window typicality test (`runtime.window`) on recorded rollouts: how often windows of
+  n rollouts alarm, beside each condition's per-rollout figures.
 - `landscape`: the energy around a refined action chunk (Fig. 2).
 - `plots`: every figure (the only module that imports matplotlib).
 - `vision`: does the policy see? Its chunk and energy with real against blanked cameras.

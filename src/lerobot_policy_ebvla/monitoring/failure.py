@@ -78,7 +78,12 @@ def energy_matrix(
     for i, episode in enumerate(episodes):
         if [r.chunk_index for r in episode] != list(range(len(episode))):
             raise ValueError(f"Episode {i} does not hold chunks 0..{len(episode) - 1} in order.")
-        matrix[i, : len(episode)] = [getattr(r, field_name) for r in episode]
+        values = [getattr(r, field_name) for r in episode]
+        if any(v is None for v in values):
+            raise ValueError(
+                f"Episode {i} has chunks without `{field_name}`, which the {metric!r} slope reads."
+            )
+        matrix[i, : len(episode)] = values
         if carry_forward and episode:
             matrix[i, len(episode) :] = matrix[i, len(episode) - 1]
     return matrix

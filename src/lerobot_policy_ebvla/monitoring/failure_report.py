@@ -5,7 +5,7 @@ report from record files and writes `failure_report.md` and `energy_over_time.pn
 step, the (window, k) with the best balanced accuracy is chosen on calibration episodes, with the slope
 threshold set by successful reference episodes, then reported unchanged on held-out episodes: across tasks
 (all episodes pooled) and within each task that has at least two failed and two successful held-out episodes.
-Slope Final and Slope Start both, each with the slope's AUROC per step and the lead time of its alarms.
+Slope Final, Slope Start and, where the records carry the joint energy's context term, Slope Context, each with the slope's AUROC per step and the lead time of its alarms.
 
 Run at every step, those checks add up their false alarms. The report also gives the deployable alarm: one
 check, at the step chosen on calibration (`failure.select_check_step`), with its held-out catches, false alarms
@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..runtime.failure_alarm import FAILURE_ALARM_FILENAME
+from .baselines import every_chunk_has
 from .failure import (
     DEFAULT_MULTIPLIERS,
     Episode,
@@ -46,7 +47,15 @@ from .records import load_episodes
 
 logger = logging.getLogger(__name__)
 
-METRIC_TITLES = {"final": "Slope Final", "start": "Slope Start"}
+METRIC_TITLES = {"final": "Slope Final", "start": "Slope Start", "context": "Slope Context"}
+
+
+def slope_metrics(episodes: Sequence[Episode]) -> list[str]:
+    """The slopes every chunk of `episodes` has the energy for: Slope Final and Slope Start, and Slope Context
+    where the records carry the joint energy's context term."""
+    return [m for m in METRIC_TITLES if m != "context" or every_chunk_has(episodes, "context_energy")]
+
+
 # A task gets its own section (and lead-time row) with at least this many failed and successful episodes.
 MIN_PER_CLASS = 2
 
@@ -164,9 +173,10 @@ def _scope(
     held_out: Sequence[Episode],
     reference: Sequence[Episode],
     cfg: FailureReportConfig,
+    metrics: Sequence[str],
     list_alarms: bool = False,
 ) -> tuple[str, dict[str, LeadTimeSummary], list[_Check]]:
-    """One section: Table IV for Slope Final and Slope Start, chosen on `calibration`, reported on `held_out`.
+    """One section: Table IV for each slope of `metrics`, chosen on `calibration`, reported on `held_out`.
 
     Returns the section, per metric title the lead time of its alarms on `held_out`, and the one-check alarm
     of each metric that has one.
@@ -181,7 +191,8 @@ def _scope(
         return lines[0] + "\n\nNot enough episodes to report.\n", {}, []
     steps, windows = range(1, cfg.max_step + 1), range(2, cfg.max_window + 1)
     summaries, checks = {}, []
-    for metric, metric_title in METRIC_TITLES.items():
+    for metric in metrics:
+        metric_title = METRIC_TITLES[metric]
         chosen = select_configurations(
             calibration, steps, windows, cfg.multipliers, metric, reference, cfg.carry_forward
         )
@@ -265,8 +276,9 @@ def write_failure_report(cfg: FailureReportConfig) -> str:
         "which the chosen configuration of that step flags an episode, and how many chunks (and env steps, "
         "between the two chunks' predictions) before its last chunk, the failure or the step cap."
     )
+    metrics = slope_metrics([*calibration, *held_out, *reference])
     pooled, pooled_summaries, pooled_checks = _scope(
-        "Across tasks (all episodes pooled)", calibration, held_out, reference, cfg, list_alarms=True
+        "Across tasks (all episodes pooled)", calibration, held_out, reference, cfg, metrics, list_alarms=True
     )
     sections = [header, pooled]
     summaries = {"all tasks": pooled_summaries}
@@ -286,10 +298,15 @@ def write_failure_report(cfg: FailureReportConfig) -> str:
                 )
                 continue
             section, summaries[task], checks[task] = _scope(
-                f"Within task {task!r}", of_task(calibration), of_task(held_out), of_task(reference), cfg
+                f"Within task {task!r}",
+                of_task(calibration),
+                of_task(held_out),
+                of_task(reference),
+                cfg,
+                metrics,
             )
             sections.append(section)
-    for metric_title in METRIC_TITLES.values():
+    for metric_title in (METRIC_TITLES[m] for m in metrics):
         rows = {scope: s[metric_title] for scope, s in summaries.items() if metric_title in s}
         sections.append(
             f"## Lead time, {metric_title}: pooled and per task\n\nEach task with its own configurations "

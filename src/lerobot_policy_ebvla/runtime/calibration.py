@@ -27,7 +27,7 @@ from torch import Tensor
 
 from .checkpoint_files import CheckpointJSON
 from .scores import SCORE_AGGREGATIONS, SCORES, ChunkInputs, ChunkScore, FinalEnergy, score_rollout
-from .threshold import ArrayLike, MeanStd, conformal_threshold, mean_std_threshold
+from .threshold import ArrayLike, MeanStd, as_array, conformal_threshold, mean_std_threshold
 
 OOD_CALIBRATION_FILENAME = "ood_calibration.json"
 THRESHOLD_RULES = ("mean_std", "conformal")
@@ -58,6 +58,9 @@ class OODCalibration(CheckpointJSON):
         rule: Which threshold the monitor applies: "mean_std" (Eq. 5, the paper's, default) or "conformal".
         score: The chunk score the statistics are of, with what it was fitted on (a `ChunkScore` of
             `scores.SCORES`; the final energy, the paper's, by default).
+        reference_scores: Rollout scores of vanilla rollouts kept out of the fit, scored against it (the
+            report's held-out `--vanilla` rollouts), what the window typicality test ranks a window of
+            rollouts against (`window.WindowTypicalityMonitor`); None when not recorded.
     """
 
     mu_v: float
@@ -69,6 +72,7 @@ class OODCalibration(CheckpointJSON):
     conformal_threshold: float | None = None
     rule: str = "mean_std"
     score: ChunkScore = field(default_factory=FinalEnergy)
+    reference_scores: tuple[float, ...] | None = None
 
     filename = OOD_CALIBRATION_FILENAME
     what = "OOD calibration"
@@ -87,6 +91,11 @@ class OODCalibration(CheckpointJSON):
             raise ValueError(
                 "`rule='conformal'` needs a `conformal_threshold` (fit with `false_alarm_rate`)."
             )
+        if self.reference_scores is not None:
+            reference = np.asarray(self.reference_scores, dtype=np.float64).reshape(-1)
+            if not np.isfinite(reference).all():
+                raise ValueError("`reference_scores` must be finite (vanilla rollout scores).")
+            object.__setattr__(self, "reference_scores", tuple(float(r) for r in reference))
         if SCORES.get(getattr(self.score, "name", None)) is not type(self.score):
             raise ValueError(
                 f"`score` must be a `ChunkScore` registered in `SCORES` ({', '.join(SCORES)}), got {self.score!r}."
@@ -102,6 +111,7 @@ class OODCalibration(CheckpointJSON):
         false_alarm_rate: float | None = None,
         rule: str = "mean_std",
         score: ChunkScore | None = None,
+        reference_scores: ArrayLike | None = None,
     ) -> "OODCalibration":
         """Estimates mu_v and sigma_v, and with `false_alarm_rate` the conformal threshold, from vanilla scores.
 
@@ -112,6 +122,7 @@ class OODCalibration(CheckpointJSON):
             vanilla_scores: The vanilla rollouts' scores, each aggregated from its chunks' `score` with
                 `aggregation`.
             score: The fitted chunk score `vanilla_scores` were computed with; the final energy when None.
+            reference_scores: Held-out vanilla rollouts' scores for the window test (see the class).
 
         Raises:
             ValueError: No finite score to fit on.
@@ -130,6 +141,7 @@ class OODCalibration(CheckpointJSON):
             conformal_threshold=conformal,
             rule=rule,
             score=FinalEnergy() if score is None else score,
+            reference_scores=None if reference_scores is None else tuple(as_array(reference_scores)),
         )
 
     @property
@@ -194,6 +206,20 @@ class OODCalibration(CheckpointJSON):
             ValueError: `components` is not (N >= 1, n) with the score's n columns.
         """
         return score_rollout(self.score, components, self.aggregation)
+
+    def score_chunks(
+        self,
+        chunk_energies: ArrayLike,
+        context_features: ArrayLike | None = None,
+        context_energies: ArrayLike | None = None,
+    ) -> float:
+        """A finished rollout's score from its chunks' final energies (chunks 0, 1, ...), and the chunks' pooled
+        contexts ((N, D)) or E_c(C) ((N,)) where the score reads them: `chunk_components`, then `score_rollout`."""
+        energies = as_array(chunk_energies)
+        components = self.chunk_components(
+            energies, np.arange(energies.size), context_features, context_energies
+        )
+        return self.score_rollout(components)
 
     @property
     def threshold(self) -> float:

@@ -34,8 +34,9 @@ from .history import EnvironmentHistories
 from .threshold import ArrayLike, as_array, exceeds, mean_std_threshold
 
 FAILURE_ALARM_FILENAME = "failure_alarm.json"
-# The energy each slope is of: the refined chunk's (Slope Final) or the initial sample's (Slope Start).
-SLOPE_ENERGIES = {"final": "final_energy", "start": "initial_energy"}
+# The energy each slope is of: the refined chunk's (Slope Final), the initial sample's (Slope Start), or the
+# joint energy's context term E_c(C) (Slope Context; only a policy trained with `energy_ood_margin_on` has it).
+SLOPE_ENERGIES = {"final": "final_energy", "start": "initial_energy", "context": "context_energy"}
 
 
 def window_slopes(windows: np.ndarray) -> np.ndarray:
@@ -54,7 +55,8 @@ class FailureAlarm(CheckpointJSON):
     """One slope check: at step `step`, alarm when the slope over `window` steps exceeds T.
 
     Args:
-        metric: "final" (Slope Final, the refined energy) or "start" (Slope Start, the initial sample's).
+        metric: "final" (Slope Final, the refined energy), "start" (Slope Start, the initial sample's) or
+            "context" (Slope Context, the joint energy's context term E_c(C)).
         step: s*, the 1-based step (chunk) at which the check is made.
         window: w, the steps the slope is fitted over, ending at s*.
         k: The multiplier of T = mu_ref + k * sigma_ref.
@@ -156,11 +158,17 @@ class EnergyFailureMonitor:
         """Adds one chunk per environment and answers for each.
 
         Args:
-            energies: The policy's `EnergyReadout` of the chunk (its final or initial energy is read, as the
-                alarm's metric says), or that energy itself: a float or a (B,) tensor or array.
+            energies: The policy's `EnergyReadout` of the chunk (its final, initial or context energy is read, as
+                the alarm's metric says), or that energy itself: a float or a (B,) tensor or array.
         """
         if not isinstance(energies, (float, int, np.ndarray, Tensor, list, tuple)):
-            energies = getattr(energies, SLOPE_ENERGIES[self.alarm.metric])
+            field = SLOPE_ENERGIES[self.alarm.metric]
+            energies = getattr(energies, field)
+            if energies is None:
+                raise ValueError(
+                    f"The failure alarm checks the slope of `{field}`, which this readout does not have (only a "
+                    "policy trained with a joint energy, `energy_ood_margin_on`, reports `context_energy`)."
+                )
         values = as_array(energies)
         self._histories.append([float(value) for value in values])
         if not self._decisions:

@@ -81,11 +81,7 @@ class EnergyOODMonitor:
         `context_features`, (N, D) one pooled context per chunk, is needed by a context calibration;
         `context_energies`, (N,) E_c(C) of each chunk, by a context-energy calibration.
         """
-        energies = as_array(chunk_energies)
-        components = self.calibration.chunk_components(
-            energies, np.arange(energies.size), context_features, context_energies
-        )
-        return self._decide(self.calibration.score_rollout(components))
+        return self._decide(self.calibration.score_chunks(chunk_energies, context_features, context_energies))
 
     def update(
         self,
