@@ -21,7 +21,7 @@ import argparse
 from pathlib import Path
 
 from lerobot_policy_ebvla.monitoring.records import load_episodes
-from lerobot_policy_ebvla.monitoring.window_report import DEFAULT_MAX_WINDOWS, rollout_scores_of, window_table
+from lerobot_policy_ebvla.monitoring.window_report import DEFAULT_MAX_WINDOWS, score_sets, window_table
 from lerobot_policy_ebvla.runtime.window import (
     DEFAULT_WINDOW,
     DEFAULT_WINDOW_FALSE_ALARM_RATE,
@@ -46,6 +46,13 @@ def conditions_in(folder: Path) -> dict:
     }
 
 
+def tested_values(test: WindowTypicalityTest) -> str:
+    """What the window tests of each rollout."""
+    if len(test.reference[0]) > 1:
+        return "each of the score |a| and its signed aggregate a at alpha / 2"
+    return "the score alone"
+
+
 def run_section(
     name: str,
     sweep: Path,
@@ -56,8 +63,10 @@ def run_section(
     false_alarm_rate: float = DEFAULT_WINDOW_FALSE_ALARM_RATE,
     max_windows: int = DEFAULT_MAX_WINDOWS,
     n_bootstrap: int = 1000,
+    score_only: bool = False,
 ) -> str:
-    """One run's section: how it was split, then `window_report.window_table`."""
+    """One run's section: how it was split, then `window_report.window_table`. `score_only` tests the rollout
+    score alone, not a two-sided score's signed aggregate beside it (the window test's first form)."""
     vanilla = episodes_in(sweep / "vanilla")
     conditions = conditions_in(sweep)
     if fresh is None:
@@ -71,26 +80,29 @@ def run_section(
         conditions |= {f"fresh {c}": episodes for c, episodes in conditions_in(fresh).items()}
         protocol = "reference: every sweep vanilla episode; held out: the fresh vanilla episodes"
 
-    calibration, scores = rollout_scores_of(
+    calibration, scored = score_sets(
         episodes_in(sweep / "calibration"),
         {"reference": reference, "held_out": held_out, **conditions},
         score,
         first_chunks,
     )
-    test = WindowTypicalityTest(tuple(scores["reference"]), window, false_alarm_rate)
+    if score_only:
+        for scored_set in scored.values():
+            scored_set.values = scored_set.values[:, :1]
+    test = WindowTypicalityTest(scored["reference"].values, window, false_alarm_rate)
     table = window_table(
         test,
         calibration.threshold,
-        held_out,
-        scores["held_out"],
-        {c: (episodes, scores[c]) for c, episodes in conditions.items()},
+        scored["held_out"],
+        {c: scored[c] for c in conditions},
         max_windows,
         n_bootstrap,
     )
     return (
         f"## {name}\n\n`{score}` over the first {first_chunks} chunks; calibration: "
         f"{calibration.n_rollouts} rollouts (T = mu_v + sigma_v = {calibration.threshold:.3f}); {protocol} "
-        f"({len(reference)} / {len(held_out)}); windows of {window} at alpha = {false_alarm_rate}.\n\n"
+        f"({len(reference)} / {len(held_out)}); windows of {window} at alpha = {false_alarm_rate}, "
+        f"{tested_values(test)}.\n\n"
         f"{table}\n"
     )
 
@@ -107,6 +119,9 @@ def main() -> None:
     parser.add_argument("--false_alarm_rate", type=float, default=DEFAULT_WINDOW_FALSE_ALARM_RATE)
     parser.add_argument("--max_windows", type=int, default=DEFAULT_MAX_WINDOWS)
     parser.add_argument("--n_bootstrap", type=int, default=1000)
+    parser.add_argument(
+        "--score_only", action="store_true", help="test the rollout score alone (the first form of the test)"
+    )
     args = parser.parse_args()
     sections = []
     for run in args.runs:
@@ -123,6 +138,7 @@ def main() -> None:
                 args.false_alarm_rate,
                 args.max_windows,
                 args.n_bootstrap,
+                args.score_only,
             )
         )
     args.output.write_text("\n".join(sections))

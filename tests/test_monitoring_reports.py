@@ -298,18 +298,26 @@ def test_ood_report_saves_a_phase_energy_calibration_when_asked(record_dirs, tmp
     assert calibration.n_rollouts == 12 and abs(calibration.mu_v) < 1.0  # z-scores of vanilla rollouts
 
 
-def test_ood_report_saves_the_held_out_vanilla_scores_as_the_window_tests_reference(record_dirs, tmp_path):
+def test_ood_report_saves_the_held_out_vanilla_rollouts_as_the_window_tests_reference(record_dirs, tmp_path):
     checkpoint = tmp_path / "pretrained_model"
     checkpoint.mkdir()
     ood_report.main(
-        [*ood_args(*record_dirs, tmp_path / "out"), f"--calibrate_to={checkpoint}", "--score=phase_energy"]
+        [
+            *ood_args(*record_dirs, tmp_path / "out"),
+            f"--calibrate_to={checkpoint}",
+            "--score=phase_energy_two_sided",
+        ]
     )
     calibration_set, vanilla = load_episodes([record_dirs[0]]), load_episodes([record_dirs[1]])
     reference = fit_score_reference(calibration_set, features=False)
-    expected = episode_scores(vanilla, "phase_energy", reference=reference)
-    saved = OODCalibration.load(checkpoint).reference_scores
-    # The --vanilla rollouts scored against the calibration's fit, not the calibration rollouts themselves.
-    assert len(saved) == 12 and np.allclose(saved, expected)
+    signed = episode_scores(vanilla, "phase_energy", reference=reference)  # the mean z of each rollout
+    saved = np.array(OODCalibration.load(checkpoint).window_reference)
+    # The --vanilla rollouts against the calibration's fit, not the calibration rollouts: |a| and a.
+    assert (
+        saved.shape == (12, 2)
+        and np.allclose(saved[:, 1], signed)
+        and np.allclose(saved[:, 0], np.abs(signed))
+    )
 
 
 def test_ood_report_saves_no_window_reference_from_in_sample_vanilla(record_dirs, tmp_path):
@@ -323,7 +331,7 @@ def test_ood_report_saves_no_window_reference_from_in_sample_vanilla(record_dirs
         "--in_sample=true",
     ]
     ood_report.main([*args, f"--calibrate_to={checkpoint}", "--score=final_energy"])
-    assert OODCalibration.load(checkpoint).reference_scores is None
+    assert OODCalibration.load(checkpoint).window_reference is None
 
 
 def test_ood_report_saves_a_context_distance_calibration_when_asked(record_dirs, tmp_path):

@@ -527,10 +527,10 @@ def test_graded_strengths_on_fresh_rollouts_lift_blur_everywhere_and_leave_light
 
 
 def test_every_checkpoint_of_the_margin_study_reads_its_camera():
-    """camera_checks.json: the refined chunk changes by 41% or more with the cameras blanked, on all 29."""
+    """camera_checks.json: the refined chunk changes by 41% or more with the cameras blanked, on all 31."""
     checks = json.loads((FULL / "camera_checks.json").read_text())
     changes = {run: check["chunk_change"] for run, check in checks.items() if not run.startswith("_")}
-    assert len(changes) == 29 and min(changes.values()) > 0.41
+    assert len(changes) == 31 and min(changes.values()) > 0.41
     assert all(check["num_frames"] == 32 for run, check in checks.items() if not run.startswith("_"))
 
 
@@ -700,17 +700,25 @@ def window_rows(markdown: str, run: str) -> dict[str, list[str]]:
     return {cells[0]: cells[1:] for cells in ([c.strip() for c in line.split("|")[1:-1]] for line in lines)}
 
 
-def windows_alarmed(cell: str) -> tuple[float, float]:
-    """ "83% (83%) of 5000" -> (0.83, 0.83): the share of windows alarmed, and alarmed as too typical."""
-    alarmed, typical = cell.split(" of ")[0].replace("(", "").replace(")", "").split()
-    return float(alarmed.rstrip("%")) / 100, float(typical.rstrip("%")) / 100
+def windows_alarmed(cell: str) -> tuple[float, float, float]:
+    """ "83% (80% / 3%) of 5000" -> (0.83, 0.80, 0.03): the share of windows alarmed, and alarmed as too typical
+    and as shifted."""
+    shares = cell.split(" of ")[0].replace("(", "").replace(")", "").replace("/", "").split()
+    return tuple(float(share.rstrip("%")) / 100 for share in shares)
 
 
-def test_the_window_test_flags_the_too_typical_shift_the_default_is_confidently_wrong_on_but_not_the_milder_ones():
-    """window_typicality.md, recomputed for seed 12000 with its fresh rollouts: against 40 reference rollouts the
-    windows of 8 of 100 fresh vanilla rollouts alarm on 2-5% on five seeds; light_direction 3 (per rollout
-    confidently under) alarms as too typical, on the sweep and on 75% of fresh windows; fresh noise 3 (19%) and
-    seed 15000's fresh blur 3 (5%) are missed. With 20 reference rollouts (the split runs) false alarms reach 29%."""
+def sweep_conditions(rows: dict) -> list[str]:
+    return [name for name in rows if name != "held-out vanilla" and not name.startswith("fresh")]
+
+
+def test_the_window_test_flags_the_mild_shifts_the_default_is_confidently_wrong_on_in_windows_of_eight():
+    """window_typicality.md (the shipped form: the score |a| and its signed aggregate a, each at alpha / 2),
+    recomputed for seed 12000 with its fresh rollouts. Against 40 reference rollouts, windows of 8 of 100 fresh
+    vanilla rollouts alarm on 2-5% on five seeds; 24-25 of 26 sweep conditions alarm; both sweep conditions the
+    per-rollout default is confidently wrong on (seed 12000's light_direction 3, too typical; noise 3, shifted)
+    alarm; of the fresh near misses 9000's light_direction 3 (66%), 12000's light_direction 3 (55%) and noise 3
+    (91%) mostly alarm, the three blur 3 and 13000's two not (<= 8%). With 20 reference rollouts (the split runs)
+    false alarms reach 21%."""
     committed = (FULL / "window_typicality.md").read_text()
     full, fresh = (seed_run(12000, "observation") / f"context_energy_{k}" for k in ("full", "fresh"))
     recomputed = window.run_section("s12000", full, fresh)
@@ -718,15 +726,44 @@ def test_the_window_test_flags_the_too_typical_shift_the_default_is_confidently_
     runs = {seed: window_rows(committed, f"s{seed}") for seed in (6000, 9000, 12000, 13000, 15000)}
     false_alarms = [windows_alarmed(rows["held-out vanilla"][4])[0] for rows in runs.values()]
     assert max(false_alarms) <= 0.05 and min(false_alarms) >= 0.02
-    for seed, rows in runs.items():
-        sweep = [name for name in rows if name != "held-out vanilla" and not name.startswith("fresh")]
-        assert len(sweep) == 26 and sum(windows_alarmed(rows[c][4])[0] == 1.0 for c in sweep) >= 24, seed
-    assert runs[12000]["light_direction_s3"][2].endswith("!") and windows_alarmed(
-        runs[12000]["light_direction_s3"][4]
-    ) == (1.0, 1.0)
-    assert windows_alarmed(runs[12000]["fresh light_direction_s3"][4]) == (0.75, 0.75)
-    assert windows_alarmed(runs[12000]["fresh noise_s3"][4])[0] == 0.19
-    assert windows_alarmed(runs[15000]["fresh blur_s3"][4])[0] == 0.05
+    alarmed = {
+        s: sum(windows_alarmed(r[c][4])[0] == 1.0 for c in sweep_conditions(r)) for s, r in runs.items()
+    }
+    assert alarmed == {6000: 24, 9000: 25, 12000: 25, 13000: 25, 15000: 24}
+    confident = {(s, c) for s, r in runs.items() for c in sweep_conditions(r) if r[c][2].endswith("!")}
+    assert confident == {(12000, "light_direction_s3"), (12000, "noise_s3")}
+    assert windows_alarmed(runs[12000]["light_direction_s3"][4]) == (1.0, 1.0, 0.0)
+    assert windows_alarmed(runs[12000]["noise_s3"][4]) == (1.0, 0.0, 1.0)
+    fresh_alarms = {
+        (s, c.removeprefix("fresh ")): windows_alarmed(r[c][4])[0]
+        for s, r in runs.items()
+        for c in r
+        if "fresh" in c
+    }
+    assert {k: v for k, v in fresh_alarms.items() if v >= 0.5} == {
+        (9000, "light_direction_s3"): 0.66,
+        (12000, "light_direction_s3"): 0.55,
+        (12000, "noise_s3"): 0.91,
+    }
+    assert max(v for v in fresh_alarms.values() if v < 0.5) <= 0.08
+    split = windows_alarmed(window_rows(committed, "s15000_split")["held-out vanilla"][4])[0]
+    assert split == 0.21
+
+
+def test_the_window_tests_first_form_sees_one_too_typical_shift():
+    """window_typicality_score_only.md (the score alone, the first form): the same protocol alarms on 75% of seed
+    12000's fresh light_direction 3 windows, 19% of its noise 3 and 5% of seed 15000's blur 3; the sweep's noise 3
+    (confidently under per rollout) is not alarmed. With 20 reference rollouts false alarms reach 29%."""
+    committed = (FULL / "window_typicality_score_only.md").read_text()
+    full = seed_run(13000, "observation") / "context_energy_full"
+    fresh = seed_run(13000, "observation") / "context_energy_fresh"
+    recomputed = window.run_section("s13000", full, fresh, score_only=True)
+    assert recomputed.strip() == f"## s13000\n\n{section(committed, 's13000')}"
+    rows = {seed: window_rows(committed, f"s{seed}") for seed in (12000, 15000)}
+    assert windows_alarmed(rows[12000]["fresh light_direction_s3"][4]) == (0.75, 0.75, 0.0)
+    assert windows_alarmed(rows[12000]["fresh noise_s3"][4])[0] == 0.19
+    assert windows_alarmed(rows[12000]["noise_s3"][4])[0] == 0.0
+    assert windows_alarmed(rows[15000]["fresh blur_s3"][4])[0] == 0.05
     split = [
         windows_alarmed(window_rows(committed, f"s{s}_split")["held-out vanilla"][4])[0]
         for s in (6000, 15000)
@@ -735,18 +772,19 @@ def test_the_window_test_flags_the_too_typical_shift_the_default_is_confidently_
 
 
 def test_on_two_untouched_training_seeds_the_window_test_passes_the_rule_written_before_them():
-    """window_typicality_untouched.md (seeds 16000 and 17000, rule in summary.md written before their records were
-    read), recomputed for 16000: <= 10% false alarms on 100 fresh vanilla rollouts, >= 20 of 26 conditions
-    alarmed. Neither seed has a condition the per-rollout default is confidently under, so the too-typical side
-    went untested there. context_energy_default_untouched2.md: the default pools to 0.970 and 1.000."""
+    """window_typicality_untouched.md (seeds 16000 and 17000, the first form, rule in summary.md written before
+    their records were read), recomputed for 16000: <= 10% false alarms on 100 fresh vanilla rollouts, >= 20 of 26
+    conditions alarmed. Neither seed has a condition the per-rollout default is confidently under, so the
+    too-typical side went untested there. context_energy_default_untouched2.md: the default pools to 0.970 and
+    1.000."""
     committed = (FULL / "window_typicality_untouched.md").read_text()
     full, fresh = (seed_run(16000, "observation") / f"context_energy_{k}" for k in ("full", "fresh"))
-    recomputed = window.run_section("s16000", full, fresh)
+    recomputed = window.run_section("s16000", full, fresh, score_only=True)
     assert recomputed.strip() == f"## s16000\n\n{section(committed, 's16000')}"
     for seed in (16000, 17000):
         rows = window_rows(committed, f"s{seed}")
         assert windows_alarmed(rows["held-out vanilla"][4])[0] <= 0.10
-        conditions = [name for name in rows if name != "held-out vanilla"]
+        conditions = sweep_conditions(rows)
         assert sum(windows_alarmed(rows[c][4])[0] == 1.0 for c in conditions) >= 20
         assert not any(rows[c][2].endswith("!") for c in conditions)
     summaries_md = (FULL / "context_energy_default_untouched2.md").read_text()
@@ -757,6 +795,28 @@ def test_on_two_untouched_training_seeds_the_window_test_passes_the_rule_written
         for s in (16000, 17000)
     ]
     assert pooled == ["0.970", "1.000"]
+
+
+def test_on_two_more_untouched_seeds_the_shipped_window_test_passes_its_rule():
+    """window_typicality_untouched2.md (seeds 18000 and 19000, rule written before their records were read),
+    recomputed for 19000: 1% and 3% false alarms on 100 fresh vanilla rollouts, 26 and 25 of 26 conditions alarmed,
+    no condition confidently under per rollout. context_energy_default_untouched3.md: the default pools 0.987 and
+    0.963, never confidently under 0.5."""
+    committed = (FULL / "window_typicality_untouched2.md").read_text()
+    full, fresh = (seed_run(19000, "observation") / f"context_energy_{k}" for k in ("full", "fresh"))
+    recomputed = window.run_section("s19000", full, fresh)
+    assert recomputed.strip() == f"## s19000\n\n{section(committed, 's19000')}"
+    rows = {seed: window_rows(committed, f"s{seed}") for seed in (18000, 19000)}
+    assert [windows_alarmed(r["held-out vanilla"][4])[0] for r in rows.values()] == [0.01, 0.03]
+    alarmed = [sum(windows_alarmed(r[c][4])[0] == 1.0 for c in sweep_conditions(r)) for r in rows.values()]
+    assert alarmed == [26, 25]
+    assert not any(r[c][2].endswith("!") for r in rows.values() for c in sweep_conditions(r))
+    summaries_md = (FULL / "context_energy_default_untouched3.md").read_text()
+    for seed, pooled in ((18000, "0.987"), (19000, "0.963")):
+        two_sided = summary_rows(f"## Score summary\n{section(summaries_md, f'seed{seed}')}")[
+            "context_energy_two_sided"
+        ]
+        assert two_sided[0][:5] == pooled and "!" not in two_sided[5]
 
 
 DEVELOPMENT_SEEDS = (6000, 9000, 10000, 11000, 12000, 13000, 14000, 15000)

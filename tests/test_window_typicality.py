@@ -6,9 +6,17 @@ import numpy as np
 import pytest
 
 from lerobot_policy_ebvla.monitoring.window_report import WindowRates, window_indices
-from lerobot_policy_ebvla.runtime import OODCalibration
+from lerobot_policy_ebvla.runtime import OODCalibration, PhaseStatistics
+from lerobot_policy_ebvla.runtime.scores import (
+    ContextEnergyTwoSided,
+    FinalEnergy,
+    FinalEnergyTwoSided,
+    PhaseEnergyDeviation,
+    PhaseEnergyTwoSided,
+)
 from lerobot_policy_ebvla.runtime.window import (
     HIGH_SCORES,
+    SHIFTED,
     TOO_TYPICAL,
     WindowTypicalityMonitor,
     WindowTypicalityTest,
@@ -19,21 +27,30 @@ def test_the_window_test_alarms_on_vanilla_windows_at_most_at_its_false_alarm_ra
     # Over fresh draws of the reference and of the window, as the conformal guarantee is stated.
     rng = np.random.default_rng(1)
     alarms = [
-        WindowTypicalityTest(tuple(rng.normal(size=40)), window=8).check(rng.normal(size=8)).is_atypical
+        WindowTypicalityTest(rng.normal(size=(40, 1)), window=8).check(rng.normal(size=8)).is_atypical
         for _ in range(3000)
     ]
     assert 0.02 < np.mean(alarms) <= 0.05 + 0.01
+
+    def both(values):  # a two-sided score's window values, |a| and a
+        return np.stack([np.abs(values), values], axis=1)
+
+    alarms = [
+        WindowTypicalityTest(both(rng.normal(size=40)), window=8).check(both(rng.normal(size=8))).is_atypical
+        for _ in range(3000)
+    ]
+    assert 0.015 < np.mean(alarms) <= 0.05 + 0.01
 
 
 def test_the_window_test_tells_high_scores_from_too_typical_ones():
     # A two-sided score, |z|: near 0 is typical, and a window of rollouts all near 0 is too typical.
     rng = np.random.default_rng(2)
-    test = WindowTypicalityTest(tuple(np.abs(rng.normal(size=40))), window=8)
+    test = WindowTypicalityTest(np.abs(rng.normal(size=(40, 1))), window=8)
     high = test.check(np.abs(rng.normal(3.0, 0.5, size=8)))
     typical = test.check(np.abs(rng.normal(0.0, 0.05, size=8)))
-    vanilla_like = test.check(np.quantile(test.reference_scores, np.linspace(0.05, 0.95, 8)))
-    assert high.is_atypical and high.side == HIGH_SCORES and high.auroc > 0.9
-    assert typical.is_atypical and typical.side == TOO_TYPICAL and typical.auroc < 0.1
+    vanilla_like = test.check(np.quantile(np.ravel(test.reference), np.linspace(0.05, 0.95, 8)))
+    assert high.is_atypical and high.side == HIGH_SCORES and high.aurocs[0] > 0.9
+    assert typical.is_atypical and typical.side == TOO_TYPICAL and typical.aurocs[0] < 0.1
     assert not vanilla_like.is_atypical and vanilla_like.side is None
     assert 0.0 < high.p_value <= 0.05 and vanilla_like.p_value > 0.5
 
@@ -41,13 +58,10 @@ def test_the_window_test_tells_high_scores_from_too_typical_ones():
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"reference_scores": (1.0,)}, "at least 2 finite"),
-        ({"reference_scores": (1.0, math.inf, 2.0)}, r"1 not finite"),
-        ({"reference_scores": (1.0, 2.0), "window": 0}, "`window` must be >= 1"),
-        (
-            {"reference_scores": (1.0, 2.0), "false_alarm_rate": 1.0},
-            r"`false_alarm_rate` must be in \(0, 1\)",
-        ),
+        ({"reference": ((1.0,),)}, r"at least 2 rows of finite vanilla window values, got shape \(1, 1\)"),
+        ({"reference": ((1.0,), (math.inf,), (2.0,))}, r"1 value\(s\) not finite"),
+        ({"reference": ((1.0,), (2.0,)), "window": 0}, "`window` must be >= 1"),
+        ({"reference": ((1.0,), (2.0,)), "false_alarm_rate": 1.0}, r"`false_alarm_rate` must be in \(0, 1\)"),
     ],
 )
 def test_the_window_test_refuses_a_bad_reference_or_setting(kwargs, match):
@@ -56,51 +70,79 @@ def test_the_window_test_refuses_a_bad_reference_or_setting(kwargs, match):
 
 
 def test_the_window_test_checks_exactly_one_window():
-    with pytest.raises(ValueError, match="A window holds 3 rollout scores, got 2"):
-        WindowTypicalityTest((1.0, 2.0, 3.0), window=3).check([1.0, 2.0])
+    test = WindowTypicalityTest(((1.0, 0.0), (2.0, 0.0), (3.0, 0.0)), window=3)
+    with pytest.raises(
+        ValueError, match=r"A window holds 3 rollouts of 2 window value\(s\) each.*got shape \(2, 2\)"
+    ):
+        test.check([[1.0, 0.0], [2.0, 0.0]])
+
+
+def test_a_two_sided_scores_window_also_tests_its_signed_aggregate_at_half_the_rate():
+    # |a| of the window inside vanilla's spread, a itself all on one side: only the signed test sees it.
+    rng = np.random.default_rng(4)
+    signed = rng.normal(size=40)
+    test = WindowTypicalityTest(np.stack([np.abs(signed), signed], axis=1), window=8)
+    shifted = np.full(8, 0.7) + rng.normal(0, 0.05, size=8)
+    decision = test.check(np.stack([np.abs(shifted), shifted], axis=1))
+    assert decision.side == SHIFTED and decision.aurocs[1] > 0.75
+    assert decision.p_value == pytest.approx(2 * decision.p_values[1]) and decision.p_values[0] > 0.05
+
+
+def test_the_two_sided_scores_give_the_window_their_signed_aggregate():
+    phase = PhaseStatistics((0.0,), (1.0,))
+    aggregates = np.array([[-1.5], [2.0]])
+    two_sided = [FinalEnergyTwoSided(0.0, 1.0), PhaseEnergyTwoSided(phase), ContextEnergyTwoSided(phase)]
+    for score in two_sided:
+        assert np.allclose(score.window_values(aggregates), [[1.5, -1.5], [2.0, 2.0]]), score.name
+    for score in (FinalEnergy(), PhaseEnergyDeviation(phase)):
+        assert np.allclose(score.window_values(aggregates), [[-1.5], [2.0]]), score.name
 
 
 def calibration_with_reference(reference=None):
-    reference = tuple(np.linspace(4.0, 6.0, 40)) if reference is None else reference
-    return OODCalibration.fit(np.linspace(4.0, 6.0, 20), reference_scores=reference)
+    reference = np.linspace(4.0, 6.0, 40)[:, None] if reference is None else reference
+    return OODCalibration.fit(np.linspace(4.0, 6.0, 20), window_reference=reference)
 
 
 def test_the_monitor_decides_once_it_has_a_window_and_then_on_the_last_rollouts():
     monitor = WindowTypicalityMonitor(calibration_with_reference(), window=3)
-    assert monitor.add_score(5.0) is None and monitor.add_score(5.1) is None
-    first = monitor.add_score(4.9)
-    assert first.rollout_scores == (5.0, 5.1, 4.9) and not first.is_atypical
+    assert monitor.add_values([5.0]) is None and monitor.add_values([5.1]) is None
+    first = monitor.add_values([4.9])
+    assert first.rollout_values == ((5.0,), (5.1,), (4.9,)) and not first.is_atypical
     for _ in range(3):
-        last = monitor.add_score(9.0)
-    assert last.rollout_scores == (9.0, 9.0, 9.0) and last.is_atypical and last.side == HIGH_SCORES
+        last = monitor.add_values([9.0])
+    assert last.rollout_values == ((9.0,),) * 3 and last.is_atypical and last.side == HIGH_SCORES
     monitor.reset()
-    assert monitor.add_score(5.0) is None
+    assert monitor.add_values([5.0]) is None
 
 
 def test_the_monitor_scores_a_rollout_as_the_calibration_does():
     monitor = WindowTypicalityMonitor(calibration_with_reference(), window=1)
     decision = monitor.add_rollout(np.array([4.0, 5.0, 6.0]))  # the final energy's mean
-    assert decision.rollout_scores == (5.0,)
+    assert decision.rollout_values == ((5.0,),)
 
 
-def test_the_monitor_needs_a_calibration_with_reference_scores():
-    with pytest.raises(ValueError, match=r"no `reference_scores`.*ebvla-ood-report --calibrate_to"):
+def test_the_monitor_needs_a_calibration_with_a_window_reference():
+    with pytest.raises(ValueError, match=r"no `window_reference`.*ebvla-ood-report --calibrate_to"):
         WindowTypicalityMonitor(OODCalibration.fit([4.0, 5.0, 6.0]))
 
 
-def test_the_reference_scores_are_saved_with_the_calibration_and_read_back(tmp_path):
-    calibration_with_reference((4.0, 5.5, 6.0)).save(tmp_path)
+def test_the_window_reference_is_saved_with_the_calibration_and_read_back(tmp_path):
+    calibration_with_reference([[4.0, -4.0], [5.5, 5.5], [6.0, -6.0]]).save(tmp_path)
     monitor = WindowTypicalityMonitor.from_pretrained(tmp_path, window=2, false_alarm_rate=0.1)
-    assert monitor.calibration.reference_scores == (4.0, 5.5, 6.0)
+    assert monitor.calibration.window_reference == ((4.0, -4.0), (5.5, 5.5), (6.0, -6.0))
     assert monitor.test.window == 2 and monitor.test.false_alarm_rate == 0.1
     (tmp_path / "without").mkdir()
     OODCalibration.fit([1.0, 2.0]).save(tmp_path / "without")
-    assert OODCalibration.load(tmp_path / "without").reference_scores is None
+    assert OODCalibration.load(tmp_path / "without").window_reference is None
 
 
-def test_a_calibration_refuses_non_finite_reference_scores():
-    with pytest.raises(ValueError, match="`reference_scores` must be finite"):
-        OODCalibration.fit([1.0, 2.0], reference_scores=(1.0, math.nan))
+def test_a_calibration_refuses_non_finite_or_ragged_window_references():
+    with pytest.raises(ValueError, match="`window_reference` must be finite"):
+        OODCalibration.fit([1.0, 2.0], window_reference=[[1.0], [math.nan]])
+    with pytest.raises(
+        ValueError, match=r"one row of window values per vanilla rollout; got shape \(2, 2, 1\)"
+    ):
+        OODCalibration(1.0, 0.5, window_reference=[[[1.0], [2.0]], [[1.0], [2.0]]])
 
 
 def test_window_indices_are_every_window_or_distinct_draws():
@@ -111,8 +153,9 @@ def test_window_indices_are_every_window_or_distinct_draws():
 
 
 def test_window_rates_count_the_alarmed_windows_and_their_side():
-    test = WindowTypicalityTest(tuple(np.linspace(0.0, 1.0, 40)), window=2, false_alarm_rate=0.05)
+    test = WindowTypicalityTest(np.linspace(0.0, 1.0, 40)[:, None], window=2, false_alarm_rate=0.05)
     # Two far-high rollouts and two at the centre: only the windows of both high ones alarm.
-    rates = WindowRates.of(test, np.array([5.0, 5.0, 0.5, 0.5]), max_windows=100)
-    assert rates.n_windows == 6 and rates.alarmed == pytest.approx(1 / 6) and rates.too_typical == 0.0
-    assert math.isnan(WindowRates.of(test, np.array([0.5]), max_windows=100).alarmed)
+    rates = WindowRates.of(test, np.array([[5.0], [5.0], [0.5], [0.5]]), max_windows=100)
+    assert rates.n_windows == 6 and rates.alarmed == pytest.approx(1 / 6)
+    assert rates.too_typical == 0.0 and rates.shifted == 0.0
+    assert math.isnan(WindowRates.of(test, np.array([[0.5]]), max_windows=100).alarmed)

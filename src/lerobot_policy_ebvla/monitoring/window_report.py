@@ -16,8 +16,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..runtime.calibration import OODCalibration
-from ..runtime.window import TOO_TYPICAL, WindowTypicalityTest
-from .baselines import fit_score_reference, registered_scores
+from ..runtime.scores import SCORES
+from ..runtime.window import SHIFTED, TOO_TYPICAL, WindowTypicalityTest
+from .baselines import chunk_inputs, fit_score_reference, registered_scores, vanilla_rollouts
 from .metrics import BinaryRates, auroc, bootstrap_auroc_interval, markdown_table, percent
 from .records import Episode
 from .score_summary import successes
@@ -42,47 +43,81 @@ def window_indices(n_rollouts: int, window: int, max_windows: int, seed: int = 0
 
 @dataclass(frozen=True)
 class WindowRates:
-    """How many windows of a set were tested, the share alarmed, and the share alarmed as too typical."""
+    """How many windows of a set were tested, the share alarmed, and the shares alarmed as too typical and as
+    shifted (`runtime.window`'s sides)."""
 
     n_windows: int
     alarmed: float
     too_typical: float
+    shifted: float
 
     @classmethod
     def of(
-        cls, test: WindowTypicalityTest, rollout_scores: np.ndarray, max_windows: int, seed: int = 0
+        cls, test: WindowTypicalityTest, rollout_values: np.ndarray, max_windows: int, seed: int = 0
     ) -> "WindowRates":
+        """Over the windows of a set's rollouts' window values, (N, m)."""
         decisions = [
-            test.check(rollout_scores[list(w)])
-            for w in window_indices(len(rollout_scores), test.window, max_windows, seed)
+            test.check(rollout_values[list(w)])
+            for w in window_indices(len(rollout_values), test.window, max_windows, seed)
         ]
         if not decisions:
-            return cls(0, math.nan, math.nan)
+            return cls(0, math.nan, math.nan, math.nan)
         return cls(
             len(decisions),
             float(np.mean([d.is_atypical for d in decisions])),
             float(np.mean([d.side == TOO_TYPICAL for d in decisions])),
+            float(np.mean([d.side == SHIFTED for d in decisions])),
         )
 
 
-def rollout_scores_of(
+def window_values_of(
+    calibration: OODCalibration, episodes: Mapping[Hashable, Episode], first_chunks: int | None = None
+) -> np.ndarray:
+    """(M, m): each episode's `OODCalibration.window_values` against the calibration's fitted score, over its
+    first k chunks (None: the whole episode), in `episodes` order."""
+    return np.stack(
+        [
+            calibration.window_values(calibration.score.components(chunk_inputs(episode))[:first_chunks])
+            for episode in episodes.values()
+        ]
+    )
+
+
+@dataclass
+class ScoredSet:
+    """A set's episodes, their rollout scores and their window values against one calibration."""
+
+    episodes: Mapping[Hashable, Episode]
+    scores: np.ndarray
+    values: np.ndarray
+
+
+def score_sets(
     calibration: Mapping[Hashable, Episode],
     sets: Mapping[str, Mapping[Hashable, Episode]],
     score: str,
     first_chunks: int | None,
     aggregation: str = "mean",
-) -> tuple[OODCalibration, dict[str, np.ndarray]]:
-    """The calibration of `score` (T from its rollouts' leave-one-out scores, as `ebvla-ood-report` fits it) and
-    each set's rollout scores against it, over each episode's first k chunks (None: whole episodes)."""
+) -> tuple[OODCalibration, dict[str, ScoredSet]]:
+    """The calibration `ebvla-ood-report --calibrate_to` would save for `score` (T from the calibration rollouts'
+    leave-one-out scores, the score fitted on all of them) and each set scored against it, over each episode's
+    first k chunks (None: whole episodes)."""
     registered = [score] if score in registered_scores() else []
     features = any(r.context_feature is not None for e in calibration.values() for r in e)
     reference = fit_score_reference(
         calibration, features=features, registered=registered, aggregation=aggregation
     )
-    calibration_scores = episode_scores(calibration, score, aggregation, reference, first_chunks)
-    fitted = OODCalibration.fit(calibration_scores, aggregation=aggregation)
+    fitted = OODCalibration.fit(
+        episode_scores(calibration, score, aggregation, reference, first_chunks),
+        aggregation=aggregation,
+        score=SCORES[score].fit(vanilla_rollouts(calibration, aggregation)),
+    )
     return fitted, {
-        name: episode_scores(episodes, score, aggregation, reference, first_chunks)
+        name: ScoredSet(
+            episodes,
+            episode_scores(episodes, score, aggregation, reference, first_chunks),
+            window_values_of(fitted, episodes, first_chunks),
+        )
         for name, episodes in sets.items()
     }
 
@@ -90,38 +125,40 @@ def rollout_scores_of(
 def window_table(
     test: WindowTypicalityTest,
     threshold: float,
-    vanilla: Mapping[Hashable, Episode],
-    vanilla_scores: np.ndarray,
-    conditions: Mapping[str, tuple[Mapping[Hashable, Episode], np.ndarray]],
+    vanilla: ScoredSet,
+    conditions: Mapping[str, ScoredSet],
     max_windows: int = DEFAULT_MAX_WINDOWS,
     n_bootstrap: int = 1000,
 ) -> str:
     """The held-out vanilla rollouts, then each condition: success, the per-rollout AUROC [95% interval] and
-    alarm rate at T, and the share of its windows alarmed (of them, too typical). A "!" marks a per-rollout
-    AUROC whose interval lies wholly under 0.5 (confidently wrong)."""
+    alarm rate at T, and the share of its windows alarmed (of them, too typical / shifted). A "!" marks a
+    per-rollout AUROC whose interval lies wholly under 0.5 (confidently wrong)."""
 
-    def row(name, episodes, scores, area):
-        rates = WindowRates.of(test, scores, max_windows)
+    def row(name, scored, area):
+        rates = WindowRates.of(test, scored.values, max_windows)
         return [
             name,
-            str(len(scores)),
-            successes(episodes),
+            str(len(scored.scores)),
+            successes(scored.episodes),
             area,
-            percent(BinaryRates.from_scores([], scores, threshold).tpr, 0),
-            f"{percent(rates.alarmed, 0)} ({percent(rates.too_typical, 0)}) of {rates.n_windows}",
+            percent(BinaryRates.from_scores([], scored.scores, threshold).tpr, 0),
+            f"{percent(rates.alarmed, 0)} ({percent(rates.too_typical, 0)} / {percent(rates.shifted, 0)}) "
+            f"of {rates.n_windows}",
         ]
 
-    rows = [row("held-out vanilla", vanilla, vanilla_scores, "")]
-    for name, (episodes, scores) in conditions.items():
-        low, high = bootstrap_auroc_interval(vanilla_scores, scores, n_bootstrap)
-        area = f"{auroc(vanilla_scores, scores):.2f} [{low:.2f}, {high:.2f}]{'!' if high < 0.5 else ''}"
-        rows.append(row(name, episodes, scores, area))
+    rows = [row("held-out vanilla", vanilla, "")]
+    for name, scored in conditions.items():
+        low, high = bootstrap_auroc_interval(vanilla.scores, scored.scores, n_bootstrap)
+        area = (
+            f"{auroc(vanilla.scores, scored.scores):.2f} [{low:.2f}, {high:.2f}]{'!' if high < 0.5 else ''}"
+        )
+        rows.append(row(name, scored, area))
     headers = [
         "Set",
         "n",
         "success",
         "rollout AUROC",
         "rollout alarms at T",
-        f"windows of {test.window} alarmed (too typical)",
+        f"windows of {test.window} alarmed (too typical / shifted)",
     ]
     return markdown_table(headers, rows)

@@ -26,7 +26,16 @@ import numpy as np
 from torch import Tensor
 
 from .checkpoint_files import CheckpointJSON
-from .scores import SCORE_AGGREGATIONS, SCORES, ChunkInputs, ChunkScore, FinalEnergy, score_rollout
+from .scores import (
+    SCORE_AGGREGATIONS,
+    SCORES,
+    ChunkInputs,
+    ChunkScore,
+    FinalEnergy,
+    rollout_aggregates,
+    score_rollout,
+)
+from .statistics import float64
 from .threshold import ArrayLike, MeanStd, as_array, conformal_threshold, mean_std_threshold
 
 OOD_CALIBRATION_FILENAME = "ood_calibration.json"
@@ -58,9 +67,10 @@ class OODCalibration(CheckpointJSON):
         rule: Which threshold the monitor applies: "mean_std" (Eq. 5, the paper's, default) or "conformal".
         score: The chunk score the statistics are of, with what it was fitted on (a `ChunkScore` of
             `scores.SCORES`; the final energy, the paper's, by default).
-        reference_scores: Rollout scores of vanilla rollouts kept out of the fit, scored against it (the
-            report's held-out `--vanilla` rollouts), what the window typicality test ranks a window of
-            rollouts against (`window.WindowTypicalityMonitor`); None when not recorded.
+        window_reference: The window test's reference (`window.WindowTypicalityMonitor`): for each vanilla
+            rollout kept out of the fit (the report's held-out `--vanilla` rollouts), its `window_values`
+            against the fit, M rows of m values (the score; a two-sided score's signed aggregate too); None
+            when not recorded.
     """
 
     mu_v: float
@@ -72,7 +82,7 @@ class OODCalibration(CheckpointJSON):
     conformal_threshold: float | None = None
     rule: str = "mean_std"
     score: ChunkScore = field(default_factory=FinalEnergy)
-    reference_scores: tuple[float, ...] | None = None
+    window_reference: tuple[tuple[float, ...], ...] | None = None
 
     filename = OOD_CALIBRATION_FILENAME
     what = "OOD calibration"
@@ -91,11 +101,14 @@ class OODCalibration(CheckpointJSON):
             raise ValueError(
                 "`rule='conformal'` needs a `conformal_threshold` (fit with `false_alarm_rate`)."
             )
-        if self.reference_scores is not None:
-            reference = np.asarray(self.reference_scores, dtype=np.float64).reshape(-1)
-            if not np.isfinite(reference).all():
-                raise ValueError("`reference_scores` must be finite (vanilla rollout scores).")
-            object.__setattr__(self, "reference_scores", tuple(float(r) for r in reference))
+        if self.window_reference is not None:
+            reference = np.asarray(self.window_reference, dtype=np.float64)
+            if reference.ndim != 2 or not np.isfinite(reference).all():
+                raise ValueError(
+                    "`window_reference` must be finite, one row of window values per vanilla rollout; got shape "
+                    f"{reference.shape}."
+                )
+            object.__setattr__(self, "window_reference", tuple(tuple(map(float, row)) for row in reference))
         if SCORES.get(getattr(self.score, "name", None)) is not type(self.score):
             raise ValueError(
                 f"`score` must be a `ChunkScore` registered in `SCORES` ({', '.join(SCORES)}), got {self.score!r}."
@@ -111,7 +124,7 @@ class OODCalibration(CheckpointJSON):
         false_alarm_rate: float | None = None,
         rule: str = "mean_std",
         score: ChunkScore | None = None,
-        reference_scores: ArrayLike | None = None,
+        window_reference: ArrayLike | None = None,
     ) -> "OODCalibration":
         """Estimates mu_v and sigma_v, and with `false_alarm_rate` the conformal threshold, from vanilla scores.
 
@@ -122,7 +135,7 @@ class OODCalibration(CheckpointJSON):
             vanilla_scores: The vanilla rollouts' scores, each aggregated from its chunks' `score` with
                 `aggregation`.
             score: The fitted chunk score `vanilla_scores` were computed with; the final energy when None.
-            reference_scores: Held-out vanilla rollouts' scores for the window test (see the class).
+            window_reference: Held-out vanilla rollouts' window values, (M, m) (see the class).
 
         Raises:
             ValueError: No finite score to fit on.
@@ -141,7 +154,7 @@ class OODCalibration(CheckpointJSON):
             conformal_threshold=conformal,
             rule=rule,
             score=FinalEnergy() if score is None else score,
-            reference_scores=None if reference_scores is None else tuple(as_array(reference_scores)),
+            window_reference=None if window_reference is None else np.atleast_2d(float64(window_reference)),
         )
 
     @property
@@ -207,19 +220,21 @@ class OODCalibration(CheckpointJSON):
         """
         return score_rollout(self.score, components, self.aggregation)
 
-    def score_chunks(
+    def rollout_components(
         self,
         chunk_energies: ArrayLike,
         context_features: ArrayLike | None = None,
         context_energies: ArrayLike | None = None,
-    ) -> float:
-        """A finished rollout's score from its chunks' final energies (chunks 0, 1, ...), and the chunks' pooled
-        contexts ((N, D)) or E_c(C) ((N,)) where the score reads them: `chunk_components`, then `score_rollout`."""
+    ) -> np.ndarray:
+        """A finished rollout's `chunk_components`, from its chunks' final energies (chunks 0, 1, ...) and the
+        chunks' pooled contexts ((N, D)) or E_c(C) ((N,)) where the score reads them."""
         energies = as_array(chunk_energies)
-        components = self.chunk_components(
-            energies, np.arange(energies.size), context_features, context_energies
-        )
-        return self.score_rollout(components)
+        return self.chunk_components(energies, np.arange(energies.size), context_features, context_energies)
+
+    def window_values(self, components: ArrayLike) -> np.ndarray:
+        """(m,) what the window test compares of a rollout, from its chunks' `chunk_components` in chunk order:
+        each column aggregated, then the score's `window_values` (the rollout score first)."""
+        return self.score.window_values(rollout_aggregates(self.score, components, self.aggregation))[0]
 
     @property
     def threshold(self) -> float:

@@ -81,7 +81,8 @@ class EnergyOODMonitor:
         `context_features`, (N, D) one pooled context per chunk, is needed by a context calibration;
         `context_energies`, (N,) E_c(C) of each chunk, by a context-energy calibration.
         """
-        return self._decide(self.calibration.score_chunks(chunk_energies, context_features, context_energies))
+        components = self.calibration.rollout_components(chunk_energies, context_features, context_energies)
+        return self._decide(self.calibration.score_rollout(components))
 
     def update(
         self,

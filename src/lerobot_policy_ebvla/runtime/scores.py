@@ -273,6 +273,11 @@ class ChunkScore(Protocol):
         """(R,) scores from (R, n_components) components, each aggregated over a rollout (or one chunk's)."""
         return aggregates[:, 0]
 
+    def window_values(self, aggregates: np.ndarray) -> np.ndarray:
+        """(R, m) what the window test (`window.py`) compares per rollout, from (R, n_components) aggregates: the
+        score itself, (R, 1), unless the score says otherwise."""
+        return self.combine(aggregates)[:, None]
+
     def to_json(self) -> dict[str, Any]:
         """The JSON fields (`json_fields`) and the statistics of each side file, by its JSON field."""
         return {}
@@ -289,6 +294,15 @@ def score_rollout(score: ChunkScore, components: ArrayLike, aggregation: str) ->
     Raises:
         ValueError: `components` is not (N >= 1, n_components).
     """
+    return float(score.combine(rollout_aggregates(score, components, aggregation))[0])
+
+
+def rollout_aggregates(score: ChunkScore, components: ArrayLike, aggregation: str) -> np.ndarray:
+    """(1, n_components): each column of a rollout's (N, n_components) chunk components aggregated over its chunks.
+
+    Raises:
+        ValueError: `components` is not (N >= 1, n_components).
+    """
     components = float64(components)
     n = score.n_components
     if components.ndim != 2 or components.shape[1] != n:
@@ -296,8 +310,7 @@ def score_rollout(score: ChunkScore, components: ArrayLike, aggregation: str) ->
             f"`components` of a {score.name} rollout must be (N, {n}), one row of `chunk_components` per "
             f"chunk; got shape {components.shape}."
         )
-    aggregates = np.array([[rollout_score(column, aggregation) for column in components.T]])
-    return float(score.combine(aggregates)[0])
+    return np.array([[rollout_score(column, aggregation) for column in components.T]])
 
 
 def _check_statistics(score: str, attribute: str, value: object, kind: type) -> None:
@@ -315,6 +328,20 @@ def _pair(fields: dict[str, Any], mean: str, std: str, score: str, kind: type) -
     if values[0] is None:
         raise ValueError(f"`score={score!r}` needs `{mean}` and `{std}` (`{kind.__name__}`).")
     return values
+
+
+class AbsoluteOfAggregate:
+    """A two-sided score |a|, a the rollout's one aggregated (signed) component.
+
+    The window test compares a as well as |a|: a small shift the same way on every rollout (issue 32's mild noise
+    raises E_c a little on each) hides inside vanilla's spread of |a| but not of a.
+    """
+
+    def combine(self, aggregates: np.ndarray) -> np.ndarray:
+        return np.abs(aggregates[:, 0])
+
+    def window_values(self, aggregates: np.ndarray) -> np.ndarray:
+        return np.stack([np.abs(aggregates[:, 0]), aggregates[:, 0]], axis=1)
 
 
 @dataclass(frozen=True)
@@ -488,7 +515,7 @@ class ContextEnergy(ChunkScore):
 
 
 @dataclass(frozen=True)
-class FinalEnergyTwoSided(ChunkScore):
+class FinalEnergyTwoSided(AbsoluteOfAggregate, ChunkScore):
     """|E - mu_E| / sigma_E of a rollout's aggregated final energy, mu_E and sigma_E of every vanilla chunk's:
     high when the energy leaves the vanilla band on either side."""
 
@@ -515,9 +542,6 @@ class FinalEnergyTwoSided(ChunkScore):
     def components(self, chunks: ChunkInputs) -> np.ndarray:
         return ((chunks.final_energy - self.mean) / self.std)[:, None]
 
-    def combine(self, aggregates: np.ndarray) -> np.ndarray:
-        return np.abs(aggregates[:, 0])
-
     def to_json(self) -> dict[str, Any]:
         return {"energy_mean": self.mean, "energy_std": self.std}
 
@@ -527,14 +551,11 @@ class FinalEnergyTwoSided(ChunkScore):
 
 
 @dataclass(frozen=True)
-class PhaseEnergyTwoSided(PhaseEnergy):
+class PhaseEnergyTwoSided(AbsoluteOfAggregate, PhaseEnergy):
     """|z_t| of the phase energy: the rollout's aggregated z against the vanilla energy at the same chunk
     indices, on either side."""
 
     name = "phase_energy_two_sided"
-
-    def combine(self, aggregates: np.ndarray) -> np.ndarray:
-        return np.abs(aggregates[:, 0])
 
 
 @dataclass(frozen=True)

@@ -1,23 +1,26 @@
-"""The window typicality test: whether the last n rollouts' scores, taken together, look like vanilla's.
+"""The window typicality test: whether the last n rollouts, taken together, look like vanilla's.
 
-A per-rollout score cannot flag a shift that makes rollouts *more* typical than vanilla's own. Issue 32's mild
-shifts (a light from another side, sensor noise, a slight blur) pull the joint energy's context term toward its
-vanilla mean at every chunk index, and the two-sided context-energy score then alarms on none of those rollouts
-(against 2% of vanilla's): one rollout near the centre is normal, n in a row are not. Over a window of rollouts
-run under the same conditions this is a batch typicality test (Nalisnick et al. 2019), two-sided: the window's
-rollout scores (the calibration's, `OODCalibration.score_rollout`) against M reference scores, vanilla rollouts
-scored against the calibration but not used to fit it, by the Mann-Whitney U test (scipy's, exact for a window
-of at most 8). Its statistic, as the share of (window, reference) pairs in which the window's score is higher,
-is the window's AUROC against the reference: above 1/2 the scores are above vanilla's (what the per-rollout
-threshold also sees, here from several rollouts at once), under it they are below them (too typical).
+A per-rollout score cannot flag a shift that makes rollouts *more* typical than vanilla's own, or one that moves
+every rollout a little the same way inside vanilla's spread. Issue 32's mild shifts (a light from another side,
+sensor noise, a slight blur) do both to the joint energy's context term, and the two-sided context-energy score
+then alarms on none of those rollouts (against 2% of vanilla's): one rollout near the centre, or a little above
+it, is normal; n in a row are not. Over a window of rollouts run under the same conditions this is a batch
+typicality test (Nalisnick et al. 2019), two-sided: each of the rollouts' window values (`OODCalibration.window_values`:
+the calibration's rollout score, and for a two-sided score |a| also its signed aggregate a) against the M
+reference rows, vanilla rollouts scored against the calibration but not used to fit it, by the Mann-Whitney U
+test (scipy's, exact for a window of at most 8), each of the m values at alpha / m (Bonferroni). A value's
+statistic, as the share of (window, reference) pairs in which the window's is higher, is the window's AUROC
+against the reference: for the score above 1/2 the rollouts score above vanilla's (what the per-rollout threshold
+also sees, here from several rollouts at once), under it below them (too typical); for the signed aggregate,
+away from 1/2 the rollouts have all shifted one way.
 
-Ranks, not the scores' mean: the calibration's scores have a heavy right tail (one rollout scoring 10-15 times
+Ranks, not the values' mean: the calibration's scores have a heavy right tail (one rollout scoring 10-15 times
 the median), and a mean moves with it. The rank-sum law, not n independent conformal ranks: the window's ranks
 share one reference, which adds 1/(12 M) to the variance of their mean (with M = 40 the independent law alarmed
-on 6.6% of vanilla windows at alpha = 5%). Held-out reference scores, not the calibration rollouts'
-leave-one-out ones: those sit above fresh vanilla's (AUROC 0.49-0.66 on five training seeds). And enough of them:
-the false-alarm rate is alpha over draws of the reference, not for each reference; on eight training seeds 20
-reference rollouts gave 1-42% on held-out vanilla windows of 8, 40 gave 4-7% (docs/monitoring.md).
+on 6.6% of vanilla windows at alpha = 5%). Held-out reference rollouts, not the calibration rollouts'
+leave-one-out scores: those sit above fresh vanilla's (AUROC 0.49-0.66 on five training seeds). And enough of
+them: the false-alarm rate is alpha over draws of the reference, not for each reference; on eight training seeds
+20 reference rollouts gave 0-29% on held-out vanilla windows of 8, 40 gave 2-5% (docs/monitoring.md).
 """
 
 from collections import deque
@@ -28,14 +31,15 @@ import numpy as np
 from scipy.stats import mannwhitneyu
 
 from .calibration import OODCalibration
-from .threshold import ArrayLike, as_array
+from .statistics import float64
+from .threshold import ArrayLike
 
-# Rollouts per window unless told: the too-typical shift it was chosen on (issue 32, seed 12000's light from
-# another side) is alarmed on 83% of windows of 8 fresh rollouts.
+# Rollouts per window unless told: chosen on issue 32's development seeds, where windows of 8 alarm on 2-4% of
+# fresh vanilla windows and on 57-92% of those of the mild shifts that hide from the per-rollout score.
 DEFAULT_WINDOW = 8
 DEFAULT_WINDOW_FALSE_ALARM_RATE = 0.05
-# The sides a window can leave the reference on.
-HIGH_SCORES, TOO_TYPICAL = "high_scores", "too_typical"
+# Which way a window left the reference: its scores above vanilla's, below them, or its signed aggregate moved.
+HIGH_SCORES, TOO_TYPICAL, SHIFTED = "high_scores", "too_typical", "shifted"
 
 
 @dataclass(frozen=True)
@@ -43,16 +47,22 @@ class WindowDecision:
     """The test's verdict on one window of rollouts.
 
     Attributes:
-        rollout_scores: The window's rollout scores, oldest first.
-        auroc: The share of (window, reference) score pairs in which the window's is higher (ties half), U / (n M).
-        p_value: The two-sided Mann-Whitney p-value of the window against the reference.
-        false_alarm_rate: alpha, the p-value at or under which the window is atypical.
+        rollout_values: The window's rollouts' window values, (n, m) as nested tuples, oldest first.
+        aurocs: Per value, the share of (window, reference) pairs in which the window's is higher (ties half),
+            U / (n M).
+        p_values: Per value, the two-sided Mann-Whitney p-value of the window against the reference.
+        false_alarm_rate: alpha; the window is atypical when a value's p-value is at most alpha / m.
     """
 
-    rollout_scores: tuple[float, ...]
-    auroc: float
-    p_value: float
+    rollout_values: tuple[tuple[float, ...], ...]
+    aurocs: tuple[float, ...]
+    p_values: tuple[float, ...]
     false_alarm_rate: float
+
+    @property
+    def p_value(self) -> float:
+        """The window's p-value over its m tests (Bonferroni): m times the smallest, at most 1."""
+        return min(1.0, len(self.p_values) * min(self.p_values))
 
     @property
     def is_atypical(self) -> bool:
@@ -60,63 +70,75 @@ class WindowDecision:
 
     @property
     def side(self) -> str | None:
-        """ "high_scores" (scores above the reference's), "too_typical" (below them), None when typical."""
+        """ "high_scores" or "too_typical" (the score's test decided: above or below vanilla's), "shifted" (a
+        two-sided score's signed aggregate moved one way), None when typical."""
         if not self.is_atypical:
             return None
-        return HIGH_SCORES if self.auroc > 0.5 else TOO_TYPICAL
+        which = int(np.argmin(self.p_values))
+        if which > 0:
+            return SHIFTED
+        return HIGH_SCORES if self.aurocs[0] > 0.5 else TOO_TYPICAL
 
 
 @dataclass(frozen=True)
 class WindowTypicalityTest:
-    """The two-sided test of a window of rollout scores against M reference scores (see the module).
+    """The two-sided test of a window of rollouts' values against M reference rows (see the module).
 
     Args:
-        reference_scores: Vanilla rollout scores, each scored against the calibration without being in its
-            fit (`OODCalibration.reference_scores`).
+        reference: (M, m) window values of vanilla rollouts, each scored against the calibration without being
+            in its fit (`OODCalibration.window_reference`), as nested tuples or an array.
         window: n, the rollouts a decision is on.
         false_alarm_rate: alpha, the chance that a window of n vanilla rollouts is called atypical (over draws
             of the reference as well as of the window).
     """
 
-    reference_scores: tuple[float, ...]
+    reference: tuple[tuple[float, ...], ...]
     window: int = DEFAULT_WINDOW
     false_alarm_rate: float = DEFAULT_WINDOW_FALSE_ALARM_RATE
 
     def __post_init__(self):
-        reference = as_array(self.reference_scores)
-        if reference.size < 2 or not np.isfinite(reference).all():
+        reference = np.atleast_2d(float64(self.reference))
+        if reference.shape[0] < 2 or not np.isfinite(reference).all():
             raise ValueError(
-                f"`reference_scores` needs at least 2 finite vanilla rollout scores, got {reference.size} "
-                f"({int((~np.isfinite(reference)).sum())} not finite)."
+                f"`reference` needs at least 2 rows of finite vanilla window values, got shape {reference.shape} "
+                f"({int((~np.isfinite(reference)).sum())} value(s) not finite)."
             )
         if self.window < 1:
             raise ValueError(f"`window` must be >= 1 rollout, got {self.window}.")
         if not 0.0 < self.false_alarm_rate < 1.0:
             raise ValueError(f"`false_alarm_rate` must be in (0, 1), got {self.false_alarm_rate}.")
-        object.__setattr__(self, "reference_scores", tuple(float(r) for r in reference))
+        object.__setattr__(self, "reference", tuple(tuple(map(float, row)) for row in reference))
 
-    def check(self, rollout_scores: ArrayLike) -> WindowDecision:
-        """Tests `window` rollout scores, oldest first. A non-finite score (a diverged refinement) counts as
-        above every reference score.
+    def check(self, rollout_values: ArrayLike) -> WindowDecision:
+        """Tests `window` rollouts' values, (n, m) oldest first (a 1-d array for m = 1). A non-finite value (a
+        diverged refinement) counts as above every reference value.
 
         Raises:
-            ValueError: Not exactly `window` scores.
+            ValueError: Not `window` rows of the reference's m values.
         """
-        scores = as_array(rollout_scores)
-        if scores.size != self.window:
-            raise ValueError(f"A window holds {self.window} rollout scores, got {scores.size}.")
-        ranked = np.where(np.isnan(scores), np.inf, scores)
-        result = mannwhitneyu(ranked, self.reference_scores, alternative="two-sided", method="auto")
+        values = float64(rollout_values)
+        reference = np.asarray(self.reference)
+        values = values[:, None] if values.ndim == 1 and reference.shape[1] == 1 else values
+        if values.shape != (self.window, reference.shape[1]):
+            raise ValueError(
+                f"A window holds {self.window} rollouts of {reference.shape[1]} window value(s) each, "
+                f"(n, m) = ({self.window}, {reference.shape[1]}); got shape {values.shape}."
+            )
+        ranked = np.where(np.isnan(values), np.inf, values)
+        tests = [
+            mannwhitneyu(ranked[:, j], reference[:, j], alternative="two-sided", method="auto")
+            for j in range(reference.shape[1])
+        ]
         return WindowDecision(
-            tuple(float(s) for s in scores),
-            float(result.statistic) / (scores.size * len(self.reference_scores)),
-            float(result.pvalue),
+            tuple(tuple(map(float, row)) for row in values),
+            tuple(float(t.statistic) / (self.window * reference.shape[0]) for t in tests),
+            tuple(float(t.pvalue) for t in tests),
             self.false_alarm_rate,
         )
 
 
 class WindowTypicalityMonitor:
-    """Keeps the last n rollouts' scores and tests them together once there are n.
+    """Keeps the last n rollouts' window values and tests them together once there are n.
 
     Opt-in, beside the per-rollout monitor (`EnergyOODMonitor`): it needs n rollouts under the same conditions
     before it can say anything, and then says it of the conditions, not of one rollout.
@@ -136,15 +158,14 @@ class WindowTypicalityMonitor:
         window: int = DEFAULT_WINDOW,
         false_alarm_rate: float = DEFAULT_WINDOW_FALSE_ALARM_RATE,
     ):
-        if calibration.reference_scores is None:
+        if calibration.window_reference is None:
             raise ValueError(
-                "The calibration has no `reference_scores` (held-out vanilla rollout scores) for a window test; "
-                "save it again with `ebvla-ood-report --calibrate_to=...`, which records the --vanilla rollouts' "
-                "scores."
+                "The calibration has no `window_reference` (held-out vanilla rollouts) for a window test; save it "
+                "again with `ebvla-ood-report --calibrate_to=...`, which records the --vanilla rollouts' values."
             )
         self.calibration = calibration
-        self.test = WindowTypicalityTest(calibration.reference_scores, window, false_alarm_rate)
-        self._scores: deque[float] = deque(maxlen=window)
+        self.test = WindowTypicalityTest(calibration.window_reference, window, false_alarm_rate)
+        self._values: deque[np.ndarray] = deque(maxlen=window)
 
     @classmethod
     def from_pretrained(
@@ -156,12 +177,13 @@ class WindowTypicalityMonitor:
         """Builds the monitor from a checkpoint's `ood_calibration.json`."""
         return cls(OODCalibration.from_pretrained(pretrained_name_or_path), window, false_alarm_rate)
 
-    def add_score(self, rollout_score: float) -> WindowDecision | None:
-        """Adds one finished rollout's score; the decision on the last n, or None while there are fewer."""
-        self._scores.append(float(rollout_score))
-        if len(self._scores) < self.test.window:
+    def add_values(self, window_values: ArrayLike) -> WindowDecision | None:
+        """Adds one finished rollout's window values ((m,), `OODCalibration.window_values`); the decision on the
+        last n, or None while there are fewer."""
+        self._values.append(np.atleast_1d(float64(window_values)))
+        if len(self._values) < self.test.window:
             return None
-        return self.test.check(list(self._scores))
+        return self.test.check(np.stack(self._values))
 
     def add_rollout(
         self,
@@ -169,12 +191,11 @@ class WindowTypicalityMonitor:
         context_features: ArrayLike | None = None,
         context_energies: ArrayLike | None = None,
     ) -> WindowDecision | None:
-        """Adds one finished rollout from its chunks (chunks 0, 1, ...), scored as the calibration scores one
-        (`OODCalibration.score_chunks`: the same inputs as `EnergyOODMonitor.check_rollout`)."""
-        return self.add_score(
-            self.calibration.score_chunks(chunk_energies, context_features, context_energies)
-        )
+        """Adds one finished rollout from its chunks (chunks 0, 1, ...), with the inputs
+        `EnergyOODMonitor.check_rollout` takes."""
+        components = self.calibration.rollout_components(chunk_energies, context_features, context_energies)
+        return self.add_values(self.calibration.window_values(components))
 
     def reset(self) -> None:
         """Forgets the window; call it when the conditions change on purpose (a new scene, a new task)."""
-        self._scores.clear()
+        self._values.clear()
