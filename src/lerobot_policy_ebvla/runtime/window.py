@@ -177,6 +177,11 @@ class WindowTypicalityMonitor:
         """Builds the monitor from a checkpoint's `ood_calibration.json`."""
         return cls(OODCalibration.from_pretrained(pretrained_name_or_path), window, false_alarm_rate)
 
+    @property
+    def n_rollouts(self) -> int:
+        """How many rollouts the window holds so far (at most n)."""
+        return len(self._values)
+
     def add_values(self, window_values: ArrayLike) -> WindowDecision | None:
         """Adds one finished rollout's window values ((m,), `OODCalibration.window_values`); the decision on the
         last n, or None while there are fewer."""
