@@ -298,20 +298,21 @@ def test_ood_report_saves_a_phase_energy_calibration_when_asked(record_dirs, tmp
     assert calibration.n_rollouts == 12 and abs(calibration.mu_v) < 1.0  # z-scores of vanilla rollouts
 
 
-def test_ood_report_saves_the_held_out_vanilla_rollouts_as_the_window_tests_reference(record_dirs, tmp_path):
+def calibrated(record_dirs, tmp_path, score: str) -> OODCalibration:
+    """The calibration `ebvla-ood-report --calibrate_to --score=<score>` saves from the fixture's records."""
     checkpoint = tmp_path / "pretrained_model"
     checkpoint.mkdir()
     ood_report.main(
-        [
-            *ood_args(*record_dirs, tmp_path / "out"),
-            f"--calibrate_to={checkpoint}",
-            "--score=phase_energy_two_sided",
-        ]
+        [*ood_args(*record_dirs, tmp_path / "out"), f"--calibrate_to={checkpoint}", f"--score={score}"]
     )
+    return OODCalibration.load(checkpoint)
+
+
+def test_ood_report_saves_the_held_out_vanilla_rollouts_as_the_window_tests_reference(record_dirs, tmp_path):
+    saved = np.array(calibrated(record_dirs, tmp_path, "phase_energy_two_sided").window_reference)
     calibration_set, vanilla = load_episodes([record_dirs[0]]), load_episodes([record_dirs[1]])
     reference = fit_score_reference(calibration_set, features=False)
     signed = episode_scores(vanilla, "phase_energy", reference=reference)  # the mean z of each rollout
-    saved = np.array(OODCalibration.load(checkpoint).window_reference)
     # The --vanilla rollouts against the calibration's fit, not the calibration rollouts: |a| and a.
     assert (
         saved.shape == (12, 2)
@@ -335,16 +336,7 @@ def test_ood_report_saves_no_window_reference_from_in_sample_vanilla(record_dirs
 
 
 def test_ood_report_saves_a_context_distance_calibration_when_asked(record_dirs, tmp_path):
-    checkpoint = tmp_path / "pretrained_model"
-    checkpoint.mkdir()
-    ood_report.main(
-        [
-            *ood_args(*record_dirs, tmp_path / "out"),
-            f"--calibrate_to={checkpoint}",
-            "--score=context_distance",
-        ]
-    )
-    calibration = OODCalibration.load(checkpoint)
+    calibration = calibrated(record_dirs, tmp_path, "context_distance")
     episodes = load_episodes([record_dirs[0]])
     reference = fit_score_reference(episodes)
     assert calibration.score.name == "context_distance" and calibration.n_rollouts == 12
