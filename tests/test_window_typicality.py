@@ -136,6 +136,11 @@ def test_the_window_reference_is_saved_with_the_calibration_and_read_back(tmp_pa
     assert OODCalibration.load(tmp_path / "without").window_reference is None
 
 
+def test_a_calibration_takes_a_flat_reference_as_one_value_per_rollout():
+    calibration = OODCalibration.fit([1.0, 2.0], window_reference=[1.0, 2.0, 3.0])
+    assert calibration.window_reference == ((1.0,), (2.0,), (3.0,))
+
+
 def test_a_calibration_refuses_non_finite_or_ragged_window_references():
     with pytest.raises(ValueError, match="`window_reference` must be finite"):
         OODCalibration.fit([1.0, 2.0], window_reference=[[1.0], [math.nan]])
@@ -143,6 +148,8 @@ def test_a_calibration_refuses_non_finite_or_ragged_window_references():
         ValueError, match=r"one row of window values per vanilla rollout; got shape \(2, 2, 1\)"
     ):
         OODCalibration(1.0, 0.5, window_reference=[[[1.0], [2.0]], [[1.0], [2.0]]])
+    with pytest.raises(ValueError, match="`window_reference` must be rows of numbers of one length"):
+        OODCalibration(1.0, 0.5, window_reference=[[1.0, 2.0], [1.0]])
 
 
 def test_window_indices_are_every_window_or_distinct_draws():

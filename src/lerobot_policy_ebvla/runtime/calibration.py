@@ -102,7 +102,12 @@ class OODCalibration(CheckpointJSON):
                 "`rule='conformal'` needs a `conformal_threshold` (fit with `false_alarm_rate`)."
             )
         if self.window_reference is not None:
-            reference = np.asarray(self.window_reference, dtype=np.float64)
+            try:
+                reference = float64(self.window_reference)
+            except (TypeError, ValueError) as e:
+                raise ValueError(f"`window_reference` must be rows of numbers of one length: {e}") from e
+            # One value per rollout (the score alone) may come as a flat list.
+            reference = reference[:, None] if reference.ndim == 1 else reference
             if reference.ndim != 2 or not np.isfinite(reference).all():
                 raise ValueError(
                     "`window_reference` must be finite, one row of window values per vanilla rollout; got shape "
@@ -135,7 +140,8 @@ class OODCalibration(CheckpointJSON):
             vanilla_scores: The vanilla rollouts' scores, each aggregated from its chunks' `score` with
                 `aggregation`.
             score: The fitted chunk score `vanilla_scores` were computed with; the final energy when None.
-            window_reference: Held-out vanilla rollouts' window values, (M, m) (see the class).
+            window_reference: Held-out vanilla rollouts' window values, (M, m), or (M,) for m = 1 (see the
+                class).
 
         Raises:
             ValueError: No finite score to fit on.
@@ -154,7 +160,7 @@ class OODCalibration(CheckpointJSON):
             conformal_threshold=conformal,
             rule=rule,
             score=FinalEnergy() if score is None else score,
-            window_reference=None if window_reference is None else np.atleast_2d(float64(window_reference)),
+            window_reference=window_reference,
         )
 
     @property

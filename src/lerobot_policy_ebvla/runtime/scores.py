@@ -47,6 +47,9 @@ A policy trained with a joint energy (`energy_ood_margin_on`) reports its contex
   vanilla E_c (blur, a light from another side); this form is confidently wrong on one of eight training seeds'
   sweeps (first 3 chunks), the final energy on one too, E_c one-sided on three (docs/energy_study.md section 8.9).
 
+The window test (`window.py`) compares several rollouts' `window_values` at once: the rollout score, and for a
+two-sided score |a| (`AbsoluteOfAggregate`) its signed aggregate a too.
+
 A new score is one class here and one entry in `SCORES`: the calibration, its file, the monitors, the policy's
 `ood_response` and `ebvla-ood-report --score=<name>` find it there. A new input is one field of `ChunkInputs`
 (and its line in `INPUT_SOURCES`), a keyword of the methods that pass it on (`OODCalibration.chunk_score`, the
