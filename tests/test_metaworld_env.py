@@ -175,6 +175,23 @@ def test_blank_camera_is_black_at_every_severity(vanilla):
         np.testing.assert_array_equal(state, vanilla[1])
 
 
+def test_an_all_black_render_is_refused_not_passed_on_as_an_observation(monkeypatch):
+    pytest.importorskip("metaworld")
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from lerobot_policy_ebvla.envs.metaworld import MetaworldEBVLAGymEnv
+
+    cfg = MetaworldEBVLAEnv(task=TASK, fast_render=True)
+    env = MetaworldEBVLAGymEnv(task=TASK, **cfg.gym_kwargs)
+    try:
+        env.reset(seed=0)
+        # What a dead offscreen GL context hands back.
+        monkeypatch.setattr(env._env, "render", lambda: np.zeros((480, 480, 3), dtype=np.uint8))
+        with pytest.raises(RuntimeError, match=r"all-black \(480, 480, 3\) frame.*offscreen renderer"):
+            env.step(np.zeros(4, dtype=np.float32))
+    finally:
+        env.close()
+
+
 def test_robot_init_moves_the_hand_by_a_graded_distance_and_leaves_the_objects(vanilla):
     from lerobot_policy_ebvla.envs.metaworld import HAND_OFFSET_M_PER_LEVEL
 

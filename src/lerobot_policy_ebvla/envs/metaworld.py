@@ -16,6 +16,7 @@ do not change, unless `observation_size` renders smaller frames (a policy that s
 frame, and the renderer's time falls with the pixels it fills).
 """
 
+import os
 from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Any
@@ -354,6 +355,14 @@ class MetaworldEBVLAGymEnv(MetaworldEnv):
         self.state_obs = raw_obs
         self._add_distractors()
         observation = super()._format_raw_obs(raw_obs)
+        if not np.any(observation["pixels"]):
+            # A lit scene never renders to exact zeros; an offscreen GL context that died does, and every
+            # observation after it would silently be the `blank` perturbation's (seen once, mid-evaluation).
+            raise RuntimeError(
+                f"MetaWorld rendered an all-black {observation['pixels'].shape} frame before any perturbation: the "
+                f"offscreen renderer (MUJOCO_GL={os.environ.get('MUJOCO_GL')!r}) failed. Results from here on would "
+                "be a blind policy's; rerun the evaluation."
+            )
         observation["pixels"] = perturb_image(
             observation["pixels"], self.perturbation, self.perturbation_severity, self._rng
         )
