@@ -20,6 +20,8 @@ Every score is over each episode's first `--first_chunks` chunks (3: what a moni
 import argparse
 from pathlib import Path
 
+from score_summaries import NOT_CONDITIONS
+
 from lerobot_policy_ebvla.monitoring.records import load_episodes
 from lerobot_policy_ebvla.monitoring.window_report import DEFAULT_MAX_WINDOWS, score_sets, window_table
 from lerobot_policy_ebvla.runtime.window import (
@@ -27,8 +29,6 @@ from lerobot_policy_ebvla.runtime.window import (
     DEFAULT_WINDOW_FALSE_ALARM_RATE,
     WindowTypicalityTest,
 )
-
-NOT_CONDITIONS = ("calibration", "vanilla", "vanilla_extra")
 
 
 def episodes_in(folder: Path) -> dict:

@@ -18,7 +18,13 @@ import numpy as np
 from ..runtime.calibration import OODCalibration
 from ..runtime.scores import SCORES
 from ..runtime.window import SHIFTED, TOO_TYPICAL, WindowTypicalityTest
-from .baselines import chunk_inputs, fit_score_reference, registered_scores, vanilla_rollouts
+from .baselines import (
+    chunk_inputs,
+    every_chunk_has,
+    fit_score_reference,
+    registered_scores,
+    vanilla_rollouts,
+)
 from .metrics import BinaryRates, auroc, bootstrap_auroc_interval, markdown_table, percent
 from .records import Episode
 from .score_summary import successes
@@ -103,7 +109,7 @@ def score_sets(
     leave-one-out scores, the score fitted on all of them) and each set scored against it, over each episode's
     first k chunks (None: whole episodes)."""
     registered = [score] if score in registered_scores() else []
-    features = any(r.context_feature is not None for e in calibration.values() for r in e)
+    features = every_chunk_has(list(calibration.values()), "context_feature")
     reference = fit_score_reference(
         calibration, features=features, registered=registered, aggregation=aggregation
     )
