@@ -245,6 +245,38 @@ def test_lighting_perturbation_changes_both_cameras(perturbable_env):
         assert dim[key].mean() < clean[key].mean() - 5
 
 
+def test_frames_do_not_depend_on_another_task_env_rendering_or_closing(perturbable_env):
+    """robosuite renders and frees into whichever GL context is current: with a second task's env reset after
+    this one, this env's next frames were drawn with the other scene's objects, and broken once it closed."""
+    import gc
+
+    from lerobot_policy_ebvla.envs.libero_configs import LiberoEBVLAEnv
+
+    other_cfg = LiberoEBVLAEnv(
+        task="libero_object", task_ids=[5], observation_height=IMAGE_SIZE, observation_width=IMAGE_SIZE
+    )
+    other = other_cfg.create_envs(n_envs=1)["libero_object"][5]
+
+    def frames_after_reset(between_reset_and_steps) -> dict[str, np.ndarray]:
+        render_with(perturbable_env, "none", 0)
+        between_reset_and_steps()
+        for _ in range(2):
+            observation, *_ = perturbable_env.step(np.zeros(7, dtype=np.float32))
+        return observation["pixels"]
+
+    def close_other():
+        other.reset(seed=0)
+        other.close()
+        gc.collect()
+
+    expected = frames_after_reset(lambda: None)
+    beside_other = frames_after_reset(lambda: other.reset(seed=0))
+    after_other = frames_after_reset(close_other)
+    for key in expected:
+        np.testing.assert_array_equal(beside_other[key], expected[key])
+        np.testing.assert_array_equal(after_other[key], expected[key])
+
+
 @requires_libero
 def test_libero_plus_camera_geometry():
     from lerobot_policy_ebvla.envs.libero import LIBERO_PLUS_PIVOT, libero_plus_camera_pose

@@ -192,6 +192,38 @@ def test_an_all_black_render_is_refused_not_passed_on_as_an_observation(monkeypa
         env.close()
 
 
+@pytest.mark.parametrize("other_env_ends", ["closed_then_collected", "closed_after", "collected_unclosed"])
+def test_an_env_renders_the_same_frames_whatever_another_env_in_the_process_does(other_env_ends):
+    """Gymnasium's viewers share one thread's GL state: a second env's context, or the collector freeing a
+    first env's `MjrContext` in the wrong context, once turned a later env's frames black."""
+    pytest.importorskip("metaworld")
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    import gc
+
+    from lerobot_policy_ebvla.envs.metaworld import MetaworldEBVLAGymEnv
+
+    def make():
+        env = MetaworldEBVLAGymEnv(task=TASK, observation_size=32, fast_render=True)
+        env.reset(seed=0)
+        return env
+
+    alone = make()
+    expected = alone.reset(seed=3)[0]["pixels"]
+    alone.close()
+    other = make()
+    if other_env_ends == "closed_then_collected":
+        other.close()
+    env = make()
+    if other_env_ends == "closed_after":
+        other.close()
+    del other
+    gc.collect()
+    try:
+        np.testing.assert_array_equal(env.reset(seed=3)[0]["pixels"], expected)
+    finally:
+        env.close()
+
+
 def test_robot_init_moves_the_hand_by_a_graded_distance_and_leaves_the_objects(vanilla):
     from lerobot_policy_ebvla.envs.metaworld import HAND_OFFSET_M_PER_LEVEL
 

@@ -17,6 +17,7 @@ constants below are tabulated in docs/libero.md. Import this module only once LI
 (`ebvla-install-libero-assets`): `lerobot.envs.libero` imports `libero`, which otherwise asks questions on stdin.
 """
 
+import weakref
 from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Any
@@ -161,6 +162,33 @@ def perturb_libero_model(
         perturb_camera(model, camera_name, perturbation, severity)
 
 
+def _offscreen_context(libero_env: Any) -> Any:
+    """The robosuite offscreen render context of a LIBERO env's current simulator, or None once it is closed."""
+    sim = getattr(libero_env, "sim", None)
+    return getattr(sim, "_render_context_offscreen", None)
+
+
+def make_render_context_current(libero_env: Any) -> None:
+    """Makes a LIBERO env's GL context current before it renders or destroys its simulator.
+
+    robosuite renders into whatever GL context is current, and frees a simulator's `MjrContext` (on close and at
+    every hard reset) in the current context too, deleting GL objects by their numbers. With another env's context
+    current, frames come out drawn with that env's meshes and textures, or broken once that env's objects are
+    deleted: measured on two LIBERO-Object tasks in one process, before this was called.
+    """
+    context = _offscreen_context(libero_env)
+    if context is not None:
+        context.gl_ctx.make_current()
+
+
+def free_render_context(libero_env: Any) -> None:
+    """Frees a LIBERO env's `MjrContext` inside its own GL context; robosuite's later free then deletes nothing."""
+    context = _offscreen_context(libero_env)
+    if context is not None:
+        context.gl_ctx.make_current()
+        context.con.free()
+
+
 class LiberoEBVLAGymEnv(LiberoEnv):
     """LeRobot's `LiberoEnv` with the scene perturbation of `LiberoEBVLAEnv` (see its docstring).
 
@@ -198,6 +226,29 @@ class LiberoEBVLAGymEnv(LiberoEnv):
             return observation
 
         self._env.reset = reset_scene_and_perturb
+        # Runs at `close()`, or when the env is collected unclosed; it holds LIBERO's env, not this one.
+        self._free_render_context = weakref.finalize(self, free_render_context, self._env)
+        self._free_render_context.atexit = False
+
+    def reset(self, seed: int | None = None, **kwargs: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+        self._ensure_env()
+        make_render_context_current(self._env)
+        return super().reset(seed=seed, **kwargs)
+
+    def step(self, action: np.ndarray) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
+        self._ensure_env()
+        make_render_context_current(self._env)
+        return super().step(action)
+
+    def render(self) -> np.ndarray:
+        self._ensure_env()
+        make_render_context_current(self._env)
+        return super().render()
+
+    def close(self) -> None:
+        if self._env is not None:
+            self._free_render_context()
+        super().close()
 
 
 def create_libero_ebvla_envs(

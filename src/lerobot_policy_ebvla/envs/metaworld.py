@@ -17,6 +17,7 @@ frame, and the renderer's time falls with the pixels it fills).
 """
 
 import os
+import weakref
 from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Any
@@ -86,6 +87,24 @@ def disable_shadows_and_reflections(model: mujoco.MjModel) -> None:
     """
     model.light_castshadow[:] = 0
     model.mat_reflectance[:] = 0.0
+
+
+def free_offscreen_viewers(renderer: Any) -> None:
+    """Frees each offscreen viewer's `MjrContext` inside the viewer's own GL context.
+
+    Gymnasium's viewer destroys its GL context on close and leaves the `MjrContext` to the garbage collector. Its
+    `mjr_freeContext` then deletes GL objects by their numbers in whatever context is current at that moment:
+    another env's, whose offscreen framebuffer carries the same numbers, so that env renders black from then on
+    (seen in a long process that closes one evaluation's envs and renders the next).
+
+    Args:
+        renderer: A Gymnasium `MujocoRenderer` (a MuJoCo env's `mujoco_renderer`).
+    """
+    for viewer in getattr(renderer, "_viewers", {}).values():
+        if hasattr(viewer, "con"):
+            viewer.make_context_current()
+            # Sets the struct to its defaults, so the collector's later `mjr_freeContext` deletes nothing.
+            viewer.con.free()
 
 
 def _rotation_quat(axis: np.ndarray, angle_deg: float) -> np.ndarray:
@@ -322,6 +341,9 @@ class MetaworldEBVLAGymEnv(MetaworldEnv):
             disable_shadows_and_reflections(model)
         perturb_model(model, self.camera_name, self.perturbation, self.perturbation_severity)
         self._hand_init_pos = np.array(self._env.hand_init_pos, dtype=float)
+        # Runs at `close()`, or when the env is collected unclosed; it holds the renderer, not the env.
+        self._free_viewers = weakref.finalize(self, free_offscreen_viewers, self._env.mujoco_renderer)
+        self._free_viewers.atexit = False
 
     def reset(self, seed: int | None = None, **kwargs: Any) -> tuple[dict[str, Any], dict[str, Any]]:
         self._ensure_env()
@@ -338,22 +360,30 @@ class MetaworldEBVLAGymEnv(MetaworldEnv):
             )
         return super().reset(seed=seed, **kwargs)
 
-    def _add_distractors(self) -> None:
-        if self.perturbation != "distractor" or self.perturbation_severity == 0:
-            return
-        # Gymnasium's offscreen viewer draws its markers into the next frame only, then forgets them.
+    def _prepare_frame(self) -> None:
+        """Makes this env's GL context current and queues the distractors, before each rendered frame."""
         viewer = self._env.mujoco_renderer._get_viewer(self._env.render_mode)
-        for marker in distractor_markers(self.perturbation_severity):
-            viewer.add_marker(**marker)
+        # Gymnasium makes a viewer's context current only when one renderer holds several; another env's
+        # close may have left none (or its own) current since this env last rendered.
+        viewer.make_context_current()
+        if self.perturbation == "distractor":
+            # Gymnasium's offscreen viewer draws its markers into the next frame only, then forgets them.
+            for marker in distractor_markers(self.perturbation_severity):
+                viewer.add_marker(**marker)
 
     def render(self) -> np.ndarray:
         self._ensure_env()
-        self._add_distractors()
+        self._prepare_frame()
         return super().render()
+
+    def close(self) -> None:
+        if self._env is not None:
+            self._free_viewers()
+        super().close()
 
     def _format_raw_obs(self, raw_obs: np.ndarray) -> dict[str, Any]:
         self.state_obs = raw_obs
-        self._add_distractors()
+        self._prepare_frame()
         observation = super()._format_raw_obs(raw_obs)
         if not np.any(observation["pixels"]):
             # A lit scene never renders to exact zeros; an offscreen GL context that died does, and every
