@@ -797,26 +797,39 @@ def test_on_two_untouched_training_seeds_the_window_test_passes_the_rule_written
     assert pooled == ["0.970", "1.000"]
 
 
+def window_pair(table: str, seeds: tuple[int, int], recompute: int) -> dict[int, dict]:
+    """Rows of a window table of two untouched seeds, one seed's section recomputed from its records first."""
+    committed = (FULL / table).read_text()
+    full, fresh = (seed_run(recompute, "observation") / f"context_energy_{k}" for k in ("full", "fresh"))
+    recomputed = window.run_section(f"s{recompute}", full, fresh)
+    assert recomputed.strip() == f"## s{recompute}\n\n{section(committed, f's{recompute}')}"
+    return {seed: window_rows(committed, f"s{seed}") for seed in seeds}
+
+
+def default_rows(table: str, seeds: tuple[int, ...]) -> dict[int, list[str]]:
+    """The default score's row of each seed's score summary in a committed table."""
+    summaries_md = (FULL / table).read_text()
+    return {
+        seed: summary_rows(f"## Score summary\n{section(summaries_md, f'seed{seed}')}")[
+            "context_energy_two_sided"
+        ]
+        for seed in seeds
+    }
+
+
 def test_on_two_more_untouched_seeds_the_shipped_window_test_passes_its_rule():
     """window_typicality_untouched2.md (seeds 18000 and 19000, rule written before their records were read),
     recomputed for 19000: 1% and 3% false alarms on 100 fresh vanilla rollouts, 26 and 25 of 26 conditions alarmed,
     no condition confidently under per rollout. context_energy_default_untouched3.md: the default pools 0.987 and
     0.963, never confidently under 0.5."""
-    committed = (FULL / "window_typicality_untouched2.md").read_text()
-    full, fresh = (seed_run(19000, "observation") / f"context_energy_{k}" for k in ("full", "fresh"))
-    recomputed = window.run_section("s19000", full, fresh)
-    assert recomputed.strip() == f"## s19000\n\n{section(committed, 's19000')}"
-    rows = {seed: window_rows(committed, f"s{seed}") for seed in (18000, 19000)}
+    rows = window_pair("window_typicality_untouched2.md", (18000, 19000), recompute=19000)
     assert [windows_alarmed(r["held-out vanilla"][4])[0] for r in rows.values()] == [0.01, 0.03]
     alarmed = [sum(windows_alarmed(r[c][4])[0] == 1.0 for c in sweep_conditions(r)) for r in rows.values()]
     assert alarmed == [26, 25]
     assert not any(r[c][2].endswith("!") for r in rows.values() for c in sweep_conditions(r))
-    summaries_md = (FULL / "context_energy_default_untouched3.md").read_text()
-    for seed, pooled in ((18000, "0.987"), (19000, "0.963")):
-        two_sided = summary_rows(f"## Score summary\n{section(summaries_md, f'seed{seed}')}")[
-            "context_energy_two_sided"
-        ]
-        assert two_sided[0][:5] == pooled and "!" not in two_sided[5]
+    defaults = default_rows("context_energy_default_untouched3.md", (18000, 19000))
+    assert [row[0][:5] for row in defaults.values()] == ["0.987", "0.963"]
+    assert not any("!" in row[5] for row in defaults.values())
 
 
 def test_on_a_third_untouched_pair_of_seeds_the_default_and_the_window_pass_their_rule():
@@ -824,21 +837,13 @@ def test_on_a_third_untouched_pair_of_seeds_the_default_and_the_window_pass_thei
     swept and read after summary.md's rule was committed), recomputed for 21000: window false alarms 3% and 1%, 26
     and 25 of 26 conditions alarmed; the default pools 0.992 and 0.966, at most 20% vanilla alarms, never
     confidently under 0.5."""
-    committed = (FULL / "window_typicality_untouched3.md").read_text()
-    full, fresh = (seed_run(21000, "observation") / f"context_energy_{k}" for k in ("full", "fresh"))
-    recomputed = window.run_section("s21000", full, fresh)
-    assert recomputed.strip() == f"## s21000\n\n{section(committed, 's21000')}"
-    rows = {seed: window_rows(committed, f"s{seed}") for seed in (20000, 21000)}
+    rows = window_pair("window_typicality_untouched3.md", (20000, 21000), recompute=21000)
     assert [windows_alarmed(r["held-out vanilla"][4])[0] for r in rows.values()] == [0.03, 0.01]
     alarmed = [sum(windows_alarmed(r[c][4])[0] == 1.0 for c in sweep_conditions(r)) for r in rows.values()]
     assert alarmed == [26, 25]
-    summaries_md = (FULL / "context_energy_default_untouched4.md").read_text()
-    for seed, pooled in ((20000, "0.992"), (21000, "0.966")):
-        two_sided = summary_rows(f"## Score summary\n{section(summaries_md, f'seed{seed}')}")[
-            "context_energy_two_sided"
-        ]
-        vanilla_alarms = int(two_sided[1].split("%")[0])
-        assert two_sided[0][:5] == pooled and vanilla_alarms <= 20 and "!" not in two_sided[5]
+    defaults = default_rows("context_energy_default_untouched4.md", (20000, 21000))
+    assert [row[0][:5] for row in defaults.values()] == ["0.992", "0.966"]
+    assert all(int(row[1].split("%")[0]) <= 20 and "!" not in row[5] for row in defaults.values())
 
 
 DEVELOPMENT_SEEDS = (6000, 9000, 10000, 11000, 12000, 13000, 14000, 15000)
