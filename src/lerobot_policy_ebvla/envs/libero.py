@@ -230,19 +230,22 @@ class LiberoEBVLAGymEnv(LiberoEnv):
         self._free_render_context = weakref.finalize(self, free_render_context, self._env)
         self._free_render_context.atexit = False
 
-    def reset(self, seed: int | None = None, **kwargs: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+    def _activate(self) -> None:
+        """Builds the env if needed and makes its GL context current: everything that renders or rebuilds the
+        simulator (reset, step, render) starts here."""
         self._ensure_env()
         make_render_context_current(self._env)
+
+    def reset(self, seed: int | None = None, **kwargs: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+        self._activate()
         return super().reset(seed=seed, **kwargs)
 
     def step(self, action: np.ndarray) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
-        self._ensure_env()
-        make_render_context_current(self._env)
+        self._activate()
         return super().step(action)
 
     def render(self) -> np.ndarray:
-        self._ensure_env()
-        make_render_context_current(self._env)
+        self._activate()
         return super().render()
 
     def close(self) -> None:
