@@ -1,0 +1,253 @@
+"""Issue 32's mild shifts scene by scene: what a shift does to E_c in one scene, and where the default's band puts it.
+
+Every sweep condition runs on the environment seeds of the first held-out vanilla rollouts (3000-3007), and an image
+shift leaves the first observation's state as it was: chunk 0 of a shifted rollout and chunk 0 of the vanilla
+rollout of the same seed see one scene (the same button position), only the image differs. Two tables per run
+(`metaworld_perturbation_sweep.py` records with E_c, `seed*/observation/context_energy_full`):
+
+- **Scene by scene.** For each condition: the paired move of E_c at chunk 0, E_c(shifted) - E_c(vanilla) of the same
+  seed, in units of the scene-to-scene spread (the std of the held-out vanilla rollouts' chunk-0 E_c); how many pairs
+  move the majority's way; the default score's signed aggregate a = mean_t z_t over the first 3 chunks
+  (`context_energy_two_sided`, calibrated as `--calibrate_to` saves it), median over the condition's rollouts and
+  over the vanilla rollouts of the same seeds; the default's AUROC (its score |a|) against every held-out vanilla rollout; and, over the runs, every
+  condition that moves E_c by less than `MILD_SPREADS` scene spreads.
+- **The band's centre.** The default's per-rollout form |a| with its per-index band mu_v[t], sigma_v[t] fitted on the
+  calibration rollouts' E_c by a trimmed mean and std (`TRIMS`: the share cut on each side; 0 is the shipped fit)
+  or by the median and IQR / 1.349: pooled AUROC over the conditions, the worst condition, and the conditions whose
+  AUROC interval lies wholly under 0.5, on the sweep and on the fresh re-runs of the run's near misses (scored
+  against its 100 fresh vanilla rollouts, `context_energy_fresh`) where there are.
+
+    python benchmarks/paired_shift_diagnosis.py --results benchmarks/results/metaworld_sweep_margin_full \
+        --output benchmarks/results/metaworld_sweep_margin_full/paired_shift_diagnosis.md
+"""
+
+import argparse
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+from window_typicality import conditions_in, episodes_in
+
+from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_interval, markdown_table
+from lerobot_policy_ebvla.monitoring.window_report import score_sets
+
+DEFAULT_SCORE = "context_energy_two_sided"
+FIRST_CHUNKS = 3
+# Shares of the calibration's E_c cut on each side, per chunk index, before its mean and std.
+TRIMS = (0.0, 0.05, 0.10, 0.20)
+MEDIAN = "median / IQR"
+# A condition is mild when its median paired move of chunk-0 E_c is under this many scene-to-scene spreads.
+MILD_SPREADS = 2.0
+
+
+def first_context_energies(episodes: Mapping) -> dict[int, np.ndarray]:
+    """Each episode's E_c over its first chunks, by environment seed."""
+    return {
+        chunks[0].seed: np.array(
+            [r.context_energy for r in sorted(chunks, key=lambda r: r.chunk_index)[:FIRST_CHUNKS]]
+        )
+        for chunks in episodes.values()
+    }
+
+
+def interval_cell(negatives: np.ndarray, positives: np.ndarray) -> tuple[str, float]:
+    """'AUROC [low, high]', '!' where the interval lies wholly under 0.5; and the AUROC."""
+    value = auroc(negatives, positives)
+    low, high = bootstrap_auroc_interval(negatives, positives)
+    return f"{value:.2f} [{low:.2f}, {high:.2f}]{'!' if high < 0.5 else ''}", value
+
+
+SCENE_HEADERS = [
+    "condition",
+    "chunk-0 E_c move, scene spreads: median [min, max]",
+    "pairs the majority's way",
+    "shifted a (median)",
+    "default AUROC (abs a)",
+]
+
+
+def scene_rows(sweep: Path) -> tuple[str, list[list[str]], list[float]]:
+    """The scene-by-scene table of one run: its caption, its rows and each row's median move."""
+    vanilla, conditions = episodes_in(sweep / "vanilla"), conditions_in(sweep)
+    _, scored = score_sets(
+        episodes_in(sweep / "calibration"), {"vanilla": vanilla, **conditions}, DEFAULT_SCORE, FIRST_CHUNKS
+    )
+    signed = {
+        name: dict(zip((c[0].seed for c in s.episodes.values()), s.values[:, 1], strict=True))
+        for name, s in scored.items()
+    }
+    vanilla_first = {seed: e[0] for seed, e in first_context_energies(vanilla).items()}
+    spread = float(np.std(list(vanilla_first.values())))
+    rows, medians, scenes = [], [], set()
+    for name in conditions:
+        shifted = first_context_energies(conditions[name])
+        scenes |= set(shifted)
+        moves = np.array([e[0] - vanilla_first[seed] for seed, e in shifted.items()]) / spread
+        majority = max(int((moves > 0).sum()), int((moves < 0).sum()))
+        own = np.array([signed[name][seed] for seed in shifted])
+        cell, _ = interval_cell(np.abs(scored["vanilla"].values[:, 1]), np.abs(own))
+        medians.append(float(np.median(moves)))
+        rows.append(
+            [
+                name,
+                f"{medians[-1]:+.2f} [{moves.min():+.2f}, {moves.max():+.2f}]",
+                f"{majority}/{moves.size}",
+                f"{np.median(own):+.2f}",
+                cell,
+            ]
+        )
+    held_out = np.array(list(signed["vanilla"].values()))
+    caption = (
+        f"Scene-to-scene spread of chunk-0 E_c over {len(vanilla_first)} held-out vanilla rollouts: {spread:.3f}. "
+        f"The default's signed aggregate a of the held-out vanilla rollouts: median {np.median(held_out):+.2f}, "
+        f"std {held_out.std():.2f} (the calibration's: std 1 by construction); of the {len(scenes)} vanilla "
+        f"rollouts of the conditions' scenes: median {np.median([signed['vanilla'][s] for s in scenes]):+.2f}."
+    )
+    return caption, rows, medians
+
+
+def mild_summary(scenes_by_run: Mapping[str, tuple]) -> str:
+    """The conditions that move chunk-0 E_c by under `MILD_SPREADS` scene spreads (median), over the runs; how many
+    conditions move it one way on every pair; and the default's lowest AUROC over the other conditions."""
+    rows, one_way, total, others = [], 0, 0, []
+    for run, (_, run_rows, medians) in scenes_by_run.items():
+        for row, median in zip(run_rows, medians, strict=True):
+            majority, n = (int(k) for k in row[2].split("/"))
+            one_way += majority == n
+            total += 1
+            if abs(median) < MILD_SPREADS:
+                rows.append([run, *row])
+            else:
+                others.append(float(row[4].split()[0]))
+    return (
+        f"Conditions whose every pair moves chunk-0 E_c one way: {one_way} of {total}. The {total - len(rows)} "
+        f"that move it by {MILD_SPREADS:g} scene spreads or more (median) score at least {min(others):.2f} by the "
+        f"default; those that move it less:\n\n{markdown_table(['run', *SCENE_HEADERS], rows)}"
+    )
+
+
+def band(calibration: Mapping[int, np.ndarray], fit: float | str) -> tuple[np.ndarray, np.ndarray]:
+    """mu_v[t], sigma_v[t] of the calibration's E_c at each of the first chunk indices."""
+    means, stds = [], []
+    for t in range(FIRST_CHUNKS):
+        at_t = np.array([e[t] for e in calibration.values() if e.size > t])
+        if fit == MEDIAN:
+            low, high = np.percentile(at_t, [25, 75])
+            means.append(np.median(at_t))
+            stds.append((high - low) / 1.349)
+        else:
+            kept = stats.trimboth(at_t, fit) if fit else at_t
+            means.append(kept.mean())
+            stds.append(kept.std())
+    return np.array(means), np.array(stds)
+
+
+def two_sided(episodes: Mapping[int, np.ndarray], mu: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """|mean_t z_t| of each rollout against the band."""
+    return np.array([abs(np.mean((e - mu[: e.size]) / sigma[: e.size])) for e in episodes.values()])
+
+
+def centre_row(sweep: Path, fresh: Path | None, fit: float | str) -> list[str]:
+    """One band fit's row for one run."""
+    mu, sigma = band(first_context_energies(episodes_in(sweep / "calibration")), fit)
+    vanilla = two_sided(first_context_energies(episodes_in(sweep / "vanilla")), mu, sigma)
+    conditions = {
+        name: two_sided(first_context_energies(e), mu, sigma) for name, e in conditions_in(sweep).items()
+    }
+    cells = {name: interval_cell(vanilla, scores) for name, scores in conditions.items()}
+    worst = min(cells, key=lambda name: cells[name][1])
+    under = [f"{name} {cell}" for name, (cell, _) in cells.items() if cell.endswith("!")]
+    fresh_cells = []
+    if fresh is not None:
+        fresh_vanilla = two_sided(first_context_energies(episodes_in(fresh / "vanilla")), mu, sigma)
+        for name, e in conditions_in(fresh).items():
+            cell, _ = interval_cell(fresh_vanilla, two_sided(first_context_energies(e), mu, sigma))
+            fresh_cells.append(f"{name} {cell}")
+    pooled = auroc(vanilla, np.concatenate(list(conditions.values())))
+    return [
+        fit if fit == MEDIAN else f"trimmed {fit:.0%}",
+        f"{pooled:.3f}",
+        f"{worst} {cells[worst][0]}",
+        "; ".join(under) or "none",
+        "; ".join(fresh_cells) or "-",
+    ]
+
+
+def centre_rows(sweep: Path, fresh: Path | None) -> list[list[str]]:
+    """The band's-centre rows of one run, one per band fit."""
+    return [centre_row(sweep, fresh, fit) for fit in (*TRIMS, MEDIAN)]
+
+
+CENTRE_HEADERS = ["band fit", "pooled", "worst condition", "confidently under 0.5", "fresh re-runs"]
+
+
+def centre_summary(rows_by_run: Mapping[str, list[list[str]]]) -> str:
+    """Per band fit, over the runs: the pooled AUROCs' range and the runs with a condition confidently under 0.5."""
+    rows = []
+    for i, fit in enumerate(rows_by_run[next(iter(rows_by_run))]):
+        per_run = {run: rows[i] for run, rows in rows_by_run.items()}
+        pooled = [float(row[1]) for row in per_run.values()]
+        sweep_under = [run for run, row in per_run.items() if row[3] != "none"]
+        fresh_under = [run for run, row in per_run.items() if "!" in row[4]]
+        rows.append(
+            [
+                fit[0],
+                f"{min(pooled):.3f}-{max(pooled):.3f}",
+                ", ".join(sweep_under) or "none",
+                ", ".join(fresh_under) or "none",
+            ]
+        )
+    headers = [
+        "band fit",
+        "pooled, range over runs",
+        "runs confidently under on the sweep",
+        "... on fresh re-runs",
+    ]
+    return markdown_table(headers, rows)
+
+
+def run_tables(sweep: Path) -> tuple[tuple, list[list[str]]]:
+    """One run's scene-by-scene table (`scene_rows`) and band's-centre rows (`centre_rows`)."""
+    fresh = sweep.parent / "context_energy_fresh"
+    return scene_rows(sweep), centre_rows(sweep, fresh if (fresh / "vanilla").is_dir() else None)
+
+
+def run_section(run: str, scenes: tuple, centres: list[list[str]]) -> str:
+    """One run's section: both tables."""
+    caption, rows, _ = scenes
+    return (
+        f"## {run}\n\n### Scene by scene\n\n{caption}\n\n{markdown_table(SCENE_HEADERS, rows)}\n\n"
+        f"### The band's centre\n\n{markdown_table(CENTRE_HEADERS, centres)}\n"
+    )
+
+
+def run_sections(results: Path) -> str:
+    """The summaries over every training seed with E_c records under `results`, then each run's section."""
+    runs = sorted(results.glob("seed*/observation/context_energy_full"), key=lambda p: int(p.parts[-3][4:]))
+    tables = {sweep.parts[-3]: run_tables(sweep) for sweep in runs}
+    scenes = {run: scene for run, (scene, _) in tables.items()}
+    centres = {run: centre for run, (_, centre) in tables.items()}
+    sections = [
+        f"## Mild shifts over {len(runs)} runs\n\n{mild_summary(scenes)}\n",
+        f"## The band's centre over {len(runs)} runs\n\n{centre_summary(centres)}\n",
+    ]
+    sections += [run_section(run, scenes[run], centres[run]) for run in tables]
+    return "\n".join(sections)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--results", type=Path, required=True, help="metaworld_sweep_margin_full")
+    parser.add_argument("--output", type=Path)
+    args = parser.parse_args()
+    text = run_sections(args.results)
+    print(text)
+    if args.output:
+        args.output.write_text(text)
+
+
+if __name__ == "__main__":
+    main()
