@@ -6,6 +6,11 @@
 #
 #   bash benchmarks/metaworld_seed_check.sh 22000 23000     # about 30 min a seed on one core of a 2-core CPU
 #
+# A variant of the preset: VARIANT names its records' folder (seed<SEED>/<VARIANT>/, default the preset's
+# "observation") and QUICKSTART_ARGS its overrides, e.g.
+#   VARIANT=observation_appearance QUICKSTART_ARGS='--policy.energy_ood_corruptions=[channel_gain,state_noise]' \
+#     bash benchmarks/metaworld_seed_check.sh 12000
+#
 # Then: benchmarks/score_summaries.py and benchmarks/window_typicality.py on seed<SEED>/observation/context_energy_*.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -13,14 +18,16 @@ export MUJOCO_GL="${MUJOCO_GL:-egl}" OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 PY="${PY:-$PWD/.venv/bin/python}"
 WORK="${WORK:-$PWD/outputs/seed_check}"
 RESULTS="${RESULTS:-$PWD/benchmarks/results/metaworld_sweep_margin_full}"
+VARIANT="${VARIANT:-observation}"
+read -r -a QUICKSTART_OVERRIDES <<< "${QUICKSTART_ARGS:-}"
 
 for SEED in "$@"; do
-  run="$WORK/s$SEED"
+  run="$WORK/s$SEED${VARIANT#observation}"  # the preset in s<SEED>, a variant in s<SEED>_<rest of its name>
   checkpoint="$run/train/checkpoints/last/pretrained_model"
   mkdir -p "$WORK"
   if [ ! -d "$checkpoint" ]; then
     "$(dirname "$PY")/ebvla-quickstart" --output_dir="$run" --eval_episodes=1 --perturbation=none --vision_frames=1 \
-      --seed="$SEED" > "$run.train.log" 2>&1
+      --seed="$SEED" "${QUICKSTART_OVERRIDES[@]}" > "$run.train.log" 2>&1
   fi
   (cd benchmarks && "$PY" metaworld_perturbation_sweep.py --checkpoint="$checkpoint" --output_dir="$run/sweep" \
     --tasks=button-press-v3 --episodes=8 --vanilla_episodes=40 --calibration_episodes=20 --observation_size=128 \
@@ -31,7 +38,7 @@ eval_metaworld_checkpoint('$checkpoint', '$run/fresh/vanilla', task='button-pres
     max_episode_steps=150, n_episodes=100, seed=5000, perturbation='none', severity=0, observation_size=128)" \
       > "$run.fresh.log" 2>&1
   fi
-  target="$RESULTS/seed$SEED/observation"
+  target="$RESULTS/seed$SEED/$VARIANT"
   for condition in "$run"/sweep/*/; do
     [ -f "$condition/energy_records.jsonl" ] || continue  # the sweep's ood_report folder
     mkdir -p "$target/context_energy_full/$(basename "$condition")"

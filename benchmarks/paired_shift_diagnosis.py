@@ -2,26 +2,30 @@
 
 Every sweep condition runs on the environment seeds of the first held-out vanilla rollouts (3000-3007), and an image
 shift leaves the first observation's state as it was: chunk 0 of a shifted rollout and chunk 0 of the vanilla
-rollout of the same seed see one scene (the same button position), only the image differs. Two tables per run
-(`metaworld_perturbation_sweep.py` records with E_c, `seed*/observation/context_energy_full`):
+rollout of the same seed see one scene (the same button position), only the image differs. For the runs
+(`metaworld_perturbation_sweep.py` records with E_c, `seed*/<variant>/context_energy_full`):
 
-- **Scene by scene.** For each condition: the paired move of E_c at chunk 0, E_c(shifted) - E_c(vanilla) of the same
-  seed, in units of the scene-to-scene spread (the std of the held-out vanilla rollouts' chunk-0 E_c); how many pairs
-  move the majority's way; the default score's signed aggregate a = mean_t z_t over the first 3 chunks
-  (`context_energy_two_sided`, calibrated as `--calibrate_to` saves it), median over the condition's rollouts and
-  over the vanilla rollouts of the same seeds; the default's AUROC (its score |a|) against every held-out vanilla rollout; and, over the runs, every
-  condition that moves E_c by less than `MILD_SPREADS` scene spreads.
-- **The band's centre.** The default's per-rollout form |a| with its per-index band mu_v[t], sigma_v[t] fitted on the
-  calibration rollouts' E_c by a trimmed mean and std (`TRIMS`: the share cut on each side; 0 is the shipped fit)
-  or by the median and IQR / 1.349: pooled AUROC over the conditions, the worst condition, and the conditions whose
-  AUROC interval lies wholly under 0.5, on the sweep and on the fresh re-runs of the run's near misses (scored
-  against its 100 fresh vanilla rollouts, `context_energy_fresh`) where there are.
+- **Scene by scene**, per run and condition: the paired move of E_c at chunk 0, E_c(shifted) - E_c(vanilla) of the
+  same seed, in units of the scene-to-scene spread (the std of the held-out vanilla rollouts' chunk-0 E_c); how many
+  pairs move the majority's way; the default score's signed aggregate a = mean_t z_t over the first 3 chunks
+  (`context_energy_two_sided`, calibrated as `--calibrate_to` saves it), median over the condition's rollouts; the
+  default's AUROC (its score |a|) against every held-out vanilla rollout. Over the runs: every condition that moves
+  chunk-0 E_c by less than `MILD_SPREADS` scene spreads.
+- **The band's centre**, per run: the default's per-rollout form |a| with its per-index band mu_v[t], sigma_v[t]
+  fitted on the calibration rollouts' E_c by a trimmed mean and std (`TRIMS`: the share cut on each side; 0 is the
+  shipped fit) or by the median and IQR / 1.349: pooled AUROC over the conditions, the worst condition, and the
+  conditions whose AUROC interval lies wholly under 0.5, on the sweep and on the fresh re-runs of the run's near
+  misses (scored against its 100 fresh vanilla rollouts, `context_energy_fresh`) where there are.
+- **The band's centre over calibration draws**: every run is calibrated on the same scenes, so the same band fits
+  are refitted on `CALIBRATION_DRAWS` sets of `CALIBRATION_SIZE` rollouts drawn from each run's fresh vanilla
+  rollouts, counting the sets that leave a sweep condition confidently under 0.5.
 
-    python benchmarks/paired_shift_diagnosis.py --results benchmarks/results/metaworld_sweep_margin_full \
-        --output benchmarks/results/metaworld_sweep_margin_full/paired_shift_diagnosis.md
+    cd benchmarks && python paired_shift_diagnosis.py --results results/metaworld_sweep_margin_full \
+        --output results/metaworld_sweep_margin_full/paired_shift_diagnosis.md      # about 2.5 min on one core
 """
 
 import argparse
+from collections import Counter
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -37,6 +41,9 @@ FIRST_CHUNKS = 3
 # Shares of the calibration's E_c cut on each side, per chunk index, before its mean and std.
 TRIMS = (0.0, 0.05, 0.10, 0.20)
 MEDIAN = "median / IQR"
+# Calibration sets drawn from each run's fresh vanilla rollouts, and their size (the sweep's calibration size).
+CALIBRATION_DRAWS = 30
+CALIBRATION_SIZE = 20
 # A condition is mild when its median paired move of chunk-0 E_c is under this many scene-to-scene spreads.
 MILD_SPREADS = 2.0
 
@@ -174,12 +181,71 @@ def centre_row(sweep: Path, fresh: Path | None, fit: float | str) -> list[str]:
     ]
 
 
+def draw_rows(runs: Mapping[str, Path]) -> list[list[str]]:
+    """Per band fit: over `CALIBRATION_DRAWS` calibration sets of `CALIBRATION_SIZE` rollouts drawn from each run's
+    fresh vanilla rollouts (one seeded stream per run, the same sets for every fit), how many sets leave a sweep
+    condition confidently under 0.5 against the sweep's held-out vanilla rollouts, per run and in all; and the
+    pooled AUROC's median and minimum over every set."""
+    fits = (*TRIMS, MEDIAN)
+    marked = {fit: {} for fit in fits}
+    pooled = {fit: [] for fit in fits}
+    for run, sweep in runs.items():
+        fresh = list(
+            first_context_energies(episodes_in(sweep.parent / "context_energy_fresh" / "vanilla")).values()
+        )
+        held_out = first_context_energies(episodes_in(sweep / "vanilla"))
+        conditions = [first_context_energies(e) for e in conditions_in(sweep).values()]
+        rng = np.random.default_rng(0)
+        for _ in range(CALIBRATION_DRAWS):
+            drawn = rng.choice(len(fresh), CALIBRATION_SIZE, replace=False)
+            calibration = {i: fresh[i] for i in drawn}
+            for fit in fits:
+                mu, sigma = band(calibration, fit)
+                vanilla = two_sided(held_out, mu, sigma)
+                shifted = [two_sided(e, mu, sigma) for e in conditions]
+                under = any(interval_cell(vanilla, scores)[0].endswith("!") for scores in shifted)
+                marked[fit][run] = marked[fit].get(run, 0) + under
+                pooled[fit].append(auroc(vanilla, np.concatenate(shifted)))
+    return [
+        [
+            fit if fit == MEDIAN else f"trimmed {fit:.0%}",
+            *(str(marked[fit][run]) for run in runs),
+            f"{sum(marked[fit].values())} of {CALIBRATION_DRAWS * len(runs)}",
+            f"{np.median(pooled[fit]):.3f} [{min(pooled[fit]):.3f}]",
+        ]
+        for fit in fits
+    ]
+
+
+def draws_section(runs: Mapping[str, Path]) -> str:
+    """The calibration draws' table, with its caption."""
+    headers = ["band fit", *runs, "all", "pooled: median [min]"]
+    return (
+        f"Calibration sets of {CALIBRATION_SIZE} drawn {CALIBRATION_DRAWS} times per run from its 100 fresh "
+        "vanilla rollouts; each column counts the sets that leave a sweep condition confidently under 0.5 against "
+        "the sweep's 40 held-out vanilla rollouts (first 3 chunks).\n\n"
+        + markdown_table(headers, draw_rows(runs))
+    )
+
+
 def centre_rows(sweep: Path, fresh: Path | None) -> list[list[str]]:
     """The band's-centre rows of one run, one per band fit."""
     return [centre_row(sweep, fresh, fit) for fit in (*TRIMS, MEDIAN)]
 
 
 CENTRE_HEADERS = ["band fit", "pooled", "worst condition", "confidently under 0.5", "fresh re-runs"]
+
+
+def calibration_scenes(runs: list[Path]) -> str:
+    """Whether the runs are calibrated on the same scenes, and which of them has the highest chunk-0 E_c most often."""
+    calibrations = [first_context_energies(episodes_in(sweep / "calibration")) for sweep in runs]
+    seeds = [sorted(calibration) for calibration in calibrations]
+    same = "the same" if all(s == seeds[0] for s in seeds) else "not all the same"
+    highest = Counter(max(c, key=lambda seed: c[seed][0]) for c in calibrations).most_common(1)[0]
+    return (
+        f"The runs are calibrated on {same} scenes (environment seeds {seeds[0][0]}-{seeds[0][-1]} on the first); "
+        f"env seed {highest[0]} has the highest chunk-0 E_c of them on {highest[1]} of {len(runs)} runs."
+    )
 
 
 def centre_summary(rows_by_run: Mapping[str, list[list[str]]]) -> str:
@@ -222,15 +288,18 @@ def run_section(run: str, scenes: tuple, centres: list[list[str]]) -> str:
     )
 
 
-def run_sections(results: Path) -> str:
-    """The summaries over every training seed with E_c records under `results`, then each run's section."""
-    runs = sorted(results.glob("seed*/observation/context_energy_full"), key=lambda p: int(p.parts[-3][4:]))
+def run_sections(results: Path, variant: str = "observation") -> str:
+    """The summaries over every training seed with E_c records of `variant` under `results`, then each run's
+    section."""
+    runs = sorted(results.glob(f"seed*/{variant}/context_energy_full"), key=lambda p: int(p.parts[-3][4:]))
     tables = {sweep.parts[-3]: run_tables(sweep) for sweep in runs}
     scenes = {run: scene for run, (scene, _) in tables.items()}
     centres = {run: centre for run, (_, centre) in tables.items()}
+    with_fresh = {s.parts[-3]: s for s in runs if (s.parent / "context_energy_fresh" / "vanilla").is_dir()}
     sections = [
         f"## Mild shifts over {len(runs)} runs\n\n{mild_summary(scenes)}\n",
-        f"## The band's centre over {len(runs)} runs\n\n{centre_summary(centres)}\n",
+        f"## The band's centre over {len(runs)} runs\n\n{calibration_scenes(runs)}\n\n{centre_summary(centres)}\n",
+        f"## The band's centre over calibration draws\n\n{draws_section(with_fresh)}\n",
     ]
     sections += [run_section(run, scenes[run], centres[run]) for run in tables]
     return "\n".join(sections)
@@ -241,9 +310,12 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--results", type=Path, required=True, help="metaworld_sweep_margin_full")
+    parser.add_argument(
+        "--variant", default="observation", help="seed*/<variant>/: the preset's records, or a variant's"
+    )
     parser.add_argument("--output", type=Path)
     args = parser.parse_args()
-    text = run_sections(args.results)
+    text = run_sections(args.results, args.variant)
     print(text)
     if args.output:
         args.output.write_text(text)
