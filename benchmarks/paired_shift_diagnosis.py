@@ -35,6 +35,7 @@ from window_typicality import conditions_in, episodes_in
 
 from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_interval, markdown_table
 from lerobot_policy_ebvla.monitoring.window_report import score_sets
+from lerobot_policy_ebvla.runtime.statistics import MIN_SIGMA, PHASE_SIGMA_FLOOR
 
 DEFAULT_SCORE = "context_energy_two_sided"
 FIRST_CHUNKS = 3
@@ -48,13 +49,13 @@ CALIBRATION_SIZE = 20
 MILD_SPREADS = 2.0
 
 
-def first_context_energies(episodes: Mapping) -> dict[int, np.ndarray]:
-    """Each episode's E_c over its first chunks, by environment seed."""
+def first_context_energies(episodes: Mapping, chunks: int | None = FIRST_CHUNKS) -> dict[int, np.ndarray]:
+    """Each episode's E_c over its first `chunks` chunks (None: all), by environment seed."""
     return {
-        chunks[0].seed: np.array(
-            [r.context_energy for r in sorted(chunks, key=lambda r: r.chunk_index)[:FIRST_CHUNKS]]
+        episode[0].seed: np.array(
+            [r.context_energy for r in sorted(episode, key=lambda r: r.chunk_index)[:chunks]]
         )
-        for chunks in episodes.values()
+        for episode in episodes.values()
     }
 
 
@@ -135,18 +136,20 @@ def mild_summary(scenes_by_run: Mapping[str, tuple]) -> str:
 
 
 def band(calibration: Mapping[int, np.ndarray], fit: float | str) -> tuple[np.ndarray, np.ndarray]:
-    """mu_v[t], sigma_v[t] of the calibration's E_c at each of the first chunk indices."""
+    """mu_v[t], sigma_v[t] of the calibration's E_c (whole episodes) at each of the first chunk indices, sigma
+    floored as the shipped fit floors it (`PhaseStatistics`: 0.1 times the std of every calibration chunk's E_c)."""
+    floor = max(PHASE_SIGMA_FLOOR * float(np.concatenate(list(calibration.values())).std()), MIN_SIGMA)
     means, stds = [], []
     for t in range(FIRST_CHUNKS):
         at_t = np.array([e[t] for e in calibration.values() if e.size > t])
         if fit == MEDIAN:
             low, high = np.percentile(at_t, [25, 75])
             means.append(np.median(at_t))
-            stds.append((high - low) / 1.349)
+            stds.append(max((high - low) / 1.349, floor))
         else:
             kept = stats.trimboth(at_t, fit) if fit else at_t
             means.append(kept.mean())
-            stds.append(kept.std())
+            stds.append(max(kept.std(), floor))
     return np.array(means), np.array(stds)
 
 
@@ -157,7 +160,7 @@ def two_sided(episodes: Mapping[int, np.ndarray], mu: np.ndarray, sigma: np.ndar
 
 def centre_row(sweep: Path, fresh: Path | None, fit: float | str) -> list[str]:
     """One band fit's row for one run."""
-    mu, sigma = band(first_context_energies(episodes_in(sweep / "calibration")), fit)
+    mu, sigma = band(first_context_energies(episodes_in(sweep / "calibration"), None), fit)
     vanilla = two_sided(first_context_energies(episodes_in(sweep / "vanilla")), mu, sigma)
     conditions = {
         name: two_sided(first_context_energies(e), mu, sigma) for name, e in conditions_in(sweep).items()
@@ -190,9 +193,8 @@ def draw_rows(runs: Mapping[str, Path]) -> list[list[str]]:
     marked = {fit: {} for fit in fits}
     pooled = {fit: [] for fit in fits}
     for run, sweep in runs.items():
-        fresh = list(
-            first_context_energies(episodes_in(sweep.parent / "context_energy_fresh" / "vanilla")).values()
-        )
+        fresh_episodes = episodes_in(sweep.parent / "context_energy_fresh" / "vanilla")
+        fresh = list(first_context_energies(fresh_episodes, None).values())
         held_out = first_context_energies(episodes_in(sweep / "vanilla"))
         conditions = [first_context_energies(e) for e in conditions_in(sweep).values()]
         rng = np.random.default_rng(0)

@@ -918,7 +918,7 @@ def test_every_shift_moves_e_c_scene_by_scene_and_the_mild_ones_less_than_scenes
 def test_over_calibration_draws_no_band_fit_is_safer_it_moves_the_confidently_wrong_seed():
     """paired_shift_diagnosis.md's calibration draws, recomputed for seed 12000: every run is calibrated on the same
     scenes, one of which has the highest chunk-0 E_c on all fourteen; refitted on 330 drawn calibration sets, each
-    band fit leaves a condition confidently under 0.5 on 26-40 of them, the shipped fit mostly on seed 12000 and
+    band fit leaves a condition confidently under 0.5 on 19-35 of them, the shipped fit mostly on seed 12000 and
     the trimmed and median fits mostly on seed 15000."""
     committed = (FULL / "paired_shift_diagnosis.md").read_text()
     assert "env seed 4001 has the highest chunk-0 E_c of them on 14 of 14 runs" in committed
@@ -928,7 +928,7 @@ def test_over_calibration_draws_no_band_fit_is_safer_it_moves_the_confidently_wr
     recomputed = paired.draw_rows({"seed12000": seed_run(12000, "observation") / "context_energy_full"})
     assert [row[1] for row in recomputed] == [row["seed12000"] for row in rows.values()]
     totals = {fit: int(row["all"].split()[0]) for fit, row in rows.items()}
-    assert all(26 <= total <= 40 for total in totals.values()) and min(totals.values()) > 0
+    assert all(19 <= total <= 35 for total in totals.values())
     assert int(rows["trimmed 0%"]["seed12000"]) > int(rows["trimmed 0%"]["seed15000"])
     for fit in ("trimmed 10%", "trimmed 20%", "median / IQR"):
         assert int(rows[fit]["seed15000"]) > int(rows[fit]["seed12000"])
