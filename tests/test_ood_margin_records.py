@@ -932,3 +932,27 @@ def test_over_calibration_draws_no_band_fit_is_safer_it_moves_the_confidently_wr
     assert int(rows["trimmed 0%"]["seed12000"]) > int(rows["trimmed 0%"]["seed15000"])
     for fit in ("trimmed 10%", "trimmed 20%", "median / IQR"):
         assert int(rows[fit]["seed15000"]) > int(rows[fit]["seed12000"])
+
+
+def test_e_c_trained_on_appearance_corruptions_fails_its_untouched_check():
+    """paired_shift_diagnosis_appearance.md (recomputed for seed 22000) and context_energy_appearance_untouched.md:
+    E_c trained on channel gains and state noise only (no spatial corruption) shrinks its scene-to-scene spread, but
+    on the two seeds trained after summary.md's rule it fails the rule: a mild condition moves chunk-0 E_c by less than
+    one scene spread on both, and the default pools under 0.90 on seed 23000."""
+    committed = (FULL / "paired_shift_diagnosis_appearance.md").read_text()
+    scenes, centres = paired.run_tables(seed_run(22000, "observation_appearance") / "context_energy_full")
+    recomputed = paired.run_section("seed22000", scenes, centres).strip()
+    assert recomputed == f"## seed22000\n\n{section(committed, 'seed22000')}"
+    for seed in (22000, 23000):
+        rows = [
+            table_cells(line)
+            for line in section(committed, f"seed{seed}").splitlines()
+            if line.startswith("| ")
+        ]
+        mild = [
+            abs(float(r[1].split()[0])) for r in rows if r[0] in ("blur_s3", "light_direction_s3", "noise_s3")
+        ]
+        assert len(mild) == 3 and min(mild) < 1, seed
+    defaults = default_rows("context_energy_appearance_untouched.md", (22000, 23000))
+    assert [row[0][:5] for row in defaults.values()] == ["0.917", "0.896"]
+    assert not any("!" in row[5] for row in defaults.values())
