@@ -109,7 +109,7 @@ def scene_rows(sweep: Path) -> tuple[str, list[list[str]], list[float]]:
     caption = (
         f"Scene-to-scene spread of chunk-0 E_c over {len(vanilla_first)} held-out vanilla rollouts: {spread:.3f}. "
         f"The default's signed aggregate a of the held-out vanilla rollouts: median {np.median(held_out):+.2f}, "
-        f"std {held_out.std():.2f} (the calibration's: std 1 by construction); of the {len(scenes)} vanilla "
+        f"std {held_out.std():.2f} (the calibration's z: std 1 at each chunk index); of the {len(scenes)} vanilla "
         f"rollouts of the conditions' scenes: median {np.median([signed['vanilla'][s] for s in scenes]):+.2f}."
     )
     return caption, rows, medians
