@@ -27,13 +27,14 @@ rollout of the same seed see one scene (the same button position), only the imag
 import argparse
 from collections import Counter
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from scipy import stats
 from window_typicality import conditions_in, episodes_in
 
-from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_interval, markdown_table
+from lerobot_policy_ebvla.monitoring.metrics import auroc, markdown_table, marked_auroc
 from lerobot_policy_ebvla.monitoring.window_report import score_sets
 from lerobot_policy_ebvla.runtime.statistics import MIN_SIGMA, PHASE_SIGMA_FLOOR
 
@@ -49,6 +50,31 @@ CALIBRATION_SIZE = 20
 MILD_SPREADS = 2.0
 
 
+@dataclass(frozen=True)
+class RunRecords:
+    """One run's episodes, each record folder read once: the sweep's calibration, held-out vanilla and condition
+    rollouts, and its fresh vanilla rollouts and fresh re-runs of conditions where it has them."""
+
+    calibration: dict
+    vanilla: dict
+    conditions: dict[str, dict]
+    fresh_vanilla: dict | None
+    fresh_conditions: dict[str, dict]
+
+    @classmethod
+    def read(cls, sweep: Path) -> "RunRecords":
+        """The records of a sweep folder and of `context_energy_fresh/` beside it."""
+        fresh = sweep.parent / "context_energy_fresh"
+        has_fresh = (fresh / "vanilla").is_dir()
+        return cls(
+            episodes_in(sweep / "calibration"),
+            episodes_in(sweep / "vanilla"),
+            conditions_in(sweep),
+            episodes_in(fresh / "vanilla") if has_fresh else None,
+            conditions_in(fresh) if has_fresh else {},
+        )
+
+
 def first_context_energies(episodes: Mapping, chunks: int | None = FIRST_CHUNKS) -> dict[int, np.ndarray]:
     """Each episode's E_c over its first `chunks` chunks (None: all), by environment seed."""
     return {
@@ -59,11 +85,9 @@ def first_context_energies(episodes: Mapping, chunks: int | None = FIRST_CHUNKS)
     }
 
 
-def interval_cell(negatives: np.ndarray, positives: np.ndarray) -> tuple[str, float]:
-    """'AUROC [low, high]', '!' where the interval lies wholly under 0.5; and the AUROC."""
-    value = auroc(negatives, positives)
-    low, high = bootstrap_auroc_interval(negatives, positives)
-    return f"{value:.2f} [{low:.2f}, {high:.2f}]{'!' if high < 0.5 else ''}", value
+def fit_name(fit: float | str) -> str:
+    """A band fit's row label."""
+    return fit if fit == MEDIAN else f"trimmed {fit:.0%}"
 
 
 SCENE_HEADERS = [
@@ -75,12 +99,10 @@ SCENE_HEADERS = [
 ]
 
 
-def scene_rows(sweep: Path) -> tuple[str, list[list[str]], list[float]]:
+def scene_rows(run: RunRecords) -> tuple[str, list[list[str]], list[float]]:
     """The scene-by-scene table of one run: its caption, its rows and each row's median move."""
-    vanilla, conditions = episodes_in(sweep / "vanilla"), conditions_in(sweep)
-    _, scored = score_sets(
-        episodes_in(sweep / "calibration"), {"vanilla": vanilla, **conditions}, DEFAULT_SCORE, FIRST_CHUNKS
-    )
+    vanilla, conditions = run.vanilla, run.conditions
+    _, scored = score_sets(run.calibration, {"vanilla": vanilla, **conditions}, DEFAULT_SCORE, FIRST_CHUNKS)
     signed = {
         name: dict(zip((c[0].seed for c in s.episodes.values()), s.values[:, 1], strict=True))
         for name, s in scored.items()
@@ -94,7 +116,7 @@ def scene_rows(sweep: Path) -> tuple[str, list[list[str]], list[float]]:
         moves = np.array([e[0] - vanilla_first[seed] for seed, e in shifted.items()]) / spread
         majority = max(int((moves > 0).sum()), int((moves < 0).sum()))
         own = np.array([signed[name][seed] for seed in shifted])
-        cell, _ = interval_cell(np.abs(scored["vanilla"].values[:, 1]), np.abs(own))
+        cell, _ = marked_auroc(np.abs(scored["vanilla"].values[:, 1]), np.abs(own))
         medians.append(float(np.median(moves)))
         rows.append(
             [
@@ -158,25 +180,23 @@ def two_sided(episodes: Mapping[int, np.ndarray], mu: np.ndarray, sigma: np.ndar
     return np.array([abs(np.mean((e - mu[: e.size]) / sigma[: e.size])) for e in episodes.values()])
 
 
-def centre_row(sweep: Path, fresh: Path | None, fit: float | str) -> list[str]:
+def centre_row(run: RunRecords, fit: float | str) -> list[str]:
     """One band fit's row for one run."""
-    mu, sigma = band(first_context_energies(episodes_in(sweep / "calibration"), None), fit)
-    vanilla = two_sided(first_context_energies(episodes_in(sweep / "vanilla")), mu, sigma)
-    conditions = {
-        name: two_sided(first_context_energies(e), mu, sigma) for name, e in conditions_in(sweep).items()
-    }
-    cells = {name: interval_cell(vanilla, scores) for name, scores in conditions.items()}
+    mu, sigma = band(first_context_energies(run.calibration, None), fit)
+    vanilla = two_sided(first_context_energies(run.vanilla), mu, sigma)
+    conditions = {name: two_sided(first_context_energies(e), mu, sigma) for name, e in run.conditions.items()}
+    cells = {name: marked_auroc(vanilla, scores) for name, scores in conditions.items()}
     worst = min(cells, key=lambda name: cells[name][1])
     under = [f"{name} {cell}" for name, (cell, _) in cells.items() if cell.endswith("!")]
     fresh_cells = []
-    if fresh is not None:
-        fresh_vanilla = two_sided(first_context_energies(episodes_in(fresh / "vanilla")), mu, sigma)
-        for name, e in conditions_in(fresh).items():
-            cell, _ = interval_cell(fresh_vanilla, two_sided(first_context_energies(e), mu, sigma))
+    if run.fresh_vanilla is not None:
+        fresh_vanilla = two_sided(first_context_energies(run.fresh_vanilla), mu, sigma)
+        for name, e in run.fresh_conditions.items():
+            cell, _ = marked_auroc(fresh_vanilla, two_sided(first_context_energies(e), mu, sigma))
             fresh_cells.append(f"{name} {cell}")
     pooled = auroc(vanilla, np.concatenate(list(conditions.values())))
     return [
-        fit if fit == MEDIAN else f"trimmed {fit:.0%}",
+        fit_name(fit),
         f"{pooled:.3f}",
         f"{worst} {cells[worst][0]}",
         "; ".join(under) or "none",
@@ -184,7 +204,7 @@ def centre_row(sweep: Path, fresh: Path | None, fit: float | str) -> list[str]:
     ]
 
 
-def draw_rows(runs: Mapping[str, Path]) -> list[list[str]]:
+def draw_rows(runs: Mapping[str, RunRecords]) -> list[list[str]]:
     """Per band fit: over `CALIBRATION_DRAWS` calibration sets of `CALIBRATION_SIZE` rollouts drawn from each run's
     fresh vanilla rollouts (one seeded stream per run, the same sets for every fit), how many sets leave a sweep
     condition confidently under 0.5 against the sweep's held-out vanilla rollouts, per run and in all; and the
@@ -192,11 +212,10 @@ def draw_rows(runs: Mapping[str, Path]) -> list[list[str]]:
     fits = (*TRIMS, MEDIAN)
     marked = {fit: {} for fit in fits}
     pooled = {fit: [] for fit in fits}
-    for run, sweep in runs.items():
-        fresh_episodes = episodes_in(sweep.parent / "context_energy_fresh" / "vanilla")
-        fresh = list(first_context_energies(fresh_episodes, None).values())
-        held_out = first_context_energies(episodes_in(sweep / "vanilla"))
-        conditions = [first_context_energies(e) for e in conditions_in(sweep).values()]
+    for run, records in runs.items():
+        fresh = list(first_context_energies(records.fresh_vanilla, None).values())
+        held_out = first_context_energies(records.vanilla)
+        conditions = [first_context_energies(e) for e in records.conditions.values()]
         rng = np.random.default_rng(0)
         for _ in range(CALIBRATION_DRAWS):
             drawn = rng.choice(len(fresh), CALIBRATION_SIZE, replace=False)
@@ -205,12 +224,12 @@ def draw_rows(runs: Mapping[str, Path]) -> list[list[str]]:
                 mu, sigma = band(calibration, fit)
                 vanilla = two_sided(held_out, mu, sigma)
                 shifted = [two_sided(e, mu, sigma) for e in conditions]
-                under = any(interval_cell(vanilla, scores)[0].endswith("!") for scores in shifted)
+                under = any(marked_auroc(vanilla, scores)[0].endswith("!") for scores in shifted)
                 marked[fit][run] = marked[fit].get(run, 0) + under
                 pooled[fit].append(auroc(vanilla, np.concatenate(shifted)))
     return [
         [
-            fit if fit == MEDIAN else f"trimmed {fit:.0%}",
+            fit_name(fit),
             *(str(marked[fit][run]) for run in runs),
             f"{sum(marked[fit].values())} of {CALIBRATION_DRAWS * len(runs)}",
             f"{np.median(pooled[fit]):.3f} [{min(pooled[fit]):.3f}]",
@@ -219,7 +238,7 @@ def draw_rows(runs: Mapping[str, Path]) -> list[list[str]]:
     ]
 
 
-def draws_section(runs: Mapping[str, Path]) -> str:
+def draws_section(runs: Mapping[str, RunRecords]) -> str:
     """The calibration draws' table, with its caption."""
     headers = ["band fit", *runs, "all", "pooled: median [min]"]
     return (
@@ -230,17 +249,17 @@ def draws_section(runs: Mapping[str, Path]) -> str:
     )
 
 
-def centre_rows(sweep: Path, fresh: Path | None) -> list[list[str]]:
+def centre_rows(run: RunRecords) -> list[list[str]]:
     """The band's-centre rows of one run, one per band fit."""
-    return [centre_row(sweep, fresh, fit) for fit in (*TRIMS, MEDIAN)]
+    return [centre_row(run, fit) for fit in (*TRIMS, MEDIAN)]
 
 
 CENTRE_HEADERS = ["band fit", "pooled", "worst condition", "confidently under 0.5", "fresh re-runs"]
 
 
-def calibration_scenes(runs: list[Path]) -> str:
+def calibration_scenes(runs: list[RunRecords]) -> str:
     """Whether the runs are calibrated on the same scenes, and which of them has the highest chunk-0 E_c most often."""
-    calibrations = [first_context_energies(episodes_in(sweep / "calibration")) for sweep in runs]
+    calibrations = [first_context_energies(run.calibration) for run in runs]
     seeds = [sorted(calibration) for calibration in calibrations]
     same = "the same" if all(s == seeds[0] for s in seeds) else "not all the same"
     highest = Counter(max(c, key=lambda seed: c[seed][0]) for c in calibrations).most_common(1)[0]
@@ -253,14 +272,14 @@ def calibration_scenes(runs: list[Path]) -> str:
 def centre_summary(rows_by_run: Mapping[str, list[list[str]]]) -> str:
     """Per band fit, over the runs: the pooled AUROCs' range and the runs with a condition confidently under 0.5."""
     rows = []
-    for i, fit in enumerate(rows_by_run[next(iter(rows_by_run))]):
-        per_run = {run: rows[i] for run, rows in rows_by_run.items()}
+    for i, fit in enumerate((*TRIMS, MEDIAN)):
+        per_run = {run: run_rows[i] for run, run_rows in rows_by_run.items()}
         pooled = [float(row[1]) for row in per_run.values()]
         sweep_under = [run for run, row in per_run.items() if row[3] != "none"]
         fresh_under = [run for run, row in per_run.items() if "!" in row[4]]
         rows.append(
             [
-                fit[0],
+                fit_name(fit),
                 f"{min(pooled):.3f}-{max(pooled):.3f}",
                 ", ".join(sweep_under) or "none",
                 ", ".join(fresh_under) or "none",
@@ -275,10 +294,9 @@ def centre_summary(rows_by_run: Mapping[str, list[list[str]]]) -> str:
     return markdown_table(headers, rows)
 
 
-def run_tables(sweep: Path) -> tuple[tuple, list[list[str]]]:
+def run_tables(run: RunRecords) -> tuple[tuple, list[list[str]]]:
     """One run's scene-by-scene table (`scene_rows`) and band's-centre rows (`centre_rows`)."""
-    fresh = sweep.parent / "context_energy_fresh"
-    return scene_rows(sweep), centre_rows(sweep, fresh if (fresh / "vanilla").is_dir() else None)
+    return scene_rows(run), centre_rows(run)
 
 
 def run_section(run: str, scenes: tuple, centres: list[list[str]]) -> str:
@@ -293,14 +311,16 @@ def run_section(run: str, scenes: tuple, centres: list[list[str]]) -> str:
 def run_sections(results: Path, variant: str = "observation") -> str:
     """The summaries over every training seed with E_c records of `variant` under `results`, then each run's
     section."""
-    runs = sorted(results.glob(f"seed*/{variant}/context_energy_full"), key=lambda p: int(p.parts[-3][4:]))
-    tables = {sweep.parts[-3]: run_tables(sweep) for sweep in runs}
-    scenes = {run: scene for run, (scene, _) in tables.items()}
-    centres = {run: centre for run, (_, centre) in tables.items()}
-    with_fresh = {s.parts[-3]: s for s in runs if (s.parent / "context_energy_fresh" / "vanilla").is_dir()}
+    sweeps = sorted(results.glob(f"seed*/{variant}/context_energy_full"), key=lambda p: int(p.parts[-3][4:]))
+    runs = {sweep.parts[-3]: RunRecords.read(sweep) for sweep in sweeps}
+    tables = {name: run_tables(run) for name, run in runs.items()}
+    scenes = {name: scene for name, (scene, _) in tables.items()}
+    centres = {name: centre for name, (_, centre) in tables.items()}
+    with_fresh = {name: run for name, run in runs.items() if run.fresh_vanilla is not None}
     sections = [
         f"## Mild shifts over {len(runs)} runs\n\n{mild_summary(scenes)}\n",
-        f"## The band's centre over {len(runs)} runs\n\n{calibration_scenes(runs)}\n\n{centre_summary(centres)}\n",
+        f"## The band's centre over {len(runs)} runs\n\n{calibration_scenes(list(runs.values()))}\n\n"
+        f"{centre_summary(centres)}\n",
         f"## The band's centre over calibration draws\n\n{draws_section(with_fresh)}\n",
     ]
     sections += [run_section(run, scenes[run], centres[run]) for run in tables]

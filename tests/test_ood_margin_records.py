@@ -897,7 +897,9 @@ def test_every_shift_moves_e_c_scene_by_scene_and_the_mild_ones_less_than_scenes
     0.5 is a condition that moves it by less than 2 scene-to-scene spreads; the band refitted as shipped reproduces
     the default's AUROC; and moving the band's centre moves the confidently-wrong run."""
     committed = (FULL / "paired_shift_diagnosis.md").read_text()
-    scenes, centres = paired.run_tables(seed_run(12000, "observation") / "context_energy_full")
+    scenes, centres = paired.run_tables(
+        paired.RunRecords.read(seed_run(12000, "observation") / "context_energy_full")
+    )
     recomputed = paired.run_section("seed12000", scenes, centres).strip()
     assert recomputed == f"## seed12000\n\n{section(committed, 'seed12000')}"
     mild = section(committed, "Mild shifts over 14 runs")
@@ -925,7 +927,9 @@ def test_over_calibration_draws_no_band_fit_is_safer_it_moves_the_confidently_wr
     lines = section(committed, "The band's centre over calibration draws").splitlines()
     header = table_cells(lines[2])
     rows = {cells[0]: dict(zip(header, cells, strict=True)) for cells in map(table_cells, lines[4:])}
-    recomputed = paired.draw_rows({"seed12000": seed_run(12000, "observation") / "context_energy_full"})
+    recomputed = paired.draw_rows(
+        {"seed12000": paired.RunRecords.read(seed_run(12000, "observation") / "context_energy_full")}
+    )
     assert [row[1] for row in recomputed] == [row["seed12000"] for row in rows.values()]
     totals = {fit: int(row["all"].split()[0]) for fit, row in rows.items()}
     assert all(19 <= total <= 35 for total in totals.values())
@@ -940,7 +944,9 @@ def test_e_c_trained_on_appearance_corruptions_fails_its_untouched_check():
     on the two seeds trained after summary.md's rule it fails the rule: a mild condition moves chunk-0 E_c by less than
     one scene spread on both, and the default pools under 0.90 on seed 23000."""
     committed = (FULL / "paired_shift_diagnosis_appearance.md").read_text()
-    scenes, centres = paired.run_tables(seed_run(22000, "observation_appearance") / "context_energy_full")
+    scenes, centres = paired.run_tables(
+        paired.RunRecords.read(seed_run(22000, "observation_appearance") / "context_energy_full")
+    )
     recomputed = paired.run_section("seed22000", scenes, centres).strip()
     assert recomputed == f"## seed22000\n\n{section(committed, 'seed22000')}"
     for seed in (22000, 23000):

@@ -25,7 +25,7 @@ from .baselines import (
     registered_scores,
     vanilla_rollouts,
 )
-from .metrics import BinaryRates, auroc, bootstrap_auroc_interval, markdown_table, percent
+from .metrics import BinaryRates, markdown_table, marked_auroc, percent
 from .records import Episode
 from .score_summary import successes
 from .scores import episode_scores
@@ -154,11 +154,7 @@ def window_table(
 
     rows = [row("held-out vanilla", vanilla, "")]
     for name, scored in conditions.items():
-        low, high = bootstrap_auroc_interval(vanilla.scores, scored.scores, n_bootstrap)
-        area = (
-            f"{auroc(vanilla.scores, scored.scores):.2f} [{low:.2f}, {high:.2f}]{'!' if high < 0.5 else ''}"
-        )
-        rows.append(row(name, scored, area))
+        rows.append(row(name, scored, marked_auroc(vanilla.scores, scored.scores, n_bootstrap)[0]))
     headers = [
         "Set",
         "n",
