@@ -12,6 +12,7 @@ from lerobot_policy_ebvla.training_signal import (
     CORRUPTIONS,
     channel_gain,
     corrupt_observation,
+    data_gradient_penalty,
     energy_margin_loss,
     graded_corruption,
     random_conv,
@@ -260,11 +261,93 @@ def test_shading_scales_every_channel_by_one_smooth_field_of_both_signs():
         ("energy_ood_corruption_strength", (0.0, 1.0)),
         ("energy_ood_corruption_strength", (0.6, 0.3)),
         ("energy_ood_corruption_strength", (0.5, 1.5)),
+        ("energy_ood_gradient_penalty", -1.0),
     ],
 )
 def test_margin_fields_are_validated_by_name(field, value):
     with pytest.raises(ValueError, match=field):
         tiny_config(**{field: value})
+
+
+@pytest.mark.parametrize("target", ["head", "context", "context_backbone"])
+def test_gradient_penalty_needs_the_observation_encoder(target):
+    with pytest.raises(ValueError, match="energy_ood_gradient_penalty.*energy_ood_margin_on='observation'"):
+        tiny_config(
+            energy_ood_margin_weight=0.01, energy_ood_margin_on=target, energy_ood_gradient_penalty=0.1
+        )
+    with pytest.raises(ValueError, match="energy_ood_margin_weight` > 0"):
+        tiny_config(energy_ood_margin_on="observation", energy_ood_gradient_penalty=0.1)
+
+
+def test_gradient_penalty_is_the_squared_image_gradient_per_observation_summed_over_cameras():
+    images = [torch.rand(2, 3, 4, 4, requires_grad=True), torch.rand(2, 1, 2, 2, requires_grad=True)]
+    weights = [torch.randn(3, 4, 4), torch.randn(1, 2, 2)]
+    # E_i = sum_x w x + (sum_x x)^2 / 2 on the first camera: gradient w + sum_x x, a different one per observation.
+    energy = sum((w * x).flatten(1).sum(1) for w, x in zip(weights, images, strict=True))
+    energy = energy + images[0].flatten(1).sum(1).pow(2) / 2
+    penalty = data_gradient_penalty(energy, images)
+    expected = [(weights[0] + images[0][i].sum()).pow(2).sum() + weights[1].pow(2).sum() for i in range(2)]
+    torch.testing.assert_close(penalty, torch.stack(expected).mean())
+    # Kept in the graph: training can lower it (here through the first camera's second-order term).
+    penalty.backward()
+    assert images[0].grad.abs().sum() > 0
+
+
+def policy_with_gradient_penalty(penalty: float, **fields) -> EBVLAPolicy:
+    torch.manual_seed(0)
+    return EBVLAPolicy(
+        tiny_config(
+            energy_ood_margin_weight=1.0,
+            energy_ood_margin_on="observation",
+            energy_ood_gradient_penalty=penalty,
+            **fields,
+        )
+    )
+
+
+def image_gradient_penalty(policy: EBVLAPolicy, batch: dict) -> float:
+    """The penalty's value at `batch`'s images, whatever the policy's own weight on it."""
+    model = policy.model
+    images = {key: batch[key].clone().requires_grad_(True) for key in policy.config.image_features}
+    energy = model.context_energy(pooled_context(model.observation_encoder({**batch, **images})))
+    return data_gradient_penalty(energy, list(images.values())).item()
+
+
+def test_gradient_penalty_is_added_to_the_margin_and_trains_the_observation_encoder_only():
+    batch = tiny_batch(tiny_config(), batch_size=3)
+    losses = {}
+    for penalty in (0.0, 50.0):
+        policy = policy_with_gradient_penalty(penalty)
+        losses[penalty], _ = policy.model.context_margin_loss(batch, torch.Generator().manual_seed(0))
+    value = image_gradient_penalty(policy_with_gradient_penalty(0.0), batch)
+    assert value > 0
+    assert losses[50.0].item() == pytest.approx(losses[0.0].item() + 50.0 * value, rel=1e-4)
+    losses[50.0].backward()
+    assert all(p.grad is None for p in policy.model.backbone.parameters())
+    assert all(p.grad is None for p in policy.model.head.parameters())
+    assert policy.model.observation_encoder.state_proj.weight.grad.abs().sum() > 0
+
+
+def test_descending_the_gradient_penalty_flattens_the_context_energy_at_the_images():
+    """The penalty reaches the observation encoder's image weights through the second derivative (the feature
+    map's tokens, which see the tiny policy's random images more than its keypoints do): steps on it alone make
+    E_c flatter at the images."""
+    policy = policy_with_gradient_penalty(1.0, camera_tokens="feature_map")
+    model = policy.model
+    batch = tiny_batch(policy.config, batch_size=4)
+    optimizer = torch.optim.SGD(model.observation_encoder.parameters(), lr=0.5)
+    values = []
+    for _ in range(5):
+        images = {key: batch[key].clone().requires_grad_(True) for key in policy.config.image_features}
+        energy = model.context_energy(pooled_context(model.observation_encoder({**batch, **images})))
+        penalty = data_gradient_penalty(energy, list(images.values()))
+        optimizer.zero_grad()
+        penalty.backward()
+        values.append(penalty.item())
+        optimizer.step()
+    image_weights = [p for name, p in model.observation_encoder.named_parameters() if "rgb_encoder" in name]
+    assert image_weights and any(p.grad.abs().sum() > 0 for p in image_weights)
+    assert values[-1] < 0.5 * values[0]
 
 
 def policy_after_the_context_margin(target: str) -> EBVLAPolicy:

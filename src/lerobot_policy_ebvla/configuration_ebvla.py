@@ -189,6 +189,14 @@ class EBVLAConfig(PreTrainedConfig):
             rise with how far an observation left the data, not only whether. (1, 1) (default): the full
             corruption at margin m. (0.1, 1) lifted mild blur and noise on two of three training seeds and
             inverted light direction on the third (docs/energy_study.md, section 8.7): opt-in.
+        energy_ood_gradient_penalty: Weight gamma of a gradient penalty on the context energy at the data,
+            gamma E ||d E_c(C(x)) / d x||^2 over the real images x (R1, Mescheder et al., ICML 2018), added to
+            the margin's loss; needs `energy_ood_margin_on="observation"`. The margin lifts E_c on the training
+            corruptions only; a shift it never saw moves E_c by its gradient at the image, up in one scene and
+            down in another, and a mild one lands inside the vanilla band on either side (docs/energy_study.md,
+            section 8.11). With no gradient at the data every small change of the image moves E_c at second
+            order, where the margin has made it rise. 0 (default) is off; it differentiates E_c twice through
+            the observation encoder at each training step.
         train_mcmc_steps_range: [K_min, K_max] of the number of MCMC steps sampled at every training step.
         inference_mcmc_steps: Number K_inf of MCMC steps at inference.
         num_restarts: Refine this many chains per observation and keep the one with the lowest final
@@ -342,6 +350,7 @@ class EBVLAConfig(PreTrainedConfig):
     energy_ood_margin_on: str = "head"
     energy_ood_corruptions: tuple[str, ...] = ("channel_gain", "patch_swap", "shift")
     energy_ood_corruption_strength: tuple[float, float] = (1.0, 1.0)
+    energy_ood_gradient_penalty: float = 0.0
 
     # Inference options beyond the paper (off by default).
     num_restarts: int = 1
@@ -488,6 +497,17 @@ class EBVLAConfig(PreTrainedConfig):
             raise ValueError(
                 "`energy_ood_corruption_strength` must be [s_min, s_max] with 0 < s_min <= s_max <= 1. "
                 f"Got {self.energy_ood_corruption_strength}."
+            )
+        if self.energy_ood_gradient_penalty < 0:
+            raise ValueError(
+                f"`energy_ood_gradient_penalty` must be >= 0. Got {self.energy_ood_gradient_penalty}."
+            )
+        if self.energy_ood_gradient_penalty > 0 and not self.context_energy_on_own_encoder:
+            raise ValueError(
+                "`energy_ood_gradient_penalty` > 0 differentiates the context energy of the observation encoder: "
+                "it needs `energy_ood_margin_on='observation'` and `energy_ood_margin_weight` > 0. Got "
+                f"energy_ood_margin_on={self.energy_ood_margin_on!r}, "
+                f"energy_ood_margin_weight={self.energy_ood_margin_weight}."
             )
 
     def _validate_inference_options(self) -> None:

@@ -39,6 +39,7 @@ from .runtime.threshold import OODDecision
 from .training_signal import (
     EBVLAContextEnergy,
     contrastive_in_bf16,
+    data_gradient_penalty,
     energy_margin_loss,
     graded_corruption,
 )
@@ -646,9 +647,15 @@ class EBVLA(nn.Module):
         cfg = self.config
         corrupted_batch, margin = self._corrupted_copy(batch, generator)
         if self.observation_encoder is not None:
-            clean_features = pooled_context(self.observation_encoder(batch))
+            penalized = cfg.energy_ood_gradient_penalty > 0
+            images = {key: batch[key].detach().requires_grad_(penalized) for key in cfg.image_features}
+            clean_features = pooled_context(self.observation_encoder({**batch, **images}))
             corrupted_features = pooled_context(self.observation_encoder(corrupted_batch))
-            return self._context_margin(clean_features, corrupted_features, margin)
+            loss, gap, clean = self._context_margin(clean_features, corrupted_features, margin)
+            if penalized:
+                penalty = data_gradient_penalty(clean, list(images.values()))
+                loss = loss + cfg.energy_ood_gradient_penalty * penalty
+            return loss, gap
         through_backbone = cfg.energy_ood_margin_on == "context_backbone"
         with torch.set_grad_enabled(through_backbone):
             if clean_features is None:
@@ -656,7 +663,8 @@ class EBVLA(nn.Module):
             corrupted_features = pooled_context(self.backbone(corrupted_batch))
         if not through_backbone:
             clean_features = clean_features.detach()
-        return self._context_margin(clean_features, corrupted_features, margin)
+        loss, gap, _ = self._context_margin(clean_features, corrupted_features, margin)
+        return loss, gap
 
     def _corrupted_copy(
         self, batch: dict[str, Tensor], generator: torch.Generator
@@ -677,10 +685,11 @@ class EBVLA(nn.Module):
 
     def _context_margin(
         self, clean_features: Tensor, corrupted_features: Tensor, margin: float | Tensor
-    ) -> tuple[Tensor, float]:
+    ) -> tuple[Tensor, float, Tensor]:
+        """The margin's loss, its mean gap and the clean observations' E_c(C), (B,)."""
         clean, shifted = self.context_energy(clean_features), self.context_energy(corrupted_features)
         loss = energy_margin_loss(clean, shifted, margin) + clean.float().pow(2).mean()
-        return loss, (shifted - clean).mean().item()
+        return loss, (shifted - clean).mean().item(), clean
 
     def ood_margin_loss(
         self,

@@ -261,6 +261,14 @@ def energy_margin_loss(clean_energy: Tensor, corrupted_energy: Tensor, margin: f
     return torch.relu(margin - gap).mean()
 
 
+def data_gradient_penalty(energy: Tensor, images: list[Tensor]) -> Tensor:
+    """mean_i sum_x ||d E_i / d x||^2 over each observation's images (R1, Mescheder et al., ICML 2018), kept in
+    the graph so that training flattens the energy at the data; `images` must be inputs of `energy`'s graph
+    that require grad, one (B, ...) tensor per camera."""
+    grads = torch.autograd.grad(energy.float().sum(), images, create_graph=True)
+    return sum(g.float().pow(2).flatten(1).sum(dim=1) for g in grads).mean()
+
+
 class EBVLAContextEnergy(nn.Module):
     """E_c(C): a scalar energy of the pooled context, added to the head's final energy (a joint energy
     E(a, C) + E_c(C), `energy_ood_margin_on="context"`, `"context_backbone"` or `"observation"`). It has no
