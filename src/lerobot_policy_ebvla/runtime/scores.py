@@ -42,6 +42,9 @@ A policy trained with a joint energy (`energy_ood_margin_on`) reports its contex
 (`EnergyReadout.context_energy`, already inside the final energy), and two scores read it alone:
 
 - "context_energy" (`ContextEnergy`): E_c(C), high off the data by training.
+- "context_phase_energy" (`ContextPhaseEnergy`): E_c against the vanilla E_c at the same chunk index, z_t
+  as the phase energy's, one-sided: for an E_c trained flat at the data (`energy_ood_gradient_penalty`), which
+  every shift of issue 32's sweep raises.
 - "context_energy_two_sided" (`ContextEnergyTwoSided`): |z| of E_c against the vanilla E_c at the same chunk
   index, as the two-sided phase energy is of the final energy. Issue 32's sweeps put some shifts *under* the
   vanilla E_c (blur, a light from another side); this form is confidently wrong on one of eight training seeds'
@@ -573,6 +576,22 @@ class PhaseEnergyDeviation(PhaseEnergy):
 
 
 @dataclass(frozen=True)
+class ContextPhaseEnergy(PhaseEnergy):
+    """The joint energy's context term against the vanilla E_c at the same chunk index,
+    z_t = (E_c,t - mu_v[t]) / sigma_v[t], aggregated over the rollout: one-sided, high above the vanilla band.
+
+    The matched test for an E_c trained flat at the data (`energy_ood_gradient_penalty`), under which every shift
+    of the sweep raises E_c in every scene; the two-sided form then also flags the rollouts of low-E_c scenes that
+    a mild shift lifts into the band's middle (docs/energy_study.md, section 8.12).
+    """
+
+    name = "context_phase_energy"
+    input = "context_energy"
+    reads = ("chunk_index", "context_energy")
+    json_fields = ("context_energy_phase_mean", "context_energy_phase_std")
+
+
+@dataclass(frozen=True)
 class ContextEnergyTwoSided(PhaseEnergyTwoSided):
     """|z| of the joint energy's context term against the vanilla E_c at the same chunk indices,
     z_t = (E_c,t - mu_v[t]) / sigma_v[t], aggregated over the rollout: an observation the context term puts
@@ -672,6 +691,7 @@ SCORES: dict[str, type[ChunkScore]] = {
         PhaseEnergyDeviation,
         EnergyTwoSidedAndContextKNN,
         ContextEnergy,
+        ContextPhaseEnergy,
         ContextEnergyTwoSided,
     )
 }
