@@ -21,6 +21,7 @@ from lerobot_policy_ebvla.runtime.scores import (
     ChunkInputs,
     ContextEnergy,
     ContextEnergyTwoSided,
+    ContextPhaseEnergy,
     EnergyTwoSidedAndContextKNN,
     FinalEnergy,
     FinalEnergyTwoSided,
@@ -286,7 +287,40 @@ def test_the_two_sided_context_energy_compares_each_chunk_with_vanilla_at_its_in
     assert rollout_score(calibration, energies, context_energy=rising) < calibration.threshold
 
 
-@pytest.mark.parametrize("score_class", [ContextEnergy, ContextEnergyTwoSided])
+def test_the_one_sided_context_phase_energy_is_the_signed_z_the_two_sided_form_takes_the_magnitude_of(
+    tmp_path,
+):
+    """For an E_c trained flat at the data, which every shift raises: a rollout below the band is not flagged,
+    one above it is, each chunk against vanilla at its own index; saved and loaded back as the others."""
+    rng = np.random.default_rng(0)
+    rising = 0.5 * np.arange(N_CHUNKS)
+    rollouts = VanillaRollouts(
+        [
+            ChunkInputs.of(
+                np.zeros(N_CHUNKS), np.arange(N_CHUNKS), None, rising + rng.normal(0, 0.05, N_CHUNKS)
+            )
+            for _ in range(12)
+        ]
+    )
+    one, two = calibrated(ContextPhaseEnergy, rollouts), calibrated(ContextEnergyTwoSided, rollouts)
+    assert SCORES["context_phase_energy"] is ContextPhaseEnergy
+    assert one.score.phase == two.score.phase
+    energies = np.zeros(N_CHUNKS)
+    for offset in (-1.0, 1.0):
+        shifted = rising + offset
+        z = one.score_rollout(
+            one.score.components(ChunkInputs.of(energies, np.arange(N_CHUNKS), None, shifted))
+        )
+        assert np.sign(z) == offset
+        assert rollout_score(two, energies, context_energy=shifted) == pytest.approx(abs(z))
+    assert rollout_score(one, energies, context_energy=rising + 1.0) > one.threshold
+    assert rollout_score(one, energies, context_energy=rising - 1.0) < one.threshold
+    one.save(tmp_path)
+    loaded = OODCalibration.load(tmp_path)
+    assert loaded == one and type(loaded.score) is ContextPhaseEnergy
+
+
+@pytest.mark.parametrize("score_class", [ContextEnergy, ContextPhaseEnergy, ContextEnergyTwoSided])
 def test_a_context_energy_score_without_the_context_energy_says_where_it_comes_from(score_class):
     calibration = calibrated(score_class, vanilla())
     with pytest.raises(ValueError, match=f"{score_class.name} score needs each chunk's context energy E_c"):
