@@ -215,6 +215,8 @@ OWN_ENCODER = {"energy_ood_margin_on": "observation", "energy_ood_margin_weight"
     ("fields", "context_energy", "expected"),
     [
         (OWN_ENCODER, True, "context_energy_two_sided"),
+        ({**OWN_ENCODER, "energy_ood_gradient_penalty": 0.1}, True, "context_phase_energy"),
+        ({**OWN_ENCODER, "energy_ood_gradient_penalty": 0.1}, False, "final_energy"),
         (OWN_ENCODER, False, "final_energy"),
         ({"energy_ood_margin_on": "observation", "energy_ood_margin_weight": 0.0}, False, "context_knn"),
         ({"energy_ood_margin_on": "context_backbone", "energy_ood_margin_weight": 1.0}, True, "context_knn"),
@@ -223,7 +225,8 @@ OWN_ENCODER = {"energy_ood_margin_on": "observation", "energy_ood_margin_weight"
 def test_a_checkpoint_with_the_joint_energy_on_its_own_encoder_defaults_to_its_two_sided_context_energy(
     record_dirs, tmp_path, fields, context_energy, expected
 ):
-    """... or to its final energy when the records hold no E_c; other checkpoints keep the context k-NN."""
+    """... one-sided where E_c was trained flat at the data (every shift raises it), or to its final energy when
+    the records hold no E_c; other checkpoints keep the context k-NN."""
     checkpoint = tmp_path / "pretrained_model"
     checkpoint.mkdir()
     (checkpoint / "config.json").write_text(json.dumps({"type": "ebvla", **fields}))
@@ -231,8 +234,8 @@ def test_a_checkpoint_with_the_joint_energy_on_its_own_encoder_defaults_to_its_t
     text, calibration = report(folders, tmp_path)
     assert calibration.score.name == expected
     assert f"Without `--score`, `--calibrate_to` saves `{expected}`" in text
-    if fields is OWN_ENCODER and not context_energy:
-        assert "hold no `context_energy`" in text
+    if fields.get("energy_ood_margin_weight") and fields["energy_ood_margin_on"] == "observation":
+        assert ("hold no `context_energy`" in text) == (not context_energy)
 
 
 def test_a_context_energy_score_on_records_without_it_is_refused_by_name(record_dirs, tmp_path):

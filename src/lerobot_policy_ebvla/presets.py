@@ -38,6 +38,13 @@ LIGHT_POLICY: dict[str, Any] = {
     "energy_ood_margin_on": "observation",
     "energy_ood_margin_weight": 0.01,
     "energy_ood_corruptions": ("channel_gain", "patch_swap", "shift", "state_noise"),
+    # E_c flat at the data (a gradient penalty on its image gradient, R1): without it a mild shift the margin never
+    # saw moved E_c by its gradient, up in one scene and down in another, and every score of it was confidently
+    # wrong on some training seed; with it every sweep shift raises E_c, and its one-sided score at each chunk index
+    # (`context_phase_energy`) was confidently wrong on none of four seeds, two trained after the rule was written
+    # (benchmarks/results/metaworld_sweep_margin_full/summary.md, "E_c flat at the data"). A training step costs
+    # about a third more; the policy's own backbone and head train as without it.
+    "energy_ood_gradient_penalty": 0.1,
     "optimizer_lr": 5e-4,
     "push_to_hub": False,
 }
@@ -52,7 +59,8 @@ instead of [8, 15], adds the contrastive term (`energy_contrastive_weight=0.2`) 
 (`state_dropout=0.5`), which the paper does not have, and trains at a learning rate of 5e-4 instead of 1e-4.
 The contrastive term and state dropout are what made this policy read its camera and its energy react to
 camera shifts (docs/energy_study.md, section 1b). Its final energy is the joint energy E(a, C) + E_c(C)
-(`energy_ood_margin_on="observation"`), which keeps it from reading a shift as more familiar than vanilla.
+(`energy_ood_margin_on="observation"`), which keeps it from reading a shift as more familiar than vanilla, with E_c
+trained flat at the data (`energy_ood_gradient_penalty=0.1`) so that every shift raises it.
 Inference (K_inf, alpha, tau, ...) keeps Table V's values.
 """
 

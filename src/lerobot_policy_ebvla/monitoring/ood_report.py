@@ -88,14 +88,24 @@ DEFAULT_ENERGY_SCORE = "phase_energy_two_sided"
 # against 0.77-0.92 on five seeds).
 DEFAULT_JOINT_ENERGY_SCORE = "context_energy_two_sided"
 JOINT_ENERGY_WITHOUT_CONTEXT_ENERGY = "final_energy"
+# ... and where E_c was trained flat at the data (`energy_ood_gradient_penalty` > 0), every shift of the sweep
+# raises it in every scene, and its one-sided form at each chunk index is the matched test: on four training
+# seeds (two of them trained after the rule was written) it sees every success-cutting shift and is confidently
+# inverted nowhere, where the two-sided form is on one (summary.md, "E_c flat at the data").
+DEFAULT_FLAT_CONTEXT_ENERGY_SCORE = "context_phase_energy"
+
+
+def checkpoint_fields(checkpoint: Path | None) -> dict:
+    """The fields of a pretrained_model folder's config.json; empty without one."""
+    config = None if checkpoint is None else Path(checkpoint) / "config.json"
+    if config is None or not config.is_file():
+        return {}
+    return json.loads(config.read_text())
 
 
 def joint_energy_on_own_encoder(checkpoint: Path | None) -> bool:
     """Whether the pretrained_model folder's policy was trained with the joint energy on its own encoder."""
-    config = None if checkpoint is None else Path(checkpoint) / "config.json"
-    if config is None or not config.is_file():
-        return False
-    fields = json.loads(config.read_text())
+    fields = checkpoint_fields(checkpoint)
     return context_energy_on_own_encoder(
         fields.get("energy_ood_margin_on", EBVLAConfig.energy_ood_margin_on),
         fields.get("energy_ood_margin_weight", EBVLAConfig.energy_ood_margin_weight),
@@ -105,9 +115,10 @@ def joint_energy_on_own_encoder(checkpoint: Path | None) -> bool:
 def default_score(cfg: "OODReportConfig", inputs: set[str]) -> str:
     """The score `--calibrate_to` saves without `--score`, given the `ChunkInputs` every record has."""
     if joint_energy_on_own_encoder(cfg.calibrate_to):
-        if "context_energy" in inputs:
-            return DEFAULT_JOINT_ENERGY_SCORE
-        return JOINT_ENERGY_WITHOUT_CONTEXT_ENERGY
+        if "context_energy" not in inputs:
+            return JOINT_ENERGY_WITHOUT_CONTEXT_ENERGY
+        penalty = checkpoint_fields(cfg.calibrate_to).get("energy_ood_gradient_penalty", 0.0)
+        return DEFAULT_FLAT_CONTEXT_ENERGY_SCORE if penalty > 0 else DEFAULT_JOINT_ENERGY_SCORE
     return DEFAULT_SCORE if "context_features" in inputs else DEFAULT_ENERGY_SCORE
 
 
@@ -432,6 +443,12 @@ def _saved_score_note(cfg: OODReportConfig, saved_score: str) -> str:
             why = (
                 "the checkpoint's joint energy has its own encoder, and its context term, two-sided at each chunk "
                 "index, is the safest score there (docs/monitoring.md)."
+            )
+        elif saved_score == DEFAULT_FLAT_CONTEXT_ENERGY_SCORE:
+            why = (
+                "the checkpoint's context term was trained flat at the data (`energy_ood_gradient_penalty`), so "
+                "every shift raises it, and its one-sided form at each chunk index is the safest score there "
+                "(docs/monitoring.md)."
             )
         elif saved_score == JOINT_ENERGY_WITHOUT_CONTEXT_ENERGY and joint_energy_on_own_encoder(
             cfg.calibrate_to
