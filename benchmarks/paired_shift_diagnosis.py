@@ -22,6 +22,9 @@ rollout of the same seed see one scene (the same button position), only the imag
 
     cd benchmarks && python paired_shift_diagnosis.py --results results/metaworld_sweep_margin_full \
         --output results/metaworld_sweep_margin_full/paired_shift_diagnosis.md      # about 2.5 min on one core
+
+`--score=context_phase_energy` ranks by the one-sided a instead of |a| (the default for an E_c trained flat at the
+data, `--variant=observation_r1`); the band's fits and draws are then those of that score.
 """
 
 import argparse
@@ -39,6 +42,9 @@ from lerobot_policy_ebvla.monitoring.window_report import score_sets
 from lerobot_policy_ebvla.runtime.statistics import MIN_SIGMA, PHASE_SIGMA_FLOOR
 
 DEFAULT_SCORE = "context_energy_two_sided"
+# The default for an E_c trained flat at the data (`energy_ood_gradient_penalty`): its signed aggregate a, one-sided.
+ONE_SIDED_SCORE = "context_phase_energy"
+SCORE_CHOICES = (DEFAULT_SCORE, ONE_SIDED_SCORE)
 FIRST_CHUNKS = 3
 # Shares of the calibration's E_c cut on each side, per chunk index, before its mean and std.
 TRIMS = (0.0, 0.05, 0.10, 0.20)
@@ -90,21 +96,30 @@ def fit_name(fit: float | str) -> str:
     return fit if fit == MEDIAN else f"trimmed {fit:.0%}"
 
 
-SCENE_HEADERS = [
-    "condition",
-    "chunk-0 E_c move, scene spreads: median [min, max]",
-    "pairs the majority's way",
-    "shifted a (median)",
-    "default AUROC (abs a)",
-]
+def scene_headers(score: str = DEFAULT_SCORE) -> list[str]:
+    """The scene-by-scene table's headers; the last names what the score ranks, |a| or a."""
+    ranked = "a" if score == ONE_SIDED_SCORE else "abs a"
+    return [
+        "condition",
+        "chunk-0 E_c move, scene spreads: median [min, max]",
+        "pairs the majority's way",
+        "shifted a (median)",
+        f"default AUROC ({ranked})",
+    ]
 
 
-def scene_rows(run: RunRecords) -> tuple[str, list[list[str]], list[float]]:
+def ranked(a: np.ndarray, score: str) -> np.ndarray:
+    """What `score` ranks rollouts by, from their signed aggregates a: |a| (two-sided) or a."""
+    return a if score == ONE_SIDED_SCORE else np.abs(a)
+
+
+def scene_rows(run: RunRecords, score: str = DEFAULT_SCORE) -> tuple[str, list[list[str]], list[float]]:
     """The scene-by-scene table of one run: its caption, its rows and each row's median move."""
     vanilla, conditions = run.vanilla, run.conditions
-    _, scored = score_sets(run.calibration, {"vanilla": vanilla, **conditions}, DEFAULT_SCORE, FIRST_CHUNKS)
+    _, scored = score_sets(run.calibration, {"vanilla": vanilla, **conditions}, score, FIRST_CHUNKS)
+    # The signed aggregate a is the last window value of either score: (|a|, a) or (a,).
     signed = {
-        name: dict(zip((c[0].seed for c in s.episodes.values()), s.values[:, 1], strict=True))
+        name: dict(zip((c[0].seed for c in s.episodes.values()), s.values[:, -1], strict=True))
         for name, s in scored.items()
     }
     vanilla_first = {seed: e[0] for seed, e in first_context_energies(vanilla).items()}
@@ -116,7 +131,7 @@ def scene_rows(run: RunRecords) -> tuple[str, list[list[str]], list[float]]:
         moves = np.array([e[0] - vanilla_first[seed] for seed, e in shifted.items()]) / spread
         majority = max(int((moves > 0).sum()), int((moves < 0).sum()))
         own = np.array([signed[name][seed] for seed in shifted])
-        cell, _ = marked_auroc(np.abs(scored["vanilla"].values[:, 1]), np.abs(own))
+        cell, _ = marked_auroc(ranked(scored["vanilla"].values[:, -1], score), ranked(own, score))
         medians.append(float(np.median(moves)))
         rows.append(
             [
@@ -137,7 +152,7 @@ def scene_rows(run: RunRecords) -> tuple[str, list[list[str]], list[float]]:
     return caption, rows, medians
 
 
-def mild_summary(scenes_by_run: Mapping[str, tuple]) -> str:
+def mild_summary(scenes_by_run: Mapping[str, tuple], score: str = DEFAULT_SCORE) -> str:
     """The conditions that move chunk-0 E_c by under `MILD_SPREADS` scene spreads (median), over the runs; how many
     conditions move it one way on every pair; and the default's lowest AUROC over the other conditions."""
     rows, one_way, total, others = [], 0, 0, []
@@ -153,7 +168,7 @@ def mild_summary(scenes_by_run: Mapping[str, tuple]) -> str:
     return (
         f"Conditions whose every pair moves chunk-0 E_c one way: {one_way} of {total}. The {total - len(rows)} "
         f"that move it by {MILD_SPREADS:g} scene spreads or more (median) score at least {min(others):.2f} by the "
-        f"default; those that move it less:\n\n{markdown_table(['run', *SCENE_HEADERS], rows)}"
+        f"default; those that move it less:\n\n{markdown_table(['run', *scene_headers(score)], rows)}"
     )
 
 
@@ -175,24 +190,30 @@ def band(calibration: Mapping[int, np.ndarray], fit: float | str) -> tuple[np.nd
     return np.array(means), np.array(stds)
 
 
-def two_sided(episodes: Mapping[int, np.ndarray], mu: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """|mean_t z_t| of each rollout against the band."""
-    return np.array([abs(np.mean((e - mu[: e.size]) / sigma[: e.size])) for e in episodes.values()])
+def rollout_scores(
+    episodes: Mapping[int, np.ndarray], mu: np.ndarray, sigma: np.ndarray, score: str = DEFAULT_SCORE
+) -> np.ndarray:
+    """|mean_t z_t| (or mean_t z_t, one-sided) of each rollout against the band."""
+    a = np.array([np.mean((e - mu[: e.size]) / sigma[: e.size]) for e in episodes.values()])
+    return ranked(a, score)
 
 
-def centre_row(run: RunRecords, fit: float | str) -> list[str]:
+def centre_row(run: RunRecords, fit: float | str, score: str = DEFAULT_SCORE) -> list[str]:
     """One band fit's row for one run."""
     mu, sigma = band(first_context_energies(run.calibration, None), fit)
-    vanilla = two_sided(first_context_energies(run.vanilla), mu, sigma)
-    conditions = {name: two_sided(first_context_energies(e), mu, sigma) for name, e in run.conditions.items()}
+    vanilla = rollout_scores(first_context_energies(run.vanilla), mu, sigma, score)
+    conditions = {
+        name: rollout_scores(first_context_energies(e), mu, sigma, score)
+        for name, e in run.conditions.items()
+    }
     cells = {name: marked_auroc(vanilla, scores) for name, scores in conditions.items()}
     worst = min(cells, key=lambda name: cells[name][1])
     under = [f"{name} {cell}" for name, (cell, _) in cells.items() if cell.endswith("!")]
     fresh_cells = []
     if run.fresh_vanilla is not None:
-        fresh_vanilla = two_sided(first_context_energies(run.fresh_vanilla), mu, sigma)
+        fresh_vanilla = rollout_scores(first_context_energies(run.fresh_vanilla), mu, sigma, score)
         for name, e in run.fresh_conditions.items():
-            cell, _ = marked_auroc(fresh_vanilla, two_sided(first_context_energies(e), mu, sigma))
+            cell, _ = marked_auroc(fresh_vanilla, rollout_scores(first_context_energies(e), mu, sigma, score))
             fresh_cells.append(f"{name} {cell}")
     pooled = auroc(vanilla, np.concatenate(list(conditions.values())))
     return [
@@ -204,7 +225,7 @@ def centre_row(run: RunRecords, fit: float | str) -> list[str]:
     ]
 
 
-def draw_rows(runs: Mapping[str, RunRecords]) -> list[list[str]]:
+def draw_rows(runs: Mapping[str, RunRecords], score: str = DEFAULT_SCORE) -> list[list[str]]:
     """Per band fit: over `CALIBRATION_DRAWS` calibration sets of `CALIBRATION_SIZE` rollouts drawn from each run's
     fresh vanilla rollouts (one seeded stream per run, the same sets for every fit), how many sets leave a sweep
     condition confidently under 0.5 against the sweep's held-out vanilla rollouts, per run and in all; and the
@@ -222,8 +243,8 @@ def draw_rows(runs: Mapping[str, RunRecords]) -> list[list[str]]:
             calibration = {i: fresh[i] for i in drawn}
             for fit in fits:
                 mu, sigma = band(calibration, fit)
-                vanilla = two_sided(held_out, mu, sigma)
-                shifted = [two_sided(e, mu, sigma) for e in conditions]
+                vanilla = rollout_scores(held_out, mu, sigma, score)
+                shifted = [rollout_scores(e, mu, sigma, score) for e in conditions]
                 under = any(marked_auroc(vanilla, scores)[0].endswith("!") for scores in shifted)
                 marked[fit][run] = marked[fit].get(run, 0) + under
                 pooled[fit].append(auroc(vanilla, np.concatenate(shifted)))
@@ -238,20 +259,20 @@ def draw_rows(runs: Mapping[str, RunRecords]) -> list[list[str]]:
     ]
 
 
-def draws_section(runs: Mapping[str, RunRecords]) -> str:
+def draws_section(runs: Mapping[str, RunRecords], score: str = DEFAULT_SCORE) -> str:
     """The calibration draws' table, with its caption."""
     headers = ["band fit", *runs, "all", "pooled: median [min]"]
     return (
         f"Calibration sets of {CALIBRATION_SIZE} drawn {CALIBRATION_DRAWS} times per run from its 100 fresh "
         "vanilla rollouts; each column counts the sets that leave a sweep condition confidently under 0.5 against "
         "the sweep's 40 held-out vanilla rollouts (first 3 chunks).\n\n"
-        + markdown_table(headers, draw_rows(runs))
+        + markdown_table(headers, draw_rows(runs, score))
     )
 
 
-def centre_rows(run: RunRecords) -> list[list[str]]:
+def centre_rows(run: RunRecords, score: str = DEFAULT_SCORE) -> list[list[str]]:
     """The band's-centre rows of one run, one per band fit."""
-    return [centre_row(run, fit) for fit in (*TRIMS, MEDIAN)]
+    return [centre_row(run, fit, score) for fit in (*TRIMS, MEDIAN)]
 
 
 CENTRE_HEADERS = ["band fit", "pooled", "worst condition", "confidently under 0.5", "fresh re-runs"]
@@ -294,36 +315,36 @@ def centre_summary(rows_by_run: Mapping[str, list[list[str]]]) -> str:
     return markdown_table(headers, rows)
 
 
-def run_tables(run: RunRecords) -> tuple[tuple, list[list[str]]]:
+def run_tables(run: RunRecords, score: str = DEFAULT_SCORE) -> tuple[tuple, list[list[str]]]:
     """One run's scene-by-scene table (`scene_rows`) and band's-centre rows (`centre_rows`)."""
-    return scene_rows(run), centre_rows(run)
+    return scene_rows(run, score), centre_rows(run, score)
 
 
-def run_section(run: str, scenes: tuple, centres: list[list[str]]) -> str:
+def run_section(run: str, scenes: tuple, centres: list[list[str]], score: str = DEFAULT_SCORE) -> str:
     """One run's section: both tables."""
     caption, rows, _ = scenes
     return (
-        f"## {run}\n\n### Scene by scene\n\n{caption}\n\n{markdown_table(SCENE_HEADERS, rows)}\n\n"
+        f"## {run}\n\n### Scene by scene\n\n{caption}\n\n{markdown_table(scene_headers(score), rows)}\n\n"
         f"### The band's centre\n\n{markdown_table(CENTRE_HEADERS, centres)}\n"
     )
 
 
-def run_sections(results: Path, variant: str = "observation") -> str:
+def run_sections(results: Path, variant: str = "observation", score: str = DEFAULT_SCORE) -> str:
     """The summaries over every training seed with E_c records of `variant` under `results`, then each run's
-    section."""
+    section, for `score` (the two-sided default or, for an E_c trained flat, the one-sided one)."""
     sweeps = sorted(results.glob(f"seed*/{variant}/context_energy_full"), key=lambda p: int(p.parts[-3][4:]))
     runs = {sweep.parts[-3]: RunRecords.read(sweep) for sweep in sweeps}
-    tables = {name: run_tables(run) for name, run in runs.items()}
+    tables = {name: run_tables(run, score) for name, run in runs.items()}
     scenes = {name: scene for name, (scene, _) in tables.items()}
     centres = {name: centre for name, (_, centre) in tables.items()}
     with_fresh = {name: run for name, run in runs.items() if run.fresh_vanilla is not None}
     sections = [
-        f"## Mild shifts over {len(runs)} runs\n\n{mild_summary(scenes)}\n",
+        f"## Mild shifts over {len(runs)} runs\n\n{mild_summary(scenes, score)}\n",
         f"## The band's centre over {len(runs)} runs\n\n{calibration_scenes(list(runs.values()))}\n\n"
         f"{centre_summary(centres)}\n",
-        f"## The band's centre over calibration draws\n\n{draws_section(with_fresh)}\n",
+        f"## The band's centre over calibration draws\n\n{draws_section(with_fresh, score)}\n",
     ]
-    sections += [run_section(run, scenes[run], centres[run]) for run in tables]
+    sections += [run_section(run, scenes[run], centres[run], score) for run in tables]
     return "\n".join(sections)
 
 
@@ -335,9 +356,15 @@ def main() -> None:
     parser.add_argument(
         "--variant", default="observation", help="seed*/<variant>/: the preset's records, or a variant's"
     )
+    parser.add_argument(
+        "--score",
+        default=DEFAULT_SCORE,
+        choices=SCORE_CHOICES,
+        help="the score the tables rank by: the two-sided default, or the one-sided one of an E_c trained flat",
+    )
     parser.add_argument("--output", type=Path)
     args = parser.parse_args()
-    text = run_sections(args.results, args.variant)
+    text = run_sections(args.results, args.variant, args.score)
     print(text)
     if args.output:
         args.output.write_text(text)

@@ -1,6 +1,6 @@
 """Replay recorded rollouts through the window test: several rollouts together flag what none does alone.
 
-A joint-energy policy's default monitor (`context_energy_two_sided`) scores each rollout on its own; under a mild
+A joint-energy policy's per-rollout monitor (`context_energy_two_sided` here) scores each rollout on its own; under a mild
 shift it can pass every rollout while each one sits a little off vanilla's, all the same way. The window test
 (`WindowTypicalityMonitor`) looks at the last n rollouts together. This script builds the calibration that
 `ebvla-ood-report --calibrate_to` would save (the score fitted on the calibration rollouts, the held-out vanilla

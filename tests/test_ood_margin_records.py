@@ -1019,3 +1019,23 @@ def test_on_fresh_rollouts_of_the_design_seeds_near_misses_the_one_sided_score_s
             "context_energy_two_sided"
         ][5]
     )
+
+
+def test_for_the_flat_e_c_no_calibration_draw_leaves_the_one_sided_score_confidently_wrong():
+    """paired_shift_diagnosis_r1_one_sided.md (`--score=context_phase_energy`), recomputed for seed 15000, where the
+    two-sided form is confidently wrong: refitted on 30 calibration sets drawn from each seed's fresh vanilla
+    rollouts, by every band fit, no set leaves a sweep condition confidently under 0.5 on any of the four seeds
+    (the preset's two-sided default: 29 of 330 sets)."""
+    committed = (FULL / "paired_shift_diagnosis_r1_one_sided.md").read_text()
+    one_sided = paired.ONE_SIDED_SCORE
+    run = paired.RunRecords.read(seed_run(15000, "observation_r1") / "context_energy_full")
+    scenes, centres = paired.run_tables(run, one_sided)
+    recomputed = paired.run_section("seed15000", scenes, centres, one_sided).strip()
+    assert recomputed == f"## seed15000\n\n{section(committed, 'seed15000')}"
+    assert [row[1] for row in paired.draw_rows({"seed15000": run}, one_sided)] == ["0"] * 5
+    lines = section(committed, "The band's centre over calibration draws").splitlines()
+    assert [table_cells(line)[5] for line in lines[4:]] == ["0 of 120"] * 5
+    two_sided = (FULL / "paired_shift_diagnosis.md").read_text()
+    assert "| trimmed 0% |" in two_sided and "| 29 of 330 |" in section(
+        two_sided, "The band's centre over calibration draws"
+    )

@@ -175,7 +175,8 @@ class OODReportConfig:
     # no condition confidently inverted; the final energy 0.585, confidently inverted under dim light), or
     # phase_energy_two_sided when the records have no context features, context_energy_two_sided when the
     # checkpoint's joint energy has its own encoder (`energy_ood_margin_on="observation"`; final_energy for records
-    # without `context_energy`). final_energy is the paper's score;
+    # without `context_energy`), context_phase_energy when its E_c was also trained flat at the data
+    # (`energy_ood_gradient_penalty` > 0). final_energy is the paper's score;
     # phase_energy the final energy against the calibration rollouts' at the same chunk index;
     # final_energy_two_sided and phase_energy_two_sided their |z|, high on either side of the vanilla band;
     # context_distance the chunk's pooled context against the calibration contexts (Mahalanobis);
@@ -183,8 +184,8 @@ class OODReportConfig:
     # calibration rollouts; context_knn the chunk's standardized pooled context against its knn_k-th nearest
     # calibration context (saves every calibration context beside the JSON); energy_two_sided_and_context_knn
     # the larger of the two-sided phase energy and the context k-NN distance, standardized; context_energy the
-    # joint energy's context term E_c and context_energy_two_sided its |z| against the calibration rollouts' E_c
-    # at the same chunk index. The context scores need records with context features, the context-energy scores
+    # joint energy's context term E_c, context_phase_energy its z against the calibration rollouts' E_c at the same
+    # chunk index and context_energy_two_sided that z's magnitude. The context scores need records with context features, the context-energy scores
     # records of a joint-energy policy.
     score: str | None = None
     # k saved in the calibration.
