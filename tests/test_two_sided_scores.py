@@ -268,12 +268,11 @@ def test_a_context_energy_under_vanilla_is_flagged_two_sided_and_missed_one_side
         )
 
 
-def test_the_two_sided_context_energy_compares_each_chunk_with_vanilla_at_its_index():
-    """E_c follows the task's phase (here it rises chunk by chunk). A rollout whose E_c stays at the vanilla
-    episode's overall mean is off at every chunk index: flagged, though one band for every chunk would pass it."""
+def rising_context_energy_rollouts() -> tuple[np.ndarray, VanillaRollouts]:
+    """12 vanilla rollouts whose E_c rises by 0.5 a chunk (noise 0.05), and that mean rise."""
     rng = np.random.default_rng(0)
     rising = 0.5 * np.arange(N_CHUNKS)
-    rollouts = VanillaRollouts(
+    return rising, VanillaRollouts(
         [
             ChunkInputs.of(
                 np.zeros(N_CHUNKS), np.arange(N_CHUNKS), None, rising + rng.normal(0, 0.05, N_CHUNKS)
@@ -281,6 +280,12 @@ def test_the_two_sided_context_energy_compares_each_chunk_with_vanilla_at_its_in
             for _ in range(12)
         ]
     )
+
+
+def test_the_two_sided_context_energy_compares_each_chunk_with_vanilla_at_its_index():
+    """E_c follows the task's phase (here it rises chunk by chunk). A rollout whose E_c stays at the vanilla
+    episode's overall mean is off at every chunk index: flagged, though one band for every chunk would pass it."""
+    rising, rollouts = rising_context_energy_rollouts()
     calibration = calibrated(ContextEnergyTwoSided, rollouts)
     np.testing.assert_allclose(calibration.score.phase.mean[:N_CHUNKS], rising, atol=0.05)
     energies = np.zeros(N_CHUNKS)
@@ -295,16 +300,7 @@ def test_the_one_sided_context_phase_energy_is_the_signed_z_the_two_sided_form_t
 ):
     """For an E_c trained flat at the data, which every shift raises: a rollout below the band is not flagged,
     one above it is, each chunk against vanilla at its own index; saved and loaded back as the others."""
-    rng = np.random.default_rng(0)
-    rising = 0.5 * np.arange(N_CHUNKS)
-    rollouts = VanillaRollouts(
-        [
-            ChunkInputs.of(
-                np.zeros(N_CHUNKS), np.arange(N_CHUNKS), None, rising + rng.normal(0, 0.05, N_CHUNKS)
-            )
-            for _ in range(12)
-        ]
-    )
+    rising, rollouts = rising_context_energy_rollouts()
     one, two = calibrated(ContextPhaseEnergy, rollouts), calibrated(ContextEnergyTwoSided, rollouts)
     assert SCORES["context_phase_energy"] is ContextPhaseEnergy
     assert one.score.phase == two.score.phase
