@@ -638,7 +638,8 @@ class EBVLA(nn.Module):
     ) -> tuple[Tensor, float]:
         """The margin on the context energy E_c of the joint energy E(a, C) + E_c(C), on the pooled backbone
         contexts of the batch (`clean_features` where the caller's backbone pass has them) and of its corrupted
-        copy, plus E_c(C)^2 on the data (the hinge leaves E_c's level free).
+        copy, plus E_c(C)^2 on the data (the hinge leaves E_c's level free), plus the gradient penalty on E_c at
+        the real images where `energy_ood_gradient_penalty` > 0 (the training log's `ood_margin_loss` is the sum).
 
         `energy_ood_margin_on="context"` detaches both contexts: the backbone and head train as without the
         term. "context_backbone" lets the margin's gradient into the backbone. "observation" reads the contexts

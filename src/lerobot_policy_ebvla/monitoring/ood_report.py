@@ -185,8 +185,8 @@ class OODReportConfig:
     # calibration context (saves every calibration context beside the JSON); energy_two_sided_and_context_knn
     # the larger of the two-sided phase energy and the context k-NN distance, standardized; context_energy the
     # joint energy's context term E_c, context_phase_energy its z against the calibration rollouts' E_c at the same
-    # chunk index and context_energy_two_sided that z's magnitude. The context scores need records with context features, the context-energy scores
-    # records of a joint-energy policy.
+    # chunk index and context_energy_two_sided that z's magnitude. The context scores need records with context
+    # features, the context-energy scores records of a joint-energy policy.
     score: str | None = None
     # k saved in the calibration.
     k: float = 1.0

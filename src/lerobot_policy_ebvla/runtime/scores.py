@@ -39,7 +39,7 @@ the vanilla band, |z| of the rollout's aggregated z (a typicality test, Nalisnic
   context k-NN distance, each standardized by the vanilla rollouts' mean and std, and the larger counts.
 
 A policy trained with a joint energy (`energy_ood_margin_on`) reports its context term E_c(C) apart
-(`EnergyReadout.context_energy`, already inside the final energy), and two scores read it alone:
+(`EnergyReadout.context_energy`, already inside the final energy), and three scores read it alone:
 
 - "context_energy" (`ContextEnergy`): E_c(C), high off the data by training.
 - "context_phase_energy" (`ContextPhaseEnergy`): E_c against the vanilla E_c at the same chunk index, z_t
@@ -581,8 +581,8 @@ class ContextPhaseEnergy(PhaseEnergy):
     z_t = (E_c,t - mu_v[t]) / sigma_v[t], aggregated over the rollout: one-sided, high above the vanilla band.
 
     The matched test for an E_c trained flat at the data (`energy_ood_gradient_penalty`), under which every shift
-    of the sweep raises E_c in every scene; the two-sided form then also flags the rollouts of low-E_c scenes that
-    a mild shift lifts into the band's middle (docs/energy_study.md, section 8.12).
+    of the sweep raises E_c in every scene; the two-sided form then reads the rollouts of low-E_c scenes that a
+    mild shift lifts into the band's middle as typical (docs/energy_study.md, section 8.12).
     """
 
     name = "context_phase_energy"
