@@ -103,21 +103,25 @@ def checkpoint_fields(checkpoint: Path | None) -> dict:
     return json.loads(config.read_text())
 
 
-def joint_energy_on_own_encoder(checkpoint: Path | None) -> bool:
-    """Whether the pretrained_model folder's policy was trained with the joint energy on its own encoder."""
-    fields = checkpoint_fields(checkpoint)
+def _on_own_encoder(fields: dict) -> bool:
     return context_energy_on_own_encoder(
         fields.get("energy_ood_margin_on", EBVLAConfig.energy_ood_margin_on),
         fields.get("energy_ood_margin_weight", EBVLAConfig.energy_ood_margin_weight),
     )
 
 
+def joint_energy_on_own_encoder(checkpoint: Path | None) -> bool:
+    """Whether the pretrained_model folder's policy was trained with the joint energy on its own encoder."""
+    return _on_own_encoder(checkpoint_fields(checkpoint))
+
+
 def default_score(cfg: "OODReportConfig", inputs: set[str]) -> str:
     """The score `--calibrate_to` saves without `--score`, given the `ChunkInputs` every record has."""
-    if joint_energy_on_own_encoder(cfg.calibrate_to):
+    fields = checkpoint_fields(cfg.calibrate_to)
+    if _on_own_encoder(fields):
         if "context_energy" not in inputs:
             return JOINT_ENERGY_WITHOUT_CONTEXT_ENERGY
-        penalty = checkpoint_fields(cfg.calibrate_to).get("energy_ood_gradient_penalty", 0.0)
+        penalty = fields.get("energy_ood_gradient_penalty", 0.0)
         return DEFAULT_FLAT_CONTEXT_ENERGY_SCORE if penalty > 0 else DEFAULT_JOINT_ENERGY_SCORE
     return DEFAULT_SCORE if "context_features" in inputs else DEFAULT_ENERGY_SCORE
 
