@@ -414,3 +414,35 @@ def test_the_combined_score_of_the_committed_sweep_catches_pose_3_which_neither_
     fit = OODCalibration.fit(statistics.combine(*scores(calibration)))
     row = {r.multiplier: r for r in ood_detection_table(negatives, positives, calibration=fit)}[1.0]
     assert f"{row.balanced_accuracy:.1%}" == "70.0%"
+
+
+def test_the_outcome_tables_show_what_knowing_the_conditions_alone_reaches(record_dirs, tmp_path):
+    ood = context_rollouts(10, 1, "energy", energy=6.0, fail_every=2)
+    ood += context_rollouts(10, 2, "light", context=1.5, fail_every=5)
+    dirs = (*record_dirs[:2], write_records(tmp_path / "ood", ood))
+    outcomes = section(report(dirs, tmp_path / "out", first_chunks=[2]), "Failed vs successful rollouts")
+    vanilla, ood = (load_episodes([d]) for d in dirs[1:])
+    vanilla_failed = np.array([not e[0].success for e in vanilla.values()])
+    ood_failed = np.array([not e[0].success for e in ood.values()])
+    share = {
+        p: np.mean([not e[0].success for k, e in ood.items() if k[1].perturbation == p])
+        for p in ("energy", "light")
+    }
+    assert share == {"energy": 0.5, "light": 0.2}
+    condition_rates = np.array([share[k[1].perturbation] for k in ood])
+
+    pooled = outcomes.split("### held-out vanilla and perturbed")[1]
+    failed = np.concatenate([vanilla_failed, ood_failed])
+    perturbed = np.concatenate([np.zeros(len(vanilla)), np.ones(len(ood))])
+    rates = np.concatenate([np.full(len(vanilla), vanilla_failed.mean()), condition_rates])
+    for row, labels in (
+        ("_reference: perturbed or not_", perturbed),
+        ("_reference: its condition's failure rate_", rates),
+    ):
+        for column in ("first 2 chunks", "whole episode"):
+            assert cell(pooled, row, column) == format_auroc(labels[~failed], labels[failed], 50)
+    perturbed_only = outcomes.split("### perturbed rollouts")[1].split("###")[0]
+    expected = format_auroc(condition_rates[~ood_failed], condition_rates[ood_failed], 50)
+    assert cell(perturbed_only, "_reference: its condition's failure rate_", "whole episode") == expected
+    assert "_reference: perturbed or not_" not in perturbed_only
+    assert "_reference" not in outcomes.split("### held-out vanilla rollouts")[1].split("###")[0]

@@ -513,6 +513,18 @@ def _outcome_section(scored, vanilla, ood, names, cfg) -> str:
     lengths = [k for k in scored if k is not None and k in cfg.first_chunks]
     vanilla_failed = np.array([not e[0].success for e in vanilla.values()], dtype=bool)
     ood_failed = np.array([not e[0].success for e in ood.values()], dtype=bool)
+    ood_failure_rates = condition_failure_rates(ood)
+    pooled_references = {
+        REFERENCE_PERTURBED: np.concatenate([np.zeros(len(vanilla)), np.ones(len(ood))]),
+        REFERENCE_CONDITION_FAILURES: np.concatenate(
+            [np.full(len(vanilla), vanilla_failed.mean() if len(vanilla) else 0.0), ood_failure_rates]
+        ),
+    }
+    references = {
+        "held-out vanilla rollouts": {},
+        "perturbed rollouts, all conditions": {REFERENCE_CONDITION_FAILURES: ood_failure_rates},
+        "held-out vanilla and perturbed rollouts together": pooled_references,
+    }
     sets = {
         "held-out vanilla rollouts": (vanilla_failed, lambda s, name: s.negatives[name]),
         "perturbed rollouts, all conditions": (ood_failed, lambda s, name: s.positives[ALL_CONDITIONS][name]),
@@ -527,7 +539,11 @@ def _outcome_section(scored, vanilla, ood, names, cfg) -> str:
         "of the same set, over each episode's first k chunks and the whole episode (a failed episode runs "
         "longer, so its whole-episode score also sees its late, stalled chunks). Among perturbed rollouts a "
         "score that flags the perturbations with the most failures ranks failures high even if it knows "
-        "nothing of failure within a condition: the vanilla set alone is the cleaner test."
+        "nothing of failure within a condition: the vanilla set alone is the cleaner test. The reference rows "
+        "say how far that goes: they are not scores but the rollouts' own labels, what a detector that knew "
+        f"them would reach. `{REFERENCE_PERTURBED}` is a perfect OOD detector; "
+        f"`{REFERENCE_CONDITION_FAILURES}` ranks each rollout by the share of its set's rollouts that failed "
+        "(vanilla's, or its condition's), the most any score that knows nothing within a condition can reach."
     ]
     headers = ["Score", *(chunks_label(k) for k in lengths), chunks_label(None)]
     for title, (failed, of) in sets.items():
@@ -544,10 +560,27 @@ def _outcome_section(scored, vanilla, ood, names, cfg) -> str:
             ]
             for name in names
         ]
+        rows += [
+            [f"_{name}_", *(auroc_interval(labels[~failed], labels[failed], cfg) for _ in [*lengths, None])]
+            for name, labels in references[title].items()
+        ]
         lines.append(
             f"### {title}: {int(failed.sum())} of {failed.size} failed\n\n" + markdown_table(headers, rows)
         )
     return "\n\n".join(lines)
+
+
+REFERENCE_PERTURBED = "reference: perturbed or not"
+REFERENCE_CONDITION_FAILURES = "reference: its condition's failure rate"
+
+
+def condition_failure_rates(ood: dict) -> np.ndarray:
+    """Each perturbed rollout's condition's share of failed rollouts, in `ood`'s order: the failed-vs-successful
+    ranking of a detector that knows every condition's outcome and nothing within a condition."""
+    failed: dict[tuple[str, float], list[bool]] = {}
+    for (_, key), episode in ood.items():
+        failed.setdefault((key.perturbation, key.severity), []).append(not episode[0].success)
+    return np.array([np.mean(failed[(key.perturbation, key.severity)]) for _, key in ood], dtype=float)
 
 
 def _table_iii_sections(title, fits, scored, vanilla, conditions, names, cfg) -> list[str]:
