@@ -4,9 +4,12 @@ recomputed from its committed records by the script that printed it."""
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from lerobot_policy_ebvla.monitoring.failure_report import FailureReportConfig, write_failure_report
+from lerobot_policy_ebvla.monitoring.metrics import format_auroc
+from lerobot_policy_ebvla.monitoring.records import load_episodes
 from tests.conftest import load_benchmark
 from tests.test_committed_records import first_chunks_row, records_report, summary_rows
 
@@ -1073,3 +1076,28 @@ def test_failed_vs_successful_sits_under_what_knowing_each_conditions_failure_ra
     scene_above = sum(s > c for c, s in zip(by_condition, by_scene, strict=True))
     met = sum(c >= 0.75 for c in by_condition)
     assert (len(rows), scene_above, met) == ((4, 4, 1) if variant == "observation_r1" else (14, 12, 1))
+
+
+def test_restart_spread_tells_the_failed_scenes_only_once_the_arm_stalls():
+    """summary.md, "Does the landscape know the hard scenes?": eight more chains per chunk on seed 12000's flat-E_c
+    checkpoint, in the sweep's 40 vanilla scenes (the same outcomes): the chains' spread ranks failed over
+    successful rollouts at 0.63 over the first 3 chunks, 0.89 over the whole episode."""
+    run = seed_run(12000, "observation_r1")
+    spread = load_episodes([str(run / "restart_spread_vanilla")])
+    sweep = {
+        e[0].seed: e[0].success
+        for e in load_episodes([str(run / "context_energy_full" / "vanilla")]).values()
+    }
+    assert {e[0].seed: e[0].success for e in spread.values()} == sweep
+    succeeded = np.array([e[0].success for e in spread.values()])
+    assert succeeded.sum() == 28
+
+    def by_spread(chunks):
+        scores = np.array([np.mean([r.restart_spread for r in e[:chunks]]) for e in spread.values()])
+        return format_auroc(scores[succeeded], scores[~succeeded], 1000, 0)
+
+    assert (by_spread(1), by_spread(3), by_spread(None)) == (
+        "0.497 [0.312, 0.673]",
+        "0.631 [0.414, 0.833]",
+        "0.887 [0.795, 0.967]",
+    )
