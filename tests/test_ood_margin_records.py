@@ -1101,3 +1101,17 @@ def test_restart_spread_tells_the_failed_scenes_only_once_the_arm_stalls():
         "0.631 [0.414, 0.833]",
         "0.887 [0.795, 0.967]",
     )
+
+
+def test_ten_times_the_gradient_penalty_brings_back_a_shift_that_lowers_e_c():
+    """summary.md, "A stronger penalty, gamma = 1.0": on design seed 15000 light direction 3 lowers chunk-0 E_c in all
+    eight paired scenes by a scene spread and `context_phase_energy` is confidently under 0.5 there (0.28), where
+    gamma = 0.1 leaves it above (0.53): the preset keeps 0.1."""
+    committed = (FULL / "context_energy_r1g1.md").read_text()
+    run = seed_run(15000, "observation_r1g1") / "context_energy_full"
+    assert summaries.score_summary(run) == section(committed, "seed15000")
+    rows = summary_rows(f"## Score summary\n{section(committed, 'seed15000')}")
+    assert rows["context_phase_energy"][5] == "blur 3 0.46, light_direction 3 0.28!"
+    _, scenes, _ = paired.scene_rows(paired.RunRecords.read(run), paired.ONE_SIDED_SCORE)
+    (light,) = [row for row in scenes if row[0] == "light_direction_s3"]
+    assert light[1].startswith("-1.00") and light[2] == "8/8"
