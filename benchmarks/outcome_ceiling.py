@@ -60,7 +60,9 @@ def scored_rollouts(run: Path, score: str, first_chunks: int = FIRST_CHUNKS) -> 
             scenes.append(episode[0].seed)
             failed.append(not episode[0].success)
             scores.append(value)
-    return Rollouts(np.array(names), np.array(scenes), np.array(failed, dtype=bool), np.array(scores, dtype=float))
+    return Rollouts(
+        np.array(names), np.array(scenes), np.array(failed, dtype=bool), np.array(scores, dtype=float)
+    )
 
 
 def set_failure_rates(rollouts: Rollouts) -> np.ndarray:
@@ -145,7 +147,9 @@ HEADERS = [
 
 
 def ceiling_table(runs: Mapping[str, Path], score: str) -> str:
-    return markdown_table(HEADERS, [run_row(name, scored_rollouts(path, score)) for name, path in runs.items()])
+    return markdown_table(
+        HEADERS, [run_row(name, scored_rollouts(path, score)) for name, path in runs.items()]
+    )
 
 
 def variant_runs(results: Path, variant: str) -> dict[str, Path]:
@@ -158,7 +162,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--results", type=Path, required=True, help="the folder of seed<SEED>/<variant>/ records")
+    parser.add_argument(
+        "--results", type=Path, required=True, help="the folder of seed<SEED>/<variant>/ records"
+    )
     parser.add_argument("--variant", action="append", required=True, help="repeatable")
     parser.add_argument("--score", default="context_phase_energy")
     parser.add_argument("--output", type=Path, required=True)
