@@ -1,9 +1,14 @@
 """The installed plugin through LeRobot's own tools: discovery, lerobot-train, checkpoint loading."""
 
+import contextlib
+import os
+import resource
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
+import psutil
 import pytest
 import torch
 from lerobot.policies.factory import make_pre_post_processors
@@ -44,7 +49,52 @@ def lerobot_train(dataset_root, output_dir, *extra, steps=TRAIN_STEPS, save_freq
         f"--output_dir={output_dir}",
         *extra,
     ]
-    return subprocess.run(command, capture_output=True, text=True, timeout=600)
+    return run_to_completion(command, timeout=600)
+
+
+def run_to_completion(command: list[str], timeout: float) -> subprocess.CompletedProcess:
+    """`subprocess.run(command, capture_output=True, text=True, timeout=timeout)`, but one that times out fails
+    the test with what is needed to see why: the processes still running, the Python stack of each
+    (faulthandler, on SIGABRT) and the log's tail. Every process the command started is then killed: torchrun
+    starts its ranks in sessions of their own, so killing torchrun alone, as `subprocess.run` does, leaves a
+    hung rank running after the test."""
+    env = {**os.environ, "PYTHONFAULTHANDLER": "1"}
+    core_limit = resource.getrlimit(resource.RLIMIT_CORE)
+    resource.setrlimit(resource.RLIMIT_CORE, (0, core_limit[1]))  # no core files from the SIGABRT below
+    try:
+        process = subprocess.Popen(
+            command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+        )
+    finally:
+        resource.setrlimit(resource.RLIMIT_CORE, core_limit)
+    try:
+        stdout, stderr = process.communicate(timeout=timeout)
+        return subprocess.CompletedProcess(command, process.returncode, stdout, stderr)
+    except subprocess.TimeoutExpired:
+        tree, running = [], []
+        with contextlib.suppress(psutil.Error):
+            tree = [psutil.Process(process.pid), *psutil.Process(process.pid).children(recursive=True)]
+        for proc in tree:
+            with contextlib.suppress(psutil.Error):
+                running.append(f"{proc.pid} {proc.status()} {' '.join(proc.cmdline())[:300]}")
+        for proc in tree:
+            # faulthandler writes the stack of each thread to stderr; one process at a time, since they share
+            # the pipe and two dumping at once interleave their lines.
+            with contextlib.suppress(psutil.Error):
+                proc.send_signal(signal.SIGABRT)
+                psutil.wait_procs([proc], timeout=3)
+        for proc in tree:
+            with contextlib.suppress(psutil.Error):
+                proc.kill()
+        try:
+            stdout, stderr = process.communicate(timeout=60)
+        except subprocess.TimeoutExpired as again:  # a process outside the tree still holds the pipes
+            stdout, stderr = ((out or b"").decode(errors="replace") for out in (again.stdout, again.stderr))
+        running = "\n".join(running)
+        pytest.fail(
+            f"{command[0]} timed out after {timeout} s; still running then:\n{running}\n"
+            f"stdout tail:\n{stdout[-3000:]}\nstderr tail (the stacks last):\n{stderr[-20000:]}"
+        )
 
 
 @pytest.fixture(scope="module")

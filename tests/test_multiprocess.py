@@ -1,5 +1,10 @@
 """Multi-process training: LeRobot's trainer under torchrun, and DDP gradients equal to one process's."""
 
+import contextlib
+import sys
+
+import psutil
+import pytest
 import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
@@ -7,7 +12,7 @@ import torch.multiprocessing as mp
 from lerobot_policy_ebvla import EBVLAPolicy
 
 from .conftest import tiny_batch, tiny_config, write_tiny_dataset
-from .test_lerobot_integration import console_script, lerobot_train
+from .test_lerobot_integration import console_script, lerobot_train, run_to_completion
 
 # With a^(0) ~ N(0, (1e-8)^2), no Langevin noise and fixed K and alpha, a training step is deterministic,
 # so a 2-process step must give the same gradients as one process on the whole batch.
@@ -22,13 +27,41 @@ DETERMINISTIC_MCMC = {
 def test_torchrun_two_processes_train_and_write_one_checkpoint(tmp_path):
     root = tmp_path / "data"
     write_tiny_dataset(root)
-    torchrun = [console_script("torchrun"), "--nproc_per_node=2", console_script("lerobot-train")]
+    # --standalone: the rendezvous on a free port, not on torchrun's fixed default 29500, which any other torchrun
+    # on the machine (another checkout's test run) also takes: the second of two then fails with EADDRINUSE.
+    torchrun = [
+        console_script("torchrun"),
+        "--standalone",
+        "--nproc_per_node=2",
+        console_script("lerobot-train"),
+    ]
     result = lerobot_train(root, tmp_path / "run", steps=2, save_freq=2, launcher=torchrun)
     log = result.stdout + result.stderr
     assert result.returncode == 0, log[-3000:]
     assert "Effective batch size: 4 x 2 = 8" in log
     checkpoints = sorted(p.name for p in (tmp_path / "run" / "checkpoints").iterdir())
     assert checkpoints == ["000002", "last"]
+
+
+def test_a_run_that_times_out_fails_with_the_stacks_of_its_processes_and_leaves_none_running(tmp_path):
+    """What the torchrun test shows if it hangs: torchrun starts each rank in a session of its own, as the
+    child here, so `subprocess.run` would leave it running on a timeout, and report nothing of where it was."""
+    script = tmp_path / "hang.py"
+    script.write_text(
+        "import subprocess, sys, time\n"
+        "subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(600)'], start_new_session=True)\n"
+        "time.sleep(600)\n"
+    )
+    with pytest.raises(pytest.fail.Exception, match=r"timed out after 10 s") as failure:
+        run_to_completion([sys.executable, str(script)], timeout=10)
+    message = str(failure.value)
+    assert 'File "<string>", line 1 in <module>' in message  # the child's stack
+    assert f'File "{script}", line 3 in <module>' in message  # the parent's
+    pids = [int(line.split()[0]) for line in message.split("still running then:\n")[1].splitlines()[:2]]
+    assert len(pids) == 2
+    for pid in pids:
+        with contextlib.suppress(psutil.NoSuchProcess):
+            assert psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
 
 
 def _ddp_worker(rank: int, world_size: int, batch: dict, init_file: str, out_file: str) -> None:
