@@ -1115,3 +1115,18 @@ def test_ten_times_the_gradient_penalty_brings_back_a_shift_that_lowers_e_c():
     _, scenes, _ = paired.scene_rows(paired.RunRecords.read(run), paired.ONE_SIDED_SCORE)
     (light,) = [row for row in scenes if row[0] == "light_direction_s3"]
     assert light[1].startswith("-1.00") and light[2] == "8/8"
+
+
+def test_on_fresh_rollouts_of_the_untouched_seeds_near_misses_mild_blur_is_above_chance():
+    """context_energy_r1_fresh_untouched.md, recomputed for seed 24000 (whose sweep put blur 3 at 0.45): on 24 fresh
+    rollouts against 100 fresh vanilla ones `context_phase_energy` scores blur 3 0.74 and light direction 3 0.77;
+    seed 25000's blur 3 0.62."""
+    committed = (FULL / "context_energy_r1_fresh_untouched.md").read_text()
+    run = seed_run(24000, "observation_r1")
+    recomputed = summaries.score_summary(
+        run / "context_energy_fresh", calibration=run / "context_energy_full" / "calibration"
+    )
+    assert recomputed == section(committed, "seed24000_fresh")
+    for name, worst in (("seed24000_fresh", "blur 3 0.739"), ("seed25000_fresh", "blur 3 0.621")):
+        rows = summary_rows(f"## Score summary\n{section(committed, name)}")
+        assert (rows["context_phase_energy"][4], rows["context_phase_energy"][5]) == (worst, "none")
