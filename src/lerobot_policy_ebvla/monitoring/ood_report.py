@@ -508,29 +508,32 @@ def _first_chunks_section(scored, vanilla, conditions, names, cfg) -> str:
     return "\n\n".join(lines)
 
 
+REFERENCE_PERTURBED = "reference: perturbed or not"
+REFERENCE_CONDITION_FAILURES = "reference: its condition's failure rate"
+
+
 def _outcome_section(scored, vanilla, ood, names, cfg) -> str:
     """Every score's AUROC of failed (positives) against successful rollouts, per set that has both."""
     lengths = [k for k in scored if k is not None and k in cfg.first_chunks]
     vanilla_failed = np.array([not e[0].success for e in vanilla.values()], dtype=bool)
     ood_failed = np.array([not e[0].success for e in ood.values()], dtype=bool)
+    # Labels, not scores: what a detector that knew them would reach (see the section's text).
     ood_failure_rates = condition_failure_rates(ood)
-    pooled_references = {
-        REFERENCE_PERTURBED: np.concatenate([np.zeros(len(vanilla)), np.ones(len(ood))]),
-        REFERENCE_CONDITION_FAILURES: np.concatenate(
-            [np.full(len(vanilla), vanilla_failed.mean() if len(vanilla) else 0.0), ood_failure_rates]
-        ),
-    }
-    references = {
-        "held-out vanilla rollouts": {},
-        "perturbed rollouts, all conditions": {REFERENCE_CONDITION_FAILURES: ood_failure_rates},
-        "held-out vanilla and perturbed rollouts together": pooled_references,
-    }
+    vanilla_failure_rate = np.full(len(vanilla), vanilla_failed.mean() if len(vanilla) else 0.0)
     sets = {
-        "held-out vanilla rollouts": (vanilla_failed, lambda s, name: s.negatives[name]),
-        "perturbed rollouts, all conditions": (ood_failed, lambda s, name: s.positives[ALL_CONDITIONS][name]),
+        "held-out vanilla rollouts": (vanilla_failed, lambda s, name: s.negatives[name], {}),
+        "perturbed rollouts, all conditions": (
+            ood_failed,
+            lambda s, name: s.positives[ALL_CONDITIONS][name],
+            {REFERENCE_CONDITION_FAILURES: ood_failure_rates},
+        ),
         "held-out vanilla and perturbed rollouts together": (
             np.concatenate([vanilla_failed, ood_failed]),
             lambda s, name: np.concatenate([s.negatives[name], s.positives[ALL_CONDITIONS][name]]),
+            {
+                REFERENCE_PERTURBED: np.concatenate([np.zeros(len(vanilla)), np.ones(len(ood))]),
+                REFERENCE_CONDITION_FAILURES: np.concatenate([vanilla_failure_rate, ood_failure_rates]),
+            },
         ),
     }
     lines = [
@@ -546,7 +549,7 @@ def _outcome_section(scored, vanilla, ood, names, cfg) -> str:
         "(vanilla's, or its condition's), the most any score that knows nothing within a condition can reach."
     ]
     headers = ["Score", *(chunks_label(k) for k in lengths), chunks_label(None)]
-    for title, (failed, of) in sets.items():
+    for title, (failed, of, references) in sets.items():
         if failed.all() or not failed.any():
             lines.append(f"### {title}: {int(failed.sum())} of {failed.size} failed, no AUROC")
             continue
@@ -562,16 +565,12 @@ def _outcome_section(scored, vanilla, ood, names, cfg) -> str:
         ]
         rows += [
             [f"_{name}_", *(auroc_interval(labels[~failed], labels[failed], cfg) for _ in [*lengths, None])]
-            for name, labels in references[title].items()
+            for name, labels in references.items()
         ]
         lines.append(
             f"### {title}: {int(failed.sum())} of {failed.size} failed\n\n" + markdown_table(headers, rows)
         )
     return "\n\n".join(lines)
-
-
-REFERENCE_PERTURBED = "reference: perturbed or not"
-REFERENCE_CONDITION_FAILURES = "reference: its condition's failure rate"
 
 
 def condition_failure_rates(ood: dict) -> np.ndarray:
