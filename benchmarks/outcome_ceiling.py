@@ -31,7 +31,8 @@ from pathlib import Path
 import numpy as np
 from window_typicality import conditions_in, episodes_in
 
-from lerobot_policy_ebvla.monitoring.metrics import format_auroc, markdown_table
+from lerobot_policy_ebvla.monitoring.metrics import auroc, format_auroc, markdown_table
+from lerobot_policy_ebvla.monitoring.ood_report import condition_failure_rates
 from lerobot_policy_ebvla.monitoring.window_report import score_sets
 
 FIRST_CHUNKS = 3
@@ -41,12 +42,14 @@ VANILLA = "vanilla"
 
 @dataclass(frozen=True)
 class Rollouts:
-    """A run's held-out rollouts (vanilla and every condition): set name, scene, outcome and score."""
+    """A run's held-out rollouts (vanilla and every condition): set name, scene, outcome, score, and the share of
+    its set's rollouts that failed."""
 
     sets: np.ndarray
     scenes: np.ndarray
     failed: np.ndarray
     scores: np.ndarray
+    set_failure_rates: np.ndarray
 
 
 def scored_rollouts(run: Path, score: str, first_chunks: int = FIRST_CHUNKS) -> Rollouts:
@@ -60,15 +63,15 @@ def scored_rollouts(run: Path, score: str, first_chunks: int = FIRST_CHUNKS) -> 
             scenes.append(episode[0].seed)
             failed.append(not episode[0].success)
             scores.append(value)
+    # Vanilla's rollouts are one condition ("none") to the report's grouping, as each shift's are.
+    every_episode = {key: episode for s in scored.values() for key, episode in s.episodes.items()}
     return Rollouts(
-        np.array(names), np.array(scenes), np.array(failed, dtype=bool), np.array(scores, dtype=float)
+        np.array(names),
+        np.array(scenes),
+        np.array(failed, dtype=bool),
+        np.array(scores, dtype=float),
+        condition_failure_rates(every_episode),
     )
-
-
-def set_failure_rates(rollouts: Rollouts) -> np.ndarray:
-    """Each rollout's set's (vanilla's or its condition's) share of failed rollouts."""
-    share = {name: rollouts.failed[rollouts.sets == name].mean() for name in np.unique(rollouts.sets)}
-    return np.array([share[name] for name in rollouts.sets])
 
 
 def scene_failure_rates(rollouts: Rollouts) -> np.ndarray:
@@ -88,8 +91,8 @@ def pair_wins(scores: np.ndarray, failed: np.ndarray, scenes: np.ndarray) -> dic
         here = scenes == scene
         positives, negatives = scores[here & failed], scores[here & ~failed]
         if positives.size and negatives.size:
-            diff = positives[:, None] - negatives[None, :]
-            wins[scene] = (float((diff > 0).sum() + 0.5 * (diff == 0).sum()), diff.size)
+            pairs = positives.size * negatives.size
+            wins[scene] = (auroc(negatives, positives) * pairs, pairs)
     return wins
 
 
@@ -118,7 +121,7 @@ def ranked(labels: np.ndarray, failed: np.ndarray) -> str:
 def run_row(name: str, rollouts: Rollouts) -> list[str]:
     failed = rollouts.failed
     perturbed = (rollouts.sets != VANILLA).astype(float)
-    by_set, by_scene = set_failure_rates(rollouts), scene_failure_rates(rollouts)
+    by_set, by_scene = rollouts.set_failure_rates, scene_failure_rates(rollouts)
     score_pairs = within_scene_auroc(rollouts.scores, failed, rollouts.scenes)
     rate_pairs = within_scene_auroc(by_set, failed, rollouts.scenes)
     return [
