@@ -52,21 +52,24 @@ def lerobot_train(dataset_root, output_dir, *extra, steps=TRAIN_STEPS, save_freq
     return run_to_completion(command, timeout=600)
 
 
+def _no_core_files() -> None:
+    resource.setrlimit(resource.RLIMIT_CORE, (0, resource.getrlimit(resource.RLIMIT_CORE)[1]))
+
+
 def run_to_completion(command: list[str], timeout: float) -> subprocess.CompletedProcess:
     """`subprocess.run(command, capture_output=True, text=True, timeout=timeout)`, but one that times out fails
     the test with what is needed to see why: the processes still running, the Python stack of each
     (faulthandler, on SIGABRT) and the log's tail. Every process the command started is then killed: torchrun
     starts its ranks in sessions of their own, so killing torchrun alone, as `subprocess.run` does, leaves a
     hung rank running after the test."""
-    env = {**os.environ, "PYTHONFAULTHANDLER": "1"}
-    core_limit = resource.getrlimit(resource.RLIMIT_CORE)
-    resource.setrlimit(resource.RLIMIT_CORE, (0, core_limit[1]))  # no core files from the SIGABRT below
-    try:
-        process = subprocess.Popen(
-            command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
-        )
-    finally:
-        resource.setrlimit(resource.RLIMIT_CORE, core_limit)
+    process = subprocess.Popen(
+        command,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONFAULTHANDLER": "1"},
+        preexec_fn=_no_core_files,  # in the command's processes only: no core files from the SIGABRT below
+    )
     try:
         stdout, stderr = process.communicate(timeout=timeout)
         return subprocess.CompletedProcess(command, process.returncode, stdout, stderr)
