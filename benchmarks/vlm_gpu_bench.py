@@ -37,6 +37,7 @@ from lerobot.utils.constants import ACTION, OBS_LANGUAGE_ATTENTION_MASK, OBS_LAN
 from vlm_size_table import full_size_config
 
 from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
+from lerobot_policy_ebvla.compile_ebvla import CHUNK_GRAPH_MODE, refinement_graphs
 from lerobot_policy_ebvla.configuration_ebvla import COMPILE_MODES
 
 TINY = {
@@ -198,6 +199,10 @@ def chunk_configuration(policy: EBVLAPolicy, observation: dict, args, device: to
         "of_which_context_encoding_ms_median": round(1e3 * statistics.median(encode_times), 1),
         "inference_peak_GiB": round(peak_gib(device), 2),
     }
+    if policy.config.compile_mode == CHUNK_GRAPH_MODE:  # were the chains replayed, or refined eagerly?
+        graphs = refinement_graphs(policy.model.head)
+        row["chunk_graphs_captured"] = len(graphs.graphs)
+        row["chunk_graph_failures"] = list(graphs.failures.values())
     if policy.config.compile_mode != "off":
         row.update(compiled_vs_eager(policy, observation, device))
     if args.profile:

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from lerobot_policy_ebvla import EBVLAPolicy
+from lerobot_policy_ebvla.energy_head import EBVLARotaryEmbedding
 from lerobot_policy_ebvla.mcmc import refine_actions
 
 from .conftest import tiny_batch, tiny_config
@@ -97,3 +98,13 @@ def test_rotary_frequencies_stay_fp32_under_a_bf16_cast(policies):
     rotary, rotary_bf16 = fp32.model.head.rotary, bf16.model.head.rotary
     assert rotary_bf16.inv_freq.dtype == torch.float32
     assert torch.equal(rotary_bf16.inv_freq, rotary.inv_freq)
+
+
+def test_rotary_frequencies_are_made_on_the_device_the_head_is_built_on():
+    """A head built under `with torch.device("cuda")` and then cast (`policy.to(torch.bfloat16)`) kept its
+    frequencies on the CPU: every energy evaluation copied them to the GPU, a host sync that also kept the
+    refinement out of CUDA graphs (docs/vlm_backbone.md, 2026-11-27). Here the meta device stands in for CUDA."""
+    with torch.device("meta"):
+        rotary = EBVLARotaryEmbedding(head_dim=16, base=10000.0)
+    rotary.to(torch.bfloat16)
+    assert rotary.inv_freq.device.type == "meta" and rotary.inv_freq.dtype == torch.float32

@@ -1,5 +1,6 @@
-"""The GPU figures of BENCHMARKS.md section 1 and docs/vlm_backbone.md ("`compile_mode` on a GPU") are those of the
-committed JSONs of the H200 session of 2026-11-26 (`benchmarks/vlm_gpu_bench.py`, one JSON per configuration)."""
+"""The GPU figures of BENCHMARKS.md section 1 and docs/vlm_backbone.md ("`compile_mode` on a GPU", "`compile_mode=
+"chunk-graph"`") are those of the committed JSONs of the H200 sessions of 2026-11-26 and 2026-11-27
+(`benchmarks/vlm_gpu_bench.py`, one JSON per configuration)."""
 
 import json
 from pathlib import Path
@@ -10,11 +11,12 @@ from tests.conftest import load_benchmark
 
 REPO = Path(__file__).parents[1]
 RECORDS = REPO / "benchmarks" / "results" / "gpu_h200_2026-11-26"
+CHUNK_GRAPH_RECORDS = REPO / "benchmarks" / "results" / "gpu_h200_2026-11-27"
 vlm_gpu_bench = load_benchmark("vlm_gpu_bench")
 
 
-def rows() -> dict[str, dict]:
-    return {f"{p.parent.name}/{p.stem}": json.loads(p.read_text()) for p in sorted(RECORDS.rglob("*.json"))}
+def rows(records: Path = RECORDS) -> dict[str, dict]:
+    return {f"{p.parent.name}/{p.stem}": json.loads(p.read_text()) for p in sorted(records.rglob("*.json"))}
 
 
 def test_every_configuration_ran_on_the_h200_at_full_size():
@@ -102,3 +104,42 @@ def test_a_short_device_call_measures_every_mode_at_batch_1_first():
         "chunk_off_b8",
         "chunk_reduce-overhead_b1",
     ]
+
+
+def test_the_chunk_graph_rows_are_the_records_and_their_graphs_were_replayed():
+    records = rows(CHUNK_GRAPH_RECORDS)
+    for name, figures in {
+        "bf16/chunk_chunk-graph_b1": ["26.6 (26.1)", "10.7", "65.7 %", "2.3e-2", "3.9e-2"],
+        "bf16/chunk_chunk-graph_b8": ["50.6 (49.2)", "31.9", "79.4 %", "5.8e-3", "1.6e-2"],
+    }.items():
+        row = records[name]
+        assert row["device"] == "NVIDIA H200" and not row["tiny"] and row["total_params_M"] > 1000
+        assert row["chunk_graphs_captured"] >= 1 and row["chunk_graph_failures"] == []
+        measured = [
+            f"{row['select_action_chunk_ms_median']:.1f} ({row['select_action_chunk_ms_min']:.1f})",
+            f"{row['of_which_context_encoding_ms_median']:.1f}",
+            f"{100 * row['profile_select_action_chunk']['gpu_busy_fraction']:.1f} %",
+            f"{row['compiled_vs_eager_max_abs_action_diff']:.1e}".replace("e-0", "e-"),
+            f"{row['compiled_vs_eager_max_abs_final_energy_diff']:.1e}".replace("e-0", "e-"),
+        ]
+        assert measured == figures, name
+        for doc in ("BENCHMARKS.md", "docs/vlm_backbone.md"):
+            assert all(f in (REPO / doc).read_text() for f in figures), (doc, name)
+
+
+def test_the_first_call_of_2026_11_27_failed_its_capture_on_the_host_copy_as_reported():
+    records = rows(CHUNK_GRAPH_RECORDS)
+    for batch_size in (1, 8, 32):
+        row = records[f"bf16_rotary_on_cpu/chunk_chunk-graph_b{batch_size}"]
+        assert row["chunk_graphs_captured"] == 0
+        assert all("Cannot copy between CPU and CUDA tensors" in f for f in row["chunk_graph_failures"])
+    text = (REPO / "docs/vlm_backbone.md").read_text()
+    for mode, reported in (
+        ("off", "eager 308.2 / 363.9 / 360.5 ms"),
+        ("chunk-graph", "221.4 / 230.9 / 315.2 ms"),
+    ):
+        medians = [
+            records[f"bf16_rotary_on_cpu/chunk_{mode}_b{b}"]["select_action_chunk_ms_median"]
+            for b in (1, 8, 32)
+        ]
+        assert " / ".join(f"{ms:.1f}" for ms in medians) in reported and reported in text

@@ -20,7 +20,14 @@ CAMERA_TOKENS = ("keypoints", "feature_map")
 STEP_SIZE_SAMPLINGS = ("per_chain", "per_mcmc_step")
 OOD_RESPONSES = ("continue", "hold", "raise")
 HOLD_ACTIONS = ("zero_delta", "current_state")
-COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+COMPILE_MODES = (
+    "off",
+    "default",
+    "reduce-overhead",
+    "max-autotune",
+    "max-autotune-no-cudagraphs",
+    "chunk-graph",
+)
 FROZEN_WEIGHTS_DTYPES = ("bfloat16", "float32")
 CONTRASTIVE_DTYPES = ("float32", "bfloat16", "auto")
 # The generic corruptions of `training_signal.corrupt_observation` (kept here: the config imports no torch).
@@ -211,7 +218,12 @@ class EBVLAConfig(PreTrainedConfig):
             encoding and the energy's forward and grad_a backward at each MCMC step; training is never
             compiled. "off" (the default) runs eagerly; "default" (inductor), "max-autotune" and
             "max-autotune-no-cudagraphs" are torch.compile's modes; "reduce-overhead" and "max-autotune"
-            replay CUDA graphs on a CUDA device and run their no-graph form elsewhere, with a warning. Shapes
+            replay CUDA graphs on a CUDA device and run their no-graph form elsewhere, with a warning.
+            "chunk-graph" encodes the context as "reduce-overhead" and captures each chunk's whole refinement
+            (the K_inf steps of the eager head, the Langevin noise drawn beforehand, and the final energy) in one
+            CUDA graph per input shape, replayed once per chunk (`compile_ebvla.RefinementGraphs`); with
+            `early_stop_tol` its steps are graphed one by one instead, and without CUDA it runs the context as
+            "default" and the refinement eagerly. Shapes
             are static: each batch size compiles on its first chunk, and dynamo keeps 8 of them per process
             (`torch._dynamo.config.recompile_limit`), so warm up with one chunk at every batch size you deploy;
             each new combination of the light backbone's `task_instructions` in a batch compiles the encoding

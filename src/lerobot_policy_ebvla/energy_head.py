@@ -25,9 +25,9 @@ class EBVLARotaryEmbedding(nn.Module):
     def __init__(self, head_dim: int, base: float):
         super().__init__()
         self.head_dim, self.base = head_dim, base
-        self.register_buffer("inv_freq", self._frequencies(torch.device("cpu")), persistent=False)
+        self.register_buffer("inv_freq", self._frequencies(None), persistent=False)
 
-    def _frequencies(self, device: torch.device) -> Tensor:
+    def _frequencies(self, device: torch.device | None) -> Tensor:
         exponents = torch.arange(0, self.head_dim, 2, device=device, dtype=torch.float32) / self.head_dim
         return 1.0 / self.base**exponents
 

@@ -93,6 +93,20 @@ def sample_initial_actions(
     return init_std * torch.randn(shape, device=device, dtype=dtype, generator=generator)
 
 
+def draw_langevin_noise(num_steps: int, actions: Tensor, generator: torch.Generator | None = None) -> Tensor:
+    """Draws the standard normal noise of `num_steps` steps for chunks shaped like `actions`: (K, B, H, d_a).
+
+    One draw per step, in step order: the same numbers `refine_actions` draws itself from the same generator,
+    so a chain given them (its `noise`) is the chain that drew its own.
+    """
+    return torch.stack(
+        [
+            torch.randn(actions.shape, device=actions.device, dtype=actions.dtype, generator=generator)
+            for _ in range(num_steps)
+        ]
+    )
+
+
 def refine_actions(
     energy_fn: EnergyFn,
     initial_actions: Tensor,
@@ -107,6 +121,7 @@ def refine_actions(
     early_stop_tol: float | None = None,
     straight_through_clip: bool = False,
     prefix: RTCPrefix | None = None,
+    noise: Tensor | None = None,
 ) -> RefinementResult:
     """Runs len(step_sizes) energy-scaled gradient steps (Eq. 2-3) from `initial_actions`.
 
@@ -126,6 +141,9 @@ def refine_actions(
             values); without it the clip passes no gradient wherever |g| > c.
         prefix: RTC's previous chunk to inpaint: abar, d, w_t and lambda (`RTCPrefix`). None refines from
             scratch.
+        noise: The standard normal draws of every step, (K, B, H, d_a) (`draw_langevin_noise`), scaled by
+            sigma_L here; None draws them from `generator` step by step. Given, nothing in the loop reads the
+            generator or the host, so a CUDA graph can capture the whole chain (`compile_ebvla.RefinementGraphs`).
 
     Returns:
         The refined chunk, the energy seen at every step and which chunks diverged.
@@ -143,13 +161,20 @@ def refine_actions(
         weights = torch.zeros(a.shape[1], device=a.device) if prefix.weights is None else prefix.weights
         weights = weights.to(a.device, a.dtype).unsqueeze(-1)  # w_t, (H, 1) or (B, H, 1)
         a = torch.where(held, abar, a)
+    if noise is not None and noise.shape != (len(step_sizes), *a.shape):
+        raise ValueError(
+            f"`noise` must hold one draw per step, shaped {(len(step_sizes), *a.shape)}; got {tuple(noise.shape)}."
+        )
     diverged = torch.zeros(a.shape[0], dtype=torch.bool, device=a.device)
     step_energies = []
-    for alpha in step_sizes:
+    for k, alpha in enumerate(step_sizes):
         with torch.enable_grad():
             a = a.detach().requires_grad_(True)
-            noise = torch.randn(a.shape, device=a.device, dtype=a.dtype, generator=generator)
-            e = energy_fn(a + langevin_std * noise)  # (B, H)
+            if noise is None:
+                eps = torch.randn(a.shape, device=a.device, dtype=a.dtype, generator=generator)
+            else:
+                eps = noise[k]
+            e = energy_fn(a + langevin_std * eps)  # (B, H)
             energy = e.mean(dim=-1)  # E(a, C), (B,)
             # Chunks are independent, so the gradient of the batch sum is each chunk's own gradient.
             (grad,) = torch.autograd.grad(energy.sum(), a, create_graph=create_graph)

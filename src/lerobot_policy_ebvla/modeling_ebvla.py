@@ -28,11 +28,18 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 from torch.utils.hooks import RemovableHandle
 
 from .backbone_resnet import EBVLAResNetBackbone
-from .compile_ebvla import compiled_context, compiled_energy_fn
+from .compile_ebvla import CHUNK_GRAPH_MODE, compiled_context, compiled_energy_fn, refinement_graphs
 from .configuration_ebvla import EBVLAConfig
 from .energy_head import ContextKV, EBVLAEnergyHead
 from .inputs_ebvla import validate_actions, validate_observation
-from .mcmc import EnergyFn, RefinementResult, RTCPrefix, refine_actions, sample_initial_actions
+from .mcmc import (
+    EnergyFn,
+    RefinementResult,
+    RTCPrefix,
+    draw_langevin_noise,
+    refine_actions,
+    sample_initial_actions,
+)
 from .rtc_ebvla import rtc_prefix
 from .runtime.response import EnergyOODResponse, respond_to_energy
 from .runtime.threshold import OODDecision
@@ -389,6 +396,7 @@ class EBVLA(nn.Module):
         energy_fn: EnergyFn | None = None,
         straight_through_clip: bool = False,
         prefix: RTCPrefix | None = None,
+        noise: Tensor | None = None,
     ) -> RefinementResult:
         cfg = self.config
         return refine_actions(
@@ -404,6 +412,7 @@ class EBVLA(nn.Module):
             early_stop_tol=early_stop_tol,
             straight_through_clip=straight_through_clip,
             prefix=prefix,
+            noise=noise,
         )
 
     def _initial_actions(
@@ -441,6 +450,41 @@ class EBVLA(nn.Module):
         if self.config.compile_mode == "off":
             return lambda a: self.head(a, kv)
         return compiled_energy_fn(self.head, kv, self.config.compile_mode)
+
+    def _inference_chain(
+        self,
+        kv: ContextKV,
+        initial: Tensor,
+        generator: torch.Generator | None,
+        prefix: RTCPrefix | None,
+    ) -> tuple[RefinementResult, Tensor]:
+        """K_inf steps of constant size alpha from a^(0) = `initial`, and the final energies E(a^(K), C), (B,).
+
+        In `compile_mode="chunk-graph"` (without `early_stop_tol`, whose stop is decided on the host) the noise
+        of every step is drawn first, as the steps would draw it, and the chain replays as one CUDA graph."""
+        cfg = self.config
+        step_sizes = [cfg.inference_step_size] * cfg.inference_mcmc_steps
+        whole_chain_graph = cfg.compile_mode == CHUNK_GRAPH_MODE and cfg.early_stop_tol is None
+
+        def chain(kv, initial, noise, prefix) -> tuple[RefinementResult, Tensor]:
+            result = self._refine(
+                kv,
+                initial,
+                step_sizes,
+                generator,
+                early_stop_tol=cfg.early_stop_tol,
+                # The whole chain's graph records the eager head's kernels.
+                energy_fn=None if whole_chain_graph else self._inference_energy_fn(kv),
+                prefix=prefix,
+                noise=noise,
+            )
+            with torch.no_grad():
+                return result, self.head(result.actions, kv).mean(dim=-1)
+
+        if not whole_chain_graph:
+            return chain(kv, initial, None, prefix)
+        noise = draw_langevin_noise(len(step_sizes), initial, generator)
+        return refinement_graphs(self.head)(chain, list(self.head.parameters()), kv, initial, noise, prefix)
 
     def generate_actions(
         self,
@@ -486,25 +530,14 @@ class EBVLA(nn.Module):
         """Refines `chains` chunks per observation from independent a^(0) and keeps the lowest final energy.
 
         `context_energy`: E_c(C) of each observation, added to its chunks' final energies (the joint energy)."""
-        cfg = self.config
         batch_size = kv[0][0].shape[0]
         initial = self._initial_actions(batch_size * chains, kv[0][0], generator)
         if prefix is not None:
             actions = prefix.actions.to(initial.device).repeat_interleave(chains, dim=0)
             prefix = dataclasses.replace(prefix, actions=actions)
-        result = self._refine(
-            kv,
-            initial,
-            [cfg.inference_step_size] * cfg.inference_mcmc_steps,
-            generator,
-            early_stop_tol=cfg.early_stop_tol,
-            energy_fn=self._inference_energy_fn(kv),
-            prefix=prefix,
-        )
-        with torch.no_grad():
-            final_energy = self.head(result.actions, kv).mean(dim=-1)
-            if context_energy is not None:  # the joint energy E(a, C) + E_c(C)
-                final_energy = final_energy + context_energy.repeat_interleave(chains)
+        result, final_energy = self._inference_chain(kv, initial, generator, prefix)
+        if context_energy is not None:  # the joint energy E(a, C) + E_c(C)
+            final_energy = final_energy + context_energy.repeat_interleave(chains)
         final_energy = torch.where(result.diverged, math.inf, final_energy)
         if result.diverged.any():
             logger.warning(
