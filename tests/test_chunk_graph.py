@@ -205,3 +205,21 @@ def test_a_failed_capture_refines_eagerly_and_says_why(monkeypatch, caplog):
     assert list(graphs.failures.values()) == [
         "RuntimeError: operation not permitted when stream is capturing"
     ]
+
+
+def test_a_cast_that_remakes_the_rotary_buffer_captures_again(recorded, monkeypatch):
+    """`policy.float()` leaves fp32 parameters where they are but remakes the head's rotary frequencies: a graph
+    recorded before would read their freed memory."""
+    aot_eager_compiles(monkeypatch)
+    clear_compiled()
+    policy = make_policy(compile_mode="chunk-graph")
+    batch = tiny_batch(policy.config, batch_size=BATCH_SIZE, seed=31, with_action=False)
+    try:
+        chunk(policy, batch)
+        chunk(policy, batch)
+        assert recorded.captures == 1
+        policy.float()
+        chunk(policy, batch)
+    finally:
+        clear_compiled()
+    assert recorded.captures == 2

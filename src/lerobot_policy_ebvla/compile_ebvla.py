@@ -172,7 +172,7 @@ class RefinementGraphs:
         prefix: RTCPrefix | None,
     ) -> tuple[RefinementResult, Tensor]:
         """Refines `initial_actions` under `kv` with the Langevin draws `noise` (K, B, H, d_a); `weights` are
-        the parameters the chain reads (their memory keys the graphs)."""
+        the parameters and buffers the chain reads (their memory keys the graphs)."""
         if not self.records(initial_actions):
             return chain(kv, initial_actions, noise, prefix)
         weights_key = tuple(w.data_ptr() for w in weights)

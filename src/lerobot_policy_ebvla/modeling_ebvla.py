@@ -484,7 +484,9 @@ class EBVLA(nn.Module):
         if not whole_chain_graph:
             return chain(kv, initial, None, prefix)
         noise = draw_langevin_noise(len(step_sizes), initial, generator)
-        return refinement_graphs(self.head)(chain, list(self.head.parameters()), kv, initial, noise, prefix)
+        # Buffers too: `_apply` remakes the rotary frequencies even where it leaves the parameters in place.
+        weights = [*self.head.parameters(), *self.head.buffers()]
+        return refinement_graphs(self.head)(chain, weights, kv, initial, noise, prefix)
 
     def generate_actions(
         self,
