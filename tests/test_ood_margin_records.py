@@ -530,10 +530,10 @@ def test_graded_strengths_on_fresh_rollouts_lift_blur_everywhere_and_leave_light
 
 
 def test_every_checkpoint_of_the_margin_study_reads_its_camera():
-    """camera_checks.json: the refined chunk changes by 41% or more with the cameras blanked, on all 43."""
+    """camera_checks.json: the refined chunk changes by 41% or more with the cameras blanked, on all 45."""
     checks = json.loads((FULL / "camera_checks.json").read_text())
     changes = {run: check["chunk_change"] for run, check in checks.items() if not run.startswith("_")}
-    assert len(changes) == 43 and min(changes.values()) > 0.41
+    assert len(changes) == 45 and min(changes.values()) > 0.41
     assert all(check["num_frames"] == 32 for run, check in checks.items() if not run.startswith("_"))
 
 
@@ -1130,3 +1130,34 @@ def test_on_fresh_rollouts_of_the_untouched_seeds_near_misses_mild_blur_is_above
     for name, worst in (("seed24000_fresh", "blur 3 0.739"), ("seed25000_fresh", "blur 3 0.621")):
         rows = summary_rows(f"## Score summary\n{section(committed, name)}")
         assert (rows["context_phase_energy"][4], rows["context_phase_energy"][5]) == (worst, "none")
+
+
+def test_a_stronger_policy_fails_in_the_shifts_and_the_monitor_alarms_on_benign_ones_too():
+    """summary.md, "A stronger policy": three times the demonstrations and training (seeds 26000, 27000, flat E_c).
+    Vanilla fails 0-4 of 40, so each condition's failure rate now ranks failed over successful rollouts at 0.91-0.93;
+    `context_phase_energy` sees every shift (pooled 0.999 / 1.000, worst 0.963 / 0.994, none inverted) and alarms on
+    all of them, the harmless ones too, so it tells failed from successful at 0.68 only, under the 0.75 target."""
+    committed = (FULL / "outcome_ceiling_r1_strong.md").read_text()
+    rollouts = ceiling.scored_rollouts(
+        seed_run(26000, "observation_r1_strong") / "context_energy_full", "context_phase_energy"
+    )
+    assert ceiling.run_row("seed26000", rollouts) == ceiling_row(committed, "seed26000")
+    for seed, score, by_condition in (("seed26000", "0.677", "0.929"), ("seed27000", "0.681", "0.912")):
+        row = ceiling_row(committed, seed)
+        assert (row[2].split()[0], row[4].split()[0]) == (score, by_condition)
+    summaries_table = (FULL / "context_energy_r1_strong.md").read_text()
+    run = seed_run(27000, "observation_r1_strong") / "context_energy_full"
+    assert summaries.score_summary(run) == section(summaries_table, "seed27000")
+    for seed, pooled, worst in (
+        ("seed26000", "0.999", "blur 3 0.963"),
+        ("seed27000", "1.000", "blur 3 0.994"),
+    ):
+        rows = summary_rows(f"## Score summary\n{section(summaries_table, seed)}")
+        phase = rows["context_phase_energy"]
+        assert (phase[0].split()[0], phase[4], phase[5], phase[7].split()[0]) == (
+            pooled,
+            worst,
+            "none",
+            "1.000",
+        )
+        assert float(phase[8].split()[0]) < 0.75
