@@ -142,8 +142,9 @@ def refine_actions(
         prefix: RTC's previous chunk to inpaint: abar, d, w_t and lambda (`RTCPrefix`). None refines from
             scratch.
         noise: The standard normal draws of every step, (K, B, H, d_a) (`draw_langevin_noise`), scaled by
-            sigma_L here; None draws them from `generator` step by step. Given, nothing in the loop reads the
-            generator or the host, so a CUDA graph can capture the whole chain (`compile_ebvla.RefinementGraphs`).
+            sigma_L here; None draws them from `generator` step by step. Given, and without `early_stop_tol`
+            (a stop decided on the host), nothing in the loop reads the generator or waits for the device, so a
+            CUDA graph can capture the whole chain (`compile_ebvla.RefinementGraphs`).
 
     Returns:
         The refined chunk, the energy seen at every step and which chunks diverged.
