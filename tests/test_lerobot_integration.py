@@ -76,7 +76,8 @@ def run_to_completion(command: list[str], timeout: float) -> subprocess.Complete
     except subprocess.TimeoutExpired:
         tree, running = [], []
         with contextlib.suppress(psutil.Error):
-            tree = [psutil.Process(process.pid), *psutil.Process(process.pid).children(recursive=True)]
+            root = psutil.Process(process.pid)
+            tree = [root, *root.children(recursive=True)]
         for proc in tree:
             with contextlib.suppress(psutil.Error):
                 running.append(f"{proc.pid} {proc.status()} {' '.join(proc.cmdline())[:300]}")

@@ -22,6 +22,7 @@ replayed once per chunk. Capturing takes a few eager chains, not a compilation. 
 eagerly from the same pre-drawn noise, and the context is compiled as "default".
 """
 
+import dataclasses
 import functools
 import logging
 import weakref
@@ -78,6 +79,13 @@ def effective_compile_mode(mode: str, device_type: str) -> str:
     return CUDA_GRAPH_MODES[mode]
 
 
+def compiled_part_mode(mode: str, device_type: str) -> str:
+    """The torch.compile mode of the compiled parts (the context encoder, the per-step energy) under
+    `compile_mode=mode` on `device_type`: "chunk-graph" compiles its parts as "reduce-overhead"."""
+    mode = effective_compile_mode(mode, device_type)
+    return "reduce-overhead" if mode == CHUNK_GRAPH_MODE else mode
+
+
 def compile_static(fn: Callable, mode: str) -> Callable:
     """`fn` under torch.compile in `mode` ("default": inductor's default), one graph per input shape."""
     from torch._inductor import list_mode_options
@@ -107,9 +115,7 @@ def compiled_context(
     model: "EBVLA", batch: dict[str, Tensor], return_features: bool = False
 ) -> ContextKV | tuple[ContextKV, Tensor]:
     """`model.encode_context` compiled in `model.config.compile_mode`, its outputs copied out."""
-    mode = effective_compile_mode(model.config.compile_mode, model.head.energy_out.weight.device.type)
-    if mode == CHUNK_GRAPH_MODE:
-        mode = "reduce-overhead"
+    mode = compiled_part_mode(model.config.compile_mode, model.head.energy_out.weight.device.type)
     encoded = compiled_context_encoder(mode)(model, batch, return_features)
     kv, features = encoded if return_features else (encoded, None)
     # A CUDA-graph replay reuses its output buffers: the next chunk would overwrite this chunk's outputs.
@@ -123,9 +129,8 @@ def compiled_energy_fn(head: EBVLAEnergyHead, kv: ContextKV, compile_mode: str) 
     # grad, AOTAutograd's backward would also compute every weight gradient (the eager engine skips them).
     params = {name: p.detach() for name, p in head.named_parameters()}
     params.update(head.named_buffers())
-    mode = effective_compile_mode(compile_mode, kv[0][0].device.type)
-    if mode == CHUNK_GRAPH_MODE:  # a chain that cannot be captured whole (`early_stop_tol`): graphs per step
-        mode = "reduce-overhead"
+    # Under "chunk-graph" this runs only for a chain that cannot be captured whole (`early_stop_tol`).
+    mode = compiled_part_mode(compile_mode, kv[0][0].device.type)
     if mode in CUDA_GRAPH_MODES:
         for tensor in params.values():
             # The parameters never move, so CUDA graphs read them in place instead of copying every weight
@@ -180,9 +185,10 @@ class RefinementGraphs:
             self.graphs.clear()
             self.weights_key = weights_key
         inputs = _graph_inputs(kv, initial_actions, noise, prefix)
+        # The prefix's numbers are recorded as constants; its tensors are among the inputs.
         key = (
             tuple((t.shape, t.dtype) for t in inputs),
-            None if prefix is None else (prefix.held_steps, prefix.guidance_weight, prefix.weights is None),
+            None if prefix is None else (prefix.held_steps, prefix.guidance_weight),
         )
         if key in self.failures:
             return chain(kv, initial_actions, noise, prefix)
@@ -223,7 +229,7 @@ class RefinementGraphs:
         initial_actions, noise = initial_actions.clone(), noise.clone()
         if prefix is not None:
             weights = None if prefix.weights is None else prefix.weights.clone()
-            prefix = RTCPrefix(prefix.actions.clone(), prefix.held_steps, weights, prefix.guidance_weight)
+            prefix = dataclasses.replace(prefix, actions=prefix.actions.clone(), weights=weights)
         replay, outputs = record_cuda_graph(
             lambda: chain(kv, initial_actions, noise, prefix), self.warmup_chains
         )

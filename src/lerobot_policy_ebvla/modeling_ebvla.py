@@ -445,9 +445,16 @@ class EBVLA(nn.Module):
             return self.encode_context(batch, return_features)
         return compiled_context(self, batch, return_features)
 
+    @property
+    def _records_whole_chain(self) -> bool:
+        """Whether a chunk's refinement replays as one CUDA graph ("chunk-graph"): not with `early_stop_tol`, whose
+        stop is decided on the host."""
+        return self.config.compile_mode == CHUNK_GRAPH_MODE and self.config.early_stop_tol is None
+
     def _inference_energy_fn(self, kv: ContextKV) -> EnergyFn:
-        """The energy of the inference MCMC steps: the head itself, or its compiled graph (`compile_mode`)."""
-        if self.config.compile_mode == "off":
+        """The energy of the inference MCMC steps: the head itself (eager, or recorded with the whole chain), or
+        its compiled graph (`compile_mode`)."""
+        if self.config.compile_mode == "off" or self._records_whole_chain:
             return lambda a: self.head(a, kv)
         return compiled_energy_fn(self.head, kv, self.config.compile_mode)
 
@@ -464,7 +471,6 @@ class EBVLA(nn.Module):
         of every step is drawn first, as the steps would draw it, and the chain replays as one CUDA graph."""
         cfg = self.config
         step_sizes = [cfg.inference_step_size] * cfg.inference_mcmc_steps
-        whole_chain_graph = cfg.compile_mode == CHUNK_GRAPH_MODE and cfg.early_stop_tol is None
 
         def chain(kv, initial, noise, prefix) -> tuple[RefinementResult, Tensor]:
             result = self._refine(
@@ -473,15 +479,14 @@ class EBVLA(nn.Module):
                 step_sizes,
                 generator,
                 early_stop_tol=cfg.early_stop_tol,
-                # The whole chain's graph records the eager head's kernels.
-                energy_fn=None if whole_chain_graph else self._inference_energy_fn(kv),
+                energy_fn=self._inference_energy_fn(kv),
                 prefix=prefix,
                 noise=noise,
             )
             with torch.no_grad():
                 return result, self.head(result.actions, kv).mean(dim=-1)
 
-        if not whole_chain_graph:
+        if not self._records_whole_chain:
             return chain(kv, initial, None, prefix)
         noise = draw_langevin_noise(len(step_sizes), initial, generator)
         # Buffers too: `_apply` remakes the rotary frequencies even where it leaves the parameters in place.
