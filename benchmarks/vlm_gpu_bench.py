@@ -14,7 +14,8 @@ A configuration is one training step size (`train_b{B}.json`, eager; `--train-st
 configuration records the start-up (the first chunk, which compiles and, in the CUDA-graph modes, captures),
 the median and min of `--chunks` timed chunks, the context encoding alone (compiled as the chunk runs it), the
 peak memory and, for a compiled mode, the largest differences of the actions and final energies from the eager
-chunk refined from the same a^(0) and noise. `--skip-existing` skips a configuration whose JSON exists and
+chunk refined from the same a^(0) and noise, split into the context's difference and the chain's alone (run in
+the mode and eagerly on the eager context). `--skip-existing` skips a configuration whose JSON exists and
 `--budget-s` starts no new one after that many seconds, so the same command, run again in slices of device time
 (`timeout 480 python ...`), goes on where the last slice stopped; a slice killed mid-configuration leaves no
 JSON for it. Modes share the process's memory (CUDA-graph pools stay allocated), so for clean peak memories
@@ -143,6 +144,49 @@ def compiled_vs_eager(policy: EBVLAPolicy, observation: dict, device: torch.devi
     return {
         "compiled_vs_eager_max_abs_action_diff": (compiled[0] - eager[0]).abs().max().item(),
         "compiled_vs_eager_max_abs_final_energy_diff": (compiled[1] - eager[1]).abs().max().item(),
+        **context_and_chain_diffs(policy, observation, device),
+    }
+
+
+def context_and_chain_diffs(policy: EBVLAPolicy, observation: dict, device: torch.device) -> dict:
+    """Where a compiled chunk parts from the eager one: the context C (largest |compiled - eager| over its
+    per-layer keys and values, and relative to their largest |eager| entry), and the refinement chain alone, run
+    in the compiled mode and eagerly on the same eager context, a^(0) and noise. In bf16 a small context
+    difference is amplified by K_inf energy-scaled steps; a chain that agrees on one context says the compiled
+    chain itself is faithful."""
+    model, mode = policy.model, policy.config.compile_mode
+
+    def context_in(run_mode: str) -> list[torch.Tensor]:
+        policy.config.compile_mode = run_mode
+        with torch.no_grad():  # a CUDA-graph output is overwritten by the next replay: cloned at once
+            return [t.detach().clone() for pair in model._inference_context(observation) for t in pair]
+
+    def chain_in(run_mode: str, kv) -> tuple[torch.Tensor, torch.Tensor]:
+        policy.config.compile_mode = run_mode
+        generator = torch.Generator(device=device).manual_seed(0)
+        initial = model._initial_actions(kv[0][0].shape[0], kv[0][0], generator)
+        result, final_energy = model._inference_chain(kv, initial, generator, None)
+        return result.actions.detach().float(), final_energy.detach().float()
+
+    try:
+        eager_context, compiled_context_ = context_in("off"), context_in(mode)
+        kv = [tuple(eager_context[i : i + 2]) for i in range(0, len(eager_context), 2)]
+        compiled_chain, eager_chain = chain_in(mode, kv), chain_in("off", kv)
+    finally:
+        policy.config.compile_mode = mode
+    context_diff = max(
+        (c.float() - e.float()).abs().max().item()
+        for c, e in zip(compiled_context_, eager_context, strict=True)
+    )
+    context_scale = max(e.float().abs().max().item() for e in eager_context)
+    return {
+        "context_max_abs_diff": context_diff,
+        "context_max_rel_diff": context_diff / context_scale,
+        "chain_on_eager_context_max_abs_action_diff": (compiled_chain[0] - eager_chain[0]).abs().max().item(),
+        "chain_on_eager_context_max_abs_final_energy_diff": (compiled_chain[1] - eager_chain[1])
+        .abs()
+        .max()
+        .item(),
     }
 
 
@@ -247,6 +291,9 @@ TABLE_COLUMNS = {
     "gpu_busy_fraction": "GPU busy",
     "compiled_vs_eager_max_abs_action_diff": "max |action diff|",
     "compiled_vs_eager_max_abs_final_energy_diff": "max |energy diff|",
+    "context_max_rel_diff": "context rel. diff",
+    "chain_on_eager_context_max_abs_action_diff": "chain alone: max |action diff|",
+    "chain_on_eager_context_max_abs_final_energy_diff": "chain alone: max |energy diff|",
     "head_trained_steps": "head steps",
     "error": "error",
 }
