@@ -6,8 +6,10 @@ import json
 from pathlib import Path
 
 import pytest
+import torch
 
-from tests.conftest import load_benchmark
+from tests.conftest import load_benchmark, tiny_batch
+from tests.test_compile_mode import BATCH_SIZE, aot_eager_compiles, clear_compiled, make_policy
 
 REPO = Path(__file__).parents[1]
 RECORDS = REPO / "benchmarks" / "results" / "gpu_h200_2026-11-26"
@@ -143,3 +145,102 @@ def test_the_first_call_of_2026_11_27_failed_its_capture_on_the_host_copy_as_rep
             for b in (1, 8, 32)
         ]
         assert " / ".join(f"{ms:.1f}" for ms in medians) in reported and reported in text
+
+
+def diff(value: float) -> str:
+    """A difference as the tables print it: 1.1e-3, or 0 for an exact match."""
+    return "0" if value == 0 else f"{value:.1e}".replace("e-0", "e-")
+
+
+@pytest.mark.parametrize(
+    ("record", "figures"),
+    [
+        ("bf16_head300/chunk_chunk-graph_b1", ["27.6 (26.9)", "13.3", "60.0 %", "1.1e-3", "2.8e-3", "0 / 0"]),
+        (
+            "bf16_head300/chunk_reduce-overhead_b1",
+            ["67.2 (60.2)", "12.6", "15.9 %", "2.6e-3", "3.9e-3", "1.2e-3 / 0"],
+        ),
+        ("bf16_head300/chunk_off_b1", ["382.3 (347.0)", "118.6", "4.3 %"]),
+        (
+            "bf16_head300/chunk_chunk-graph_b8",
+            ["51.8 (51.2)", "32.9", "74.5 %", "2.9e-3", "7.8e-3", "1.2e-3 / 7.8e-3"],
+        ),
+        (
+            "bf16_head300/chunk_reduce-overhead_b8",
+            ["65.0 (62.9)", "32.5", "42.9 %", "2.4e-3", "9.0e-3", "3.9e-3 / 5.9e-3"],
+        ),
+        ("bf16_head300/chunk_off_b8", ["376.7 (335.2)", "90.3", "9.8 %"]),
+        (
+            "fp32_head150/chunk_chunk-graph_b1",
+            ["76.3 (76.2)", "46.4", None, "5.8e-6", "2.6e-5", "5.4e-6 / 2.6e-5"],
+        ),
+    ],
+)
+def test_the_trained_head_rows_are_the_records(record, figures):
+    """The 300-step head's table of BENCHMARKS.md section 1 and docs/vlm_backbone.md, with the difference split
+    into the context's and the chain's alone."""
+    row = rows(CHUNK_GRAPH_RECORDS)[record]
+    assert row["device"] == "NVIDIA H200" and not row["tiny"] and row["total_params_M"] > 1000
+    assert row["head_trained_steps"] == (300 if record.startswith("bf16") else 150)
+    if row["compile_mode"] == "chunk-graph":
+        assert row["chunk_graphs_captured"] >= 1 and row["chunk_graph_failures"] == []
+    profile = row.get("profile_select_action_chunk")
+    measured = [
+        f"{row['select_action_chunk_ms_median']:.1f} ({row['select_action_chunk_ms_min']:.1f})",
+        f"{row['of_which_context_encoding_ms_median']:.1f}",
+        None if profile is None else f"{100 * profile['gpu_busy_fraction']:.1f} %",
+    ]
+    if row["compile_mode"] != "off":
+        measured += [
+            diff(row["compiled_vs_eager_max_abs_action_diff"]),
+            diff(row["compiled_vs_eager_max_abs_final_energy_diff"]),
+            f"{diff(row['chain_on_eager_context_max_abs_action_diff'])} / "
+            f"{diff(row['chain_on_eager_context_max_abs_final_energy_diff'])}",
+        ]
+    assert measured == figures
+    for doc in ("BENCHMARKS.md", "docs/vlm_backbone.md"):
+        text = (REPO / doc).read_text()
+        assert all(f in text for f in figures if f is not None), (doc, record)
+
+
+def test_the_trained_head_training_steps_and_context_differences_are_the_records():
+    records = rows(CHUNK_GRAPH_RECORDS)
+    assert round(records["bf16_head300/train_b8"]["train_step_ms_mean"], 1) == 445.1
+    assert round(records["bf16_head300/train_b32"]["train_step_ms_mean"], 1) == 507.4
+    assert records["bf16_head300/train_b32"]["train_peak_GiB"] == 30.71
+    bf16_context = [
+        records[f"bf16_head300/chunk_{mode}_b{b}"]["context_max_rel_diff"]
+        for mode in ("chunk-graph", "reduce-overhead")
+        for b in (1, 8)
+    ]
+    assert f"{min(bf16_context):.1%}-{max(bf16_context):.1%}" == "1.2%-1.5%"
+    assert "1.2-1.5 % of its largest entry" in (REPO / "BENCHMARKS.md").read_text()
+
+
+def test_the_difference_split_puts_a_context_difference_in_the_context_not_the_chain(monkeypatch):
+    """`context_and_chain_diffs` runs the chain of both modes on the eager context: a compiled context that differs
+    shows in the context's figures alone, and the policy keeps its mode."""
+    aot_eager_compiles(monkeypatch)
+    clear_compiled()
+    policy = make_policy(compile_mode="chunk-graph")
+    batch = tiny_batch(policy.config, batch_size=BATCH_SIZE, seed=17, with_action=False)
+    encode = policy.model._inference_context
+
+    def context_off_by_half_when_compiled(observation, return_features=False):
+        kv = encode(observation, return_features)
+        return kv if policy.config.compile_mode == "off" else [(k + 0.5, v) for k, v in kv]
+
+    monkeypatch.setattr(policy.model, "_inference_context", context_off_by_half_when_compiled)
+    try:
+        diffs = vlm_gpu_bench.context_and_chain_diffs(policy, batch, torch.device("cpu"))
+    finally:
+        clear_compiled()
+    assert policy.config.compile_mode == "chunk-graph"
+    assert diffs["context_max_abs_diff"] == pytest.approx(0.5, abs=1e-3)
+    policy.config.compile_mode = "off"
+    with torch.no_grad():
+        largest = max(t.abs().max().item() for pair in encode(batch) for t in pair)
+    policy.config.compile_mode = "chunk-graph"
+    assert diffs["context_max_rel_diff"] == pytest.approx(diffs["context_max_abs_diff"] / largest)
+    assert diffs["chain_on_eager_context_max_abs_action_diff"] == 0.0  # off CUDA the chain is the eager chain
+    assert diffs["chain_on_eager_context_max_abs_final_energy_diff"] == 0.0
