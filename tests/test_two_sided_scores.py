@@ -25,6 +25,7 @@ from lerobot_policy_ebvla.runtime.scores import (
     EnergyTwoSidedAndContextKNN,
     FinalEnergy,
     FinalEnergyTwoSided,
+    HeadEnergyTwoSided,
     PhaseEnergy,
     PhaseEnergyDeviation,
     PhaseEnergyTwoSided,
@@ -319,7 +320,35 @@ def test_the_one_sided_context_phase_energy_is_the_signed_z_the_two_sided_form_t
     assert loaded == one and type(loaded.score) is ContextPhaseEnergy
 
 
-@pytest.mark.parametrize("score_class", [ContextEnergy, ContextPhaseEnergy, ContextEnergyTwoSided])
+def test_the_head_energy_score_reads_the_final_energy_without_the_context_term(tmp_path):
+    """A shift that raises E_c alone (a harmless one, to the policy) leaves the head's energy E - E_c in the
+    vanilla band; a head energy off the band on either side, its E_c unchanged, is flagged; saved and loaded."""
+    rng = np.random.default_rng(0)
+    phase = 5.0 - 0.2 * np.arange(N_CHUNKS)
+    rollouts = VanillaRollouts(
+        [
+            ChunkInputs.of(phase + c + rng.normal(0, 0.1, N_CHUNKS), np.arange(N_CHUNKS), None, c)
+            for c in (rng.normal(0, 0.1, N_CHUNKS) for _ in range(12))
+        ]
+    )
+    calibration = calibrated(HeadEnergyTwoSided, rollouts)
+    assert SCORES["head_energy_two_sided"] is HeadEnergyTwoSided
+    np.testing.assert_allclose(calibration.score.phase.mean[:N_CHUNKS], phase, atol=0.1)
+    context_up = np.full(N_CHUNKS, 10.0)  # E_c far off the data, the head's part typical
+    assert rollout_score(calibration, phase + context_up, context_energy=context_up) < calibration.threshold
+    for offset in (-1.0, 1.0):
+        assert (
+            rollout_score(calibration, phase + offset, context_energy=np.zeros(N_CHUNKS))
+            > calibration.threshold
+        )
+    calibration.save(tmp_path)
+    loaded = OODCalibration.load(tmp_path)
+    assert loaded == calibration and type(loaded.score) is HeadEnergyTwoSided
+
+
+@pytest.mark.parametrize(
+    "score_class", [ContextEnergy, ContextPhaseEnergy, ContextEnergyTwoSided, HeadEnergyTwoSided]
+)
 def test_a_context_energy_score_without_the_context_energy_says_where_it_comes_from(score_class):
     calibration = calibrated(score_class, vanilla())
     with pytest.raises(ValueError, match=f"{score_class.name} score needs each chunk's context energy E_c"):

@@ -129,6 +129,11 @@ INPUT_SOURCES = {
         "each chunk's context energy E_c(C) (`context_energy`, (B,), `EnergyReadout.context_energy`), which only "
         "a policy trained with a joint energy (`energy_ood_margin_on`) reports"
     ),
+    "head_energy": (
+        "each chunk's context energy E_c(C) (`context_energy`, (B,), `EnergyReadout.context_energy`), the part of "
+        "the final energy that is not the head's, which only a policy trained with a joint energy "
+        "(`energy_ood_margin_on`) reports"
+    ),
 }
 
 
@@ -181,6 +186,11 @@ class ChunkInputs:
                     f"`{name}` has {rows} row(s) and `final_energy` {n} entries: give one per chunk."
                 )
         return cls(energies, index, features, context)
+
+    @property
+    def head_energy(self) -> np.ndarray | None:
+        """E(a^(K_inf), C) - E_c(C), the head's part of a joint final energy, (B,); None without E_c."""
+        return None if self.context_energy is None else self.final_energy - self.context_energy
 
     def require(self, names: Sequence[str], score: str) -> None:
         """Checks that the inputs `names` (fields), which the score `score` reads, were given.
@@ -608,6 +618,23 @@ class ContextEnergyTwoSided(PhaseEnergyTwoSided):
 
 
 @dataclass(frozen=True)
+class HeadEnergyTwoSided(PhaseEnergyTwoSided):
+    """|z| of the head's part of the joint energy, E_head = E(a^(K_inf), C) - E_c(C), against the vanilla E_head
+    at the same chunk indices, z_t = (E_head,t - mu_v[t]) / sigma_v[t], aggregated over the rollout.
+
+    A failure score, not an OOD one: E_c rises on every shift, harmless ones too, while E_head leaves the vanilla
+    band, on either side, under the shifts that cut success (how well the chain found a chunk the head trusts).
+    Issue 32's stronger preset: failed vs successful 0.82-0.84 (E_c 0.68); under harmless appearance shifts it
+    stays nearer the band's middle than held-out vanilla, so it flags trouble and not novelty (docs/monitoring.md).
+    """
+
+    name = "head_energy_two_sided"
+    input = "head_energy"
+    reads = ("chunk_index", "context_energy")
+    json_fields = ("head_energy_phase_mean", "head_energy_phase_std")
+
+
+@dataclass(frozen=True)
 class EnergyTwoSidedAndContextKNN(ChunkScore):
     """max(z_|phase|, z_knn): the two-sided phase energy and the context k-NN distance, each standardized by
     the vanilla rollouts' mean and std (`CombinedStatistics`, in that order).
@@ -693,5 +720,6 @@ SCORES: dict[str, type[ChunkScore]] = {
         ContextEnergy,
         ContextPhaseEnergy,
         ContextEnergyTwoSided,
+        HeadEnergyTwoSided,
     )
 }
