@@ -16,7 +16,8 @@ references, each the rollouts' own labels rather than a score (what a detector t
 Then **within a scene**: the score's AUROC over the pairs of a failed and a successful rollout of the same scene (a
 shifted rollout that fails against the same scene's vanilla success, and the like), with a bootstrap interval over
 scenes, beside the condition-rate reference on the same pairs. The score is calibrated as `ebvla-ood-report
---calibrate_to` would save it, on the run's calibration rollouts (`window_report.score_sets`).
+--calibrate_to` would save it, on the run's calibration rollouts (`window_report.score_sets`), and the last column
+is what its alarms at that threshold (k = 1) catch: the share of failed and of successful rollouts over it.
 
     cd benchmarks && python outcome_ceiling.py --results results/metaworld_sweep_margin_full \
         --variant observation_r1 --score context_phase_energy \
@@ -50,12 +51,13 @@ class Rollouts:
     failed: np.ndarray
     scores: np.ndarray
     set_failure_rates: np.ndarray
+    threshold: float
 
 
 def scored_rollouts(run: Path, score: str, first_chunks: int = FIRST_CHUNKS) -> Rollouts:
     """Every held-out rollout of a sweep's records, scored over its first chunks against the run's calibration."""
     sets = {VANILLA: episodes_in(run / VANILLA), **conditions_in(run)}
-    _, scored = score_sets(episodes_in(run / "calibration"), sets, score, first_chunks)
+    calibration, scored = score_sets(episodes_in(run / "calibration"), sets, score, first_chunks)
     names, scenes, failed, scores = [], [], [], []
     for name, scored_set in scored.items():
         for episode, value in zip(scored_set.episodes.values(), scored_set.scores, strict=True):
@@ -71,6 +73,7 @@ def scored_rollouts(run: Path, score: str, first_chunks: int = FIRST_CHUNKS) -> 
         np.array(failed, dtype=bool),
         np.array(scores, dtype=float),
         condition_failure_rates(every_episode),
+        calibration.threshold,
     )
 
 
@@ -118,6 +121,17 @@ def ranked(labels: np.ndarray, failed: np.ndarray) -> str:
     return format_auroc(labels[known & ~failed], labels[known & failed], N_BOOTSTRAP, 0)
 
 
+def alarm_rates(rollouts: Rollouts) -> str:
+    """The share of failed and of successful rollouts over T, the threshold set on the calibration rollouts alone
+    (T = mu + k sigma, k = 1): what a user acting on the score's alarms gets."""
+    alarmed = rollouts.scores > rollouts.threshold
+    failed = rollouts.failed
+    return (
+        f"{alarmed[failed].sum()}/{failed.sum()} ({alarmed[failed].mean():.0%}) / "
+        f"{alarmed[~failed].sum()}/{(~failed).sum()} ({alarmed[~failed].mean():.0%})"
+    )
+
+
 def run_row(name: str, rollouts: Rollouts) -> list[str]:
     failed = rollouts.failed
     perturbed = (rollouts.sets != VANILLA).astype(float)
@@ -134,6 +148,7 @@ def run_row(name: str, rollouts: Rollouts) -> list[str]:
         f"{score_pairs[0]:.3f} [{score_pairs[1]:.3f}, {score_pairs[2]:.3f}] ({score_pairs[3]} pairs, "
         f"{score_pairs[4]} scenes)",
         f"{rate_pairs[0]:.3f} [{rate_pairs[1]:.3f}, {rate_pairs[2]:.3f}]",
+        alarm_rates(rollouts),
     ]
 
 
@@ -146,6 +161,7 @@ HEADERS = [
     "reference: the scene's failure rate elsewhere",
     "score within a scene [95% over scenes]",
     "condition's failure rate within a scene",
+    "alarms at T (k = 1, calibration only): failed / successful",
 ]
 
 
