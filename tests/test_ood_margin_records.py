@@ -530,10 +530,10 @@ def test_graded_strengths_on_fresh_rollouts_lift_blur_everywhere_and_leave_light
 
 
 def test_every_checkpoint_of_the_margin_study_reads_its_camera():
-    """camera_checks.json: the refined chunk changes by 41% or more with the cameras blanked, on all 45."""
+    """camera_checks.json: the refined chunk changes by 41% or more with the cameras blanked, on all 47."""
     checks = json.loads((FULL / "camera_checks.json").read_text())
     changes = {run: check["chunk_change"] for run, check in checks.items() if not run.startswith("_")}
-    assert len(changes) == 45 and min(changes.values()) > 0.41
+    assert len(changes) == 47 and min(changes.values()) > 0.41
     assert all(check["num_frames"] == 32 for run, check in checks.items() if not run.startswith("_"))
 
 
@@ -1161,3 +1161,66 @@ def test_a_stronger_policy_fails_in_the_shifts_and_the_monitor_alarms_on_benign_
             "1.000",
         )
         assert float(phase[8].split()[0]) < 0.75
+
+
+def head_energy_mean_abs_z(run: Path, first_chunks: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Each held-out rollout's mean_t |z_t| of the head's energy E - E_c (the form set beside the shipped |mean_t
+    z_t|), against the run's calibration rollouts at each chunk index, and whether it failed."""
+    from lerobot_policy_ebvla.monitoring.baselines import chunk_inputs, vanilla_rollouts
+    from lerobot_policy_ebvla.runtime.scores import HeadEnergyTwoSided
+
+    score = HeadEnergyTwoSided.fit(vanilla_rollouts(load_episodes([str(run / "calibration")])))
+    held_out = [p for p in sorted(run.iterdir()) if p.is_dir() and p.name != "calibration"]
+    episodes = load_episodes([str(p) for p in held_out]).values()
+    values = [np.abs(score.components(chunk_inputs(e[:first_chunks]))).mean() for e in episodes]
+    return np.array(values), np.array([not e[0].success for e in episodes])
+
+
+def test_the_heads_energy_tells_failed_from_successful_rollouts_on_two_untouched_seeds():
+    """summary.md, "A failure score from the head's energy": the rule (commit 2c9fa06) named
+    `head_energy_two_sided` and >= 0.75 failed vs successful on both untouched seeds 28000 and 29000 (first 3
+    chunks, 248 held-out rollouts each): 0.870 and 0.813, where the OOD default `context_phase_energy` scores 0.658
+    and 0.650 and the raw final energy 0.717 and 0.777. Its alarms at the calibration's threshold catch 94% / 82% of
+    the failed rollouts, on 31% / 28% of the successful ones. The OOD targets hold on both seeds with the default."""
+    tables = {
+        score: (FULL / f"outcome_ceiling_r1_strong{suffix}.md").read_text()
+        for score, suffix in (
+            ("head_energy_two_sided", "_head"),
+            ("context_phase_energy", ""),
+            ("final_energy", "_final"),
+        )
+    }
+    run = seed_run(28000, "observation_r1_strong") / "context_energy_full"
+    rollouts = ceiling.scored_rollouts(run, "head_energy_two_sided")
+    assert ceiling.run_row("seed28000", rollouts) == ceiling_row(tables["head_energy_two_sided"], "seed28000")
+    expected = {
+        "seed26000": ("0.841", "0.677", "0.746"),
+        "seed27000": ("0.824", "0.681", "0.715"),
+        "seed28000": ("0.870", "0.658", "0.717"),
+        "seed29000": ("0.813", "0.650", "0.777"),
+    }
+    for seed, figures in expected.items():
+        got = tuple(ceiling_row(tables[score], seed)[2].split()[0] for score in tables)
+        assert got == figures, seed
+    for seed, alarms in (
+        ("seed28000", "49/52 (94%) / 60/196 (31%)"),
+        ("seed29000", "41/50 (82%) / 56/198 (28%)"),
+    ):
+        assert ceiling_row(tables["head_energy_two_sided"], seed)[-1] == alarms
+    mean_abs, failed = head_energy_mean_abs_z(
+        seed_run(29000, "observation_r1_strong") / "context_energy_full"
+    )
+    assert format_auroc(mean_abs[~failed], mean_abs[failed], 1000, 0) == "0.858 [0.813, 0.906]"
+    summaries_table = (FULL / "context_energy_r1_strong_untouched.md").read_text()
+    for seed, pooled, worst in (
+        ("seed28000", "0.979", "blur 3 0.553"),
+        ("seed29000", "0.991", "blur 3 0.778"),
+    ):
+        rows = summary_rows(f"## Score summary\n{section(summaries_table, seed)}")
+        phase = rows["context_phase_energy"]
+        assert (phase[0].split()[0], phase[4], phase[5], phase[7].split()[0]) == (
+            pooled,
+            worst,
+            "none",
+            "1.000",
+        )
