@@ -1224,3 +1224,32 @@ def test_the_heads_energy_tells_failed_from_successful_rollouts_on_two_untouched
             "none",
             "1.000",
         )
+
+
+def median_mean_z(run: Path, condition: str, score_class) -> float:
+    """The median over a condition's rollouts of their first 3 chunks' mean z_t (the signed aggregate, before a
+    two-sided score takes its magnitude), against the run's calibration rollouts at each chunk index."""
+    from lerobot_policy_ebvla.monitoring.baselines import chunk_inputs, vanilla_rollouts
+
+    score = score_class.fit(vanilla_rollouts(load_episodes([str(run / "calibration")])))
+    episodes = load_episodes([str(run / condition)]).values()
+    return float(np.median([score.components(chunk_inputs(e[:3]))[:, 0].mean() for e in episodes]))
+
+
+def test_the_heads_energy_leaves_the_band_under_the_harmful_shifts_and_e_c_under_all():
+    """docs/energy_study.md section 8.14's table, a few cells each way: E_c's z follows how far the image moved
+    (a retextured table, no failure, above a moved camera), E_head's leaves the band only under the shifts that cut
+    success, below it under seed 27000's fov 5."""
+    from lerobot_policy_ebvla.runtime.scores import ContextPhaseEnergy, HeadEnergyTwoSided
+
+    text = (ROOT / "docs" / "energy_study.md").read_text()
+    for condition, seed, context_z, head_z in (
+        ("blank_s3", 26000, "330", "3.05"),
+        ("table_texture_s5", 26000, "341", "-0.78"),
+        ("pose_s5", 27000, "200", "0.60"),
+        ("fov_s5", 27000, "184", "-1.87"),
+    ):
+        run = seed_run(seed, "observation_r1_strong") / "context_energy_full"
+        assert f"{median_mean_z(run, condition, ContextPhaseEnergy):.0f}" == context_z, condition
+        assert f"{median_mean_z(run, condition, HeadEnergyTwoSided):.2f}" == head_z, condition
+        assert context_z in text and head_z in text
