@@ -1132,6 +1132,15 @@ def test_on_fresh_rollouts_of_the_untouched_seeds_near_misses_mild_blur_is_above
         assert (rows["context_phase_energy"][4], rows["context_phase_energy"][5]) == (worst, "none")
 
 
+def default_monitor_row(summaries_table: str, seed: str, pooled: str, worst: str) -> list[str]:
+    """The `context_phase_energy` row of a seed's score summary, checked against the OOD targets as reported: its
+    pooled AUROC and worst condition, none inverted, every success-cutting condition at 1.000."""
+    rows = summary_rows(f"## Score summary\n{section(summaries_table, seed)}")
+    phase = rows["context_phase_energy"]
+    assert (phase[0].split()[0], phase[4], phase[5], phase[7].split()[0]) == (pooled, worst, "none", "1.000")
+    return phase
+
+
 def test_a_stronger_policy_fails_in_the_shifts_and_the_monitor_alarms_on_benign_ones_too():
     """summary.md, "A stronger policy": three times the demonstrations and training (seeds 26000, 27000, flat E_c).
     Vanilla fails 0-4 of 40, so each condition's failure rate now ranks failed over successful rollouts at 0.91-0.93;
@@ -1152,14 +1161,7 @@ def test_a_stronger_policy_fails_in_the_shifts_and_the_monitor_alarms_on_benign_
         ("seed26000", "0.999", "blur 3 0.963"),
         ("seed27000", "1.000", "blur 3 0.994"),
     ):
-        rows = summary_rows(f"## Score summary\n{section(summaries_table, seed)}")
-        phase = rows["context_phase_energy"]
-        assert (phase[0].split()[0], phase[4], phase[5], phase[7].split()[0]) == (
-            pooled,
-            worst,
-            "none",
-            "1.000",
-        )
+        phase = default_monitor_row(summaries_table, seed, pooled, worst)
         assert float(phase[8].split()[0]) < 0.75
 
 
@@ -1216,14 +1218,7 @@ def test_the_heads_energy_tells_failed_from_successful_rollouts_on_two_untouched
         ("seed28000", "0.979", "blur 3 0.553"),
         ("seed29000", "0.991", "blur 3 0.778"),
     ):
-        rows = summary_rows(f"## Score summary\n{section(summaries_table, seed)}")
-        phase = rows["context_phase_energy"]
-        assert (phase[0].split()[0], phase[4], phase[5], phase[7].split()[0]) == (
-            pooled,
-            worst,
-            "none",
-            "1.000",
-        )
+        default_monitor_row(summaries_table, seed, pooled, worst)
 
 
 def median_mean_z(run: Path, condition: str, score_class) -> float:
