@@ -153,13 +153,15 @@ def record(
     max_steps: int | None = None,
     keep_failed: bool = False,
     placement_seed: int | None = None,
+    use_videos: bool = False,
 ) -> Path:
     """Records each task in `parts` processes (each from its own initial states), then aggregates every part
     into `<work>/data/all`.
 
-    `max_steps`, `keep_failed` and `placement_seed` are the recorder's (tiny test runs keep the expert's
-    unfinished episodes; with `placement_seed`, demonstrations start from freshly sampled placements, never
-    from the fixed initial states that evaluation uses)."""
+    `max_steps`, `keep_failed`, `placement_seed` and `use_videos` are the recorder's (tiny test runs keep the
+    expert's unfinished episodes; with `placement_seed`, demonstrations start from freshly sampled placements, never
+    from the fixed initial states that evaluation uses; `use_videos` stores the frames as video, about a twelfth of
+    the images' size, for a dataset that must travel in a GPU bundle: docs/libero.md)."""
     merged = work / "data" / "all"
     if (merged / "meta" / "info.json").exists():
         print(f"record: {merged} exists")
@@ -187,6 +189,7 @@ def record(
             f"--root={root}",
             "--overwrite=true",  # a folder without a report is an interrupted recording
             f"--keep_failed={str(keep_failed).lower()}",
+            f"--use_videos={str(use_videos).lower()}",
         ]
         if max_steps is not None:
             cmd.append(f"--max_steps={max_steps}")
@@ -218,6 +221,7 @@ def record(
         "image_size": image_size,
         "episodes_per_task": episodes_per_task,
         "placement_seed": placement_seed,
+        "use_videos": use_videos,
         "tasks": {},
     }
     for (task, _), report in sorted(reports.items()):
@@ -709,6 +713,9 @@ def main(argv: list[str] | None = None) -> None:
         help="record: start demonstrations from placements sampled with this seed (+ attempt), not from the "
         "fixed initial states evaluation uses",
     )
+    parser.add_argument(
+        "--use_videos", action="store_true", help="record: frames as video (a dataset small enough to travel)"
+    )
     parser.add_argument("--jobs", type=int, default=10, help="processes side by side (record, eval)")
     parser.add_argument("--runs", nargs="+", choices=list(RUNS), default=["ebvla_paper", "diffusion"])
     parser.add_argument(
@@ -774,6 +781,7 @@ def main(argv: list[str] | None = None) -> None:
             args.max_steps,
             args.keep_failed,
             args.placement_seed,
+            args.use_videos,
         )
     elif args.stage == "train":
         train(

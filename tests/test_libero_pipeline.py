@@ -338,6 +338,19 @@ def test_saved_results_restore_a_resumable_training_and_skip_finished_jobs(tmp_p
     assert statuses == {"ebvla_cpu/vanilla_heldout/task2": "done before"}
 
 
+def test_record_asks_every_piece_for_video_frames_when_told(tmp_path, monkeypatch):
+    """`--use_videos` reaches each recorder process (a dataset that travels in a GPU bundle, docs/libero.md)."""
+    commands = []
+    monkeypatch.setattr(pipeline, "run_logged", lambda cmd, log: commands.append(cmd) or 0)
+    with pytest.raises(RuntimeError, match="No task recorded"):
+        pipeline.record(tmp_path, [0, 1], 2, 128, jobs=1, use_videos=True)
+    assert len(commands) == 2 and all("--use_videos=true" in cmd for cmd in commands)
+    commands.clear()
+    with pytest.raises(RuntimeError, match="No task recorded"):
+        pipeline.record(tmp_path, [0], 2, 128, jobs=1)
+    assert "--use_videos=false" in commands[0]
+
+
 def test_placement_seed_turns_the_fixed_initial_states_off():
     from lerobot_policy_ebvla.recording.libero import RecordLiberoConfig
 
