@@ -40,6 +40,7 @@ from vlm_size_table import full_size_config
 from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
 from lerobot_policy_ebvla.compile_ebvla import CHUNK_GRAPH_MODE, refinement_graphs
 from lerobot_policy_ebvla.configuration_ebvla import COMPILE_MODES
+from lerobot_policy_ebvla.energy_head import ContextKV
 
 TINY = {
     "vlm_config": {
@@ -132,6 +133,10 @@ def seeded_chunk(
     return actions.float(), readout.final_energy.float()
 
 
+def max_abs_diff(a: torch.Tensor, b: torch.Tensor) -> float:
+    return (a.float() - b.float()).abs().max().item()
+
+
 def compiled_vs_eager(policy: EBVLAPolicy, observation: dict, device: torch.device) -> dict:
     """Largest |compiled - eager| of the actions and final energies of one chunk, same a^(0) and noise."""
     mode = policy.config.compile_mode
@@ -142,8 +147,8 @@ def compiled_vs_eager(policy: EBVLAPolicy, observation: dict, device: torch.devi
     finally:
         policy.config.compile_mode = mode
     return {
-        "compiled_vs_eager_max_abs_action_diff": (compiled[0] - eager[0]).abs().max().item(),
-        "compiled_vs_eager_max_abs_final_energy_diff": (compiled[1] - eager[1]).abs().max().item(),
+        "compiled_vs_eager_max_abs_action_diff": max_abs_diff(compiled[0], eager[0]),
+        "compiled_vs_eager_max_abs_final_energy_diff": max_abs_diff(compiled[1], eager[1]),
         **context_and_chain_diffs(policy, observation, device),
     }
 
@@ -156,37 +161,31 @@ def context_and_chain_diffs(policy: EBVLAPolicy, observation: dict, device: torc
     chain itself is faithful."""
     model, mode = policy.model, policy.config.compile_mode
 
-    def context_in(run_mode: str) -> list[torch.Tensor]:
+    def context_in(run_mode: str) -> ContextKV:
         policy.config.compile_mode = run_mode
         with torch.no_grad():  # a CUDA-graph output is overwritten by the next replay: cloned at once
-            return [t.detach().clone() for pair in model._inference_context(observation) for t in pair]
+            return [(k.clone(), v.clone()) for k, v in model._inference_context(observation)]
 
-    def chain_in(run_mode: str, kv) -> tuple[torch.Tensor, torch.Tensor]:
+    def chain_in(run_mode: str, kv: ContextKV) -> tuple[torch.Tensor, torch.Tensor]:
         policy.config.compile_mode = run_mode
         generator = torch.Generator(device=device).manual_seed(0)
         initial = model._initial_actions(kv[0][0].shape[0], kv[0][0], generator)
         result, final_energy = model._inference_chain(kv, initial, generator, None)
-        return result.actions.detach().float(), final_energy.detach().float()
+        return result.actions.detach(), final_energy.detach()
 
     try:
-        eager_context, compiled_context_ = context_in("off"), context_in(mode)
-        kv = [tuple(eager_context[i : i + 2]) for i in range(0, len(eager_context), 2)]
-        compiled_chain, eager_chain = chain_in(mode, kv), chain_in("off", kv)
+        eager_kv, compiled_kv = context_in("off"), context_in(mode)
+        compiled_chain, eager_chain = chain_in(mode, eager_kv), chain_in("off", eager_kv)
     finally:
         policy.config.compile_mode = mode
-    context_diff = max(
-        (c.float() - e.float()).abs().max().item()
-        for c, e in zip(compiled_context_, eager_context, strict=True)
-    )
-    context_scale = max(e.float().abs().max().item() for e in eager_context)
+    eager_tensors = [t for pair in eager_kv for t in pair]
+    compiled_tensors = [t for pair in compiled_kv for t in pair]
+    context_diff = max(max_abs_diff(c, e) for c, e in zip(compiled_tensors, eager_tensors, strict=True))
     return {
         "context_max_abs_diff": context_diff,
-        "context_max_rel_diff": context_diff / context_scale,
-        "chain_on_eager_context_max_abs_action_diff": (compiled_chain[0] - eager_chain[0]).abs().max().item(),
-        "chain_on_eager_context_max_abs_final_energy_diff": (compiled_chain[1] - eager_chain[1])
-        .abs()
-        .max()
-        .item(),
+        "context_max_rel_diff": context_diff / max(e.float().abs().max().item() for e in eager_tensors),
+        "chain_on_eager_context_max_abs_action_diff": max_abs_diff(compiled_chain[0], eager_chain[0]),
+        "chain_on_eager_context_max_abs_final_energy_diff": max_abs_diff(compiled_chain[1], eager_chain[1]),
     }
 
 

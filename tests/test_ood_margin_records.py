@@ -1165,17 +1165,17 @@ def test_a_stronger_policy_fails_in_the_shifts_and_the_monitor_alarms_on_benign_
         assert float(phase[8].split()[0]) < 0.75
 
 
-def head_energy_mean_abs_z(run: Path, first_chunks: int = 3) -> tuple[np.ndarray, np.ndarray]:
-    """Each held-out rollout's mean_t |z_t| of the head's energy E - E_c (the form set beside the shipped |mean_t
-    z_t|), against the run's calibration rollouts at each chunk index, and whether it failed."""
+def first_chunk_z(
+    run: Path, folders: list[str], score_class, first_chunks: int = 3
+) -> tuple[list, np.ndarray]:
+    """Each rollout's z_t over its first chunks (the signed components of a phase score, before a two-sided score
+    takes a magnitude), against the run's calibration rollouts at each chunk index, and whether it failed."""
     from lerobot_policy_ebvla.monitoring.baselines import chunk_inputs, vanilla_rollouts
-    from lerobot_policy_ebvla.runtime.scores import HeadEnergyTwoSided
 
-    score = HeadEnergyTwoSided.fit(vanilla_rollouts(load_episodes([str(run / "calibration")])))
-    held_out = [p for p in sorted(run.iterdir()) if p.is_dir() and p.name != "calibration"]
-    episodes = load_episodes([str(p) for p in held_out]).values()
-    values = [np.abs(score.components(chunk_inputs(e[:first_chunks]))).mean() for e in episodes]
-    return np.array(values), np.array([not e[0].success for e in episodes])
+    score = score_class.fit(vanilla_rollouts(load_episodes([str(run / "calibration")])))
+    episodes = load_episodes([str(run / folder) for folder in folders]).values()
+    z = [score.components(chunk_inputs(e[:first_chunks]))[:, 0] for e in episodes]
+    return z, np.array([not e[0].success for e in episodes])
 
 
 def test_the_heads_energy_tells_failed_from_successful_rollouts_on_two_untouched_seeds():
@@ -1209,9 +1209,14 @@ def test_the_heads_energy_tells_failed_from_successful_rollouts_on_two_untouched
         ("seed29000", "41/50 (82%) / 56/198 (28%)"),
     ):
         assert ceiling_row(tables["head_energy_two_sided"], seed)[-1] == alarms
-    mean_abs, failed = head_energy_mean_abs_z(
-        seed_run(29000, "observation_r1_strong") / "context_energy_full"
-    )
+    from lerobot_policy_ebvla.runtime.scores import HeadEnergyTwoSided
+
+    run = seed_run(29000, "observation_r1_strong") / "context_energy_full"
+    held_out = [p.name for p in sorted(run.iterdir()) if p.is_dir() and p.name != "calibration"]
+    z, failed = first_chunk_z(run, held_out, HeadEnergyTwoSided)
+    mean_abs = np.array(
+        [np.abs(rollout).mean() for rollout in z]
+    )  # the mean |z_t| form beside the shipped one
     assert format_auroc(mean_abs[~failed], mean_abs[failed], 1000, 0) == "0.858 [0.813, 0.906]"
     summaries_table = (FULL / "context_energy_r1_strong_untouched.md").read_text()
     for seed, pooled, worst in (
@@ -1222,13 +1227,9 @@ def test_the_heads_energy_tells_failed_from_successful_rollouts_on_two_untouched
 
 
 def median_mean_z(run: Path, condition: str, score_class) -> float:
-    """The median over a condition's rollouts of their first 3 chunks' mean z_t (the signed aggregate, before a
-    two-sided score takes its magnitude), against the run's calibration rollouts at each chunk index."""
-    from lerobot_policy_ebvla.monitoring.baselines import chunk_inputs, vanilla_rollouts
-
-    score = score_class.fit(vanilla_rollouts(load_episodes([str(run / "calibration")])))
-    episodes = load_episodes([str(run / condition)]).values()
-    return float(np.median([score.components(chunk_inputs(e[:3]))[:, 0].mean() for e in episodes]))
+    """The median over a condition's rollouts of their first 3 chunks' mean z_t."""
+    z, _ = first_chunk_z(run, [condition], score_class)
+    return float(np.median([rollout.mean() for rollout in z]))
 
 
 def test_the_heads_energy_leaves_the_band_under_the_harmful_shifts_and_e_c_under_all():

@@ -132,12 +132,9 @@ INPUT_SOURCES = {
         "each chunk's context energy E_c(C) (`context_energy`, (B,), `EnergyReadout.context_energy`), which only "
         "a policy trained with a joint energy (`energy_ood_margin_on`) reports"
     ),
-    "head_energy": (
-        "each chunk's context energy E_c(C) (`context_energy`, (B,), `EnergyReadout.context_energy`), the part of "
-        "the final energy that is not the head's, which only a policy trained with a joint energy "
-        "(`energy_ood_margin_on`) reports"
-    ),
 }
+# The head's energy is the final energy less E_c (`ChunkInputs.head_energy`): missing exactly where E_c is.
+INPUT_SOURCES["head_energy"] = INPUT_SOURCES["context_energy"]
 
 
 @dataclass(frozen=True)
