@@ -54,7 +54,7 @@ class Rollouts:
     threshold: float
 
 
-def scored_rollouts(run: Path, score: str, first_chunks: int = FIRST_CHUNKS) -> Rollouts:
+def scored_rollouts(run: Path, score: str, first_chunks: int | None = FIRST_CHUNKS) -> Rollouts:
     """Every held-out rollout of a sweep's records, scored over its first chunks against the run's calibration."""
     sets = {VANILLA: episodes_in(run / VANILLA), **conditions_in(run)}
     calibration, scored = score_sets(episodes_in(run / "calibration"), sets, score, first_chunks)
@@ -165,9 +165,10 @@ HEADERS = [
 ]
 
 
-def ceiling_table(runs: Mapping[str, Path], score: str) -> str:
+def ceiling_table(runs: Mapping[str, Path], score: str, first_chunks: int | None = FIRST_CHUNKS) -> str:
     return markdown_table(
-        HEADERS, [run_row(name, scored_rollouts(path, score)) for name, path in runs.items()]
+        HEADERS,
+        [run_row(name, scored_rollouts(path, score, first_chunks)) for name, path in runs.items()],
     )
 
 
@@ -187,19 +188,28 @@ def main() -> None:
     parser.add_argument("--variant", action="append", required=True, help="repeatable")
     parser.add_argument("--score", default="context_phase_energy")
     parser.add_argument("--output", type=Path, required=True)
+    parser.add_argument(
+        "--first_chunks",
+        type=int,
+        default=FIRST_CHUNKS,
+        help="each rollout's first k chunks; 0: whole episodes",
+    )
     args = parser.parse_args()
+    first_chunks = args.first_chunks or None
+    span = f"first {first_chunks} chunks" if first_chunks else "whole episodes"
+    span_flag = "" if args.first_chunks == FIRST_CHUNKS else f" --first_chunks={args.first_chunks}"
     sections = []
     for variant in args.variant:
         runs = variant_runs(args.results, variant)
         if not runs:
             raise SystemExit(f"No seed*/{variant}/context_energy_full under {args.results}.")
         sections.append(
-            f"## {variant}: `{args.score}`, first {FIRST_CHUNKS} chunks, failed vs successful\n\n"
-            + ceiling_table(runs, args.score)
+            f"## {variant}: `{args.score}`, {span}, failed vs successful\n\n"
+            + ceiling_table(runs, args.score, first_chunks)
         )
     args.output.write_text(
         "# Failed vs successful: the score beside what knowing the conditions or the scenes reaches\n\n"
-        f"Written by `benchmarks/outcome_ceiling.py --score={args.score}`; AUROC [bootstrap 95% interval], "
+        f"Written by `benchmarks/outcome_ceiling.py --score={args.score}{span_flag}`; AUROC [bootstrap 95% interval], "
         "failed rollouts positive.\n\n" + "\n\n".join(sections) + "\n"
     )
     print(f"Wrote {args.output}")

@@ -1204,6 +1204,11 @@ def test_the_heads_energy_tells_failed_from_successful_rollouts_on_two_untouched
     for seed, figures in expected.items():
         got = tuple(ceiling_row(tables[score], seed)[2].split()[0] for score in tables)
         assert got == figures, seed
+    # Over whole episodes the head's score is weaker on the untouched seeds (0.661, 0.642; the default 0.38-0.40).
+    whole = (FULL / "outcome_ceiling_r1_strong_head_whole.md").read_text()
+    rollouts = ceiling.scored_rollouts(run, "head_energy_two_sided", first_chunks=None)
+    assert ceiling.run_row("seed28000", rollouts) == ceiling_row(whole, "seed28000")
+    assert ceiling_row(whole, "seed29000")[2].split()[0] == "0.642"
     for seed, alarms in (
         ("seed28000", "49/52 (94%) / 60/196 (31%)"),
         ("seed29000", "41/50 (82%) / 56/198 (28%)"),
