@@ -27,8 +27,7 @@ from lerobot_policy_ebvla.monitoring.window_report import score_sets
 from lerobot_policy_ebvla.runtime import WindowTypicalityMonitor
 
 RECORDS = (
-    Path(__file__).resolve().parents[1]
-    / "benchmarks/results/metaworld_sweep_margin_full/seed12000/observation"
+    Path(__file__).resolve().parents[1] / "research/results/metaworld_sweep_margin_full/seed12000/observation"
 )
 
 

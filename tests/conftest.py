@@ -11,11 +11,11 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 
 from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
 
-BENCHMARKS = Path(__file__).parents[1] / "benchmarks"
+BENCHMARKS = Path(__file__).parents[1] / "research" / "benchmarks"
 
 
 def load_benchmark(name: str):
-    """The module of `benchmarks/<name>.py`, loaded with that folder on `sys.path` while it runs, so that its
+    """The module of `research/benchmarks/<name>.py`, loaded with that folder on `sys.path` while it runs, so that its
     imports of sibling scripts resolve as when it runs from there."""
     sys.path.insert(0, str(BENCHMARKS))
     try:

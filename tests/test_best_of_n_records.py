@@ -1,4 +1,4 @@
-"""The closed-loop best-of-N table (benchmarks/results/metaworld_best_of_n/summary.md, issue 32 part 5),
+"""The closed-loop best-of-N table (research/results/metaworld_best_of_n/summary.md, issue 32 part 5),
 recomputed from its committed records by the script that printed it."""
 
 import json
@@ -9,7 +9,7 @@ import pytest
 from tests.conftest import load_benchmark
 
 ROOT = Path(__file__).parents[1]
-RESULTS = ROOT / "benchmarks" / "results" / "metaworld_best_of_n"
+RESULTS = ROOT / "research" / "results" / "metaworld_best_of_n"
 
 
 @pytest.fixture(scope="module")

@@ -103,7 +103,7 @@ def test_rotary_frequencies_stay_fp32_under_a_bf16_cast(policies):
 def test_rotary_frequencies_are_made_on_the_device_the_head_is_built_on():
     """A head built under `with torch.device("cuda")` and then cast (`policy.to(torch.bfloat16)`) kept its
     frequencies on the CPU: every energy evaluation copied them to the GPU, a host sync that also kept the
-    refinement out of CUDA graphs (docs/vlm_backbone.md, 2026-11-27). Here the meta device stands in for CUDA."""
+    refinement out of CUDA graphs (research/docs/vlm_gpu.md, 2026-11-27). Here the meta device stands in for CUDA."""
     with torch.device("meta"):
         rotary = EBVLARotaryEmbedding(head_dim=16, base=10000.0)
     rotary.to(torch.bfloat16)

@@ -1,6 +1,6 @@
 """`compile_mode="chunk-graph"`: a chunk's whole refinement, drawn-ahead noise and all, is the eager chunk.
 
-The CUDA capture itself needs a GPU (timed in docs/vlm_backbone.md); here the bookkeeping around it runs with a
+The CUDA capture itself needs a GPU (timed in research/docs/vlm_gpu.md); here the bookkeeping around it runs with a
 stand-in recorder whose replay re-runs the recorded chain on its buffers, as a replayed graph recomputes its
 recorded kernels on whatever its input buffers hold.
 """

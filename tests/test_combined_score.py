@@ -386,9 +386,9 @@ def test_the_report_saves_the_energy_and_context_calibration_its_tables_score(re
     assert f"| energy_and_context | 12 | {calibration.mu_v:.4g} | {calibration.sigma_v:.4g} |" in text
 
 
-# The committed records (benchmarks/results/metaworld_sweep_context_distance/combined_score.md).
+# The committed records (research/results/metaworld_sweep_context_distance/combined_score.md).
 
-SWEEP = Path(__file__).parents[1] / "benchmarks" / "results" / "metaworld_sweep_context_distance" / "records"
+SWEEP = Path(__file__).parents[1] / "research" / "results" / "metaworld_sweep_context_distance" / "records"
 
 
 def test_the_combined_score_of_the_committed_sweep_catches_pose_3_which_neither_score_alone_does():

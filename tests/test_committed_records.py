@@ -77,9 +77,7 @@ def test_the_auroc_beside_table_iii_recomputed_from_the_committed_records_matche
     assert expected_auroc(first_chunks) in table(report, title)
 
 
-DISTRACTOR30 = (
-    Path(__file__).parents[1] / "benchmarks" / "results" / "metaworld_sweep_distractor30" / "records"
-)
+DISTRACTOR30 = Path(__file__).parents[1] / "research" / "results" / "metaworld_sweep_distractor30" / "records"
 
 
 def records_report(records: Path, output_dir: Path, **options) -> str:
@@ -130,7 +128,7 @@ def test_the_committed_records_are_small():
     assert sum(f.stat().st_size for f in RECORDS.rglob("*.gz")) < 20_000
 
 
-STUDY = Path(__file__).parents[1] / "benchmarks" / "results" / "metaworld_5task_ktrain8_15_paper" / "records"
+STUDY = Path(__file__).parents[1] / "research" / "results" / "metaworld_5task_ktrain8_15_paper" / "records"
 
 
 def test_the_published_table_iii_of_the_paper_recipe_at_k_train_8_15_comes_out_of_its_committed_records():
@@ -194,7 +192,7 @@ def test_the_nearest_vanilla_context_detects_the_paper_recipes_shifts_on_the_fir
     assert (first3, whole) == (["98.0%", "92.0%"], ["93.0%", "83.0%"])
 
 
-SWEEP = Path(__file__).parents[1] / "benchmarks" / "results" / "metaworld_sweep_context_distance" / "records"
+SWEEP = Path(__file__).parents[1] / "research" / "results" / "metaworld_sweep_context_distance" / "records"
 
 
 def mahalanobis_balanced_accuracy_at_k1(report: str) -> str:
@@ -233,7 +231,7 @@ def test_calibrating_on_successes_only_needs_two_successful_rollouts(tmp_path):
 
 
 SWEEP_CAL20 = (
-    Path(__file__).parents[1] / "benchmarks" / "results" / "metaworld_sweep_render128_cal20" / "records"
+    Path(__file__).parents[1] / "research" / "results" / "metaworld_sweep_render128_cal20" / "records"
 )
 SUCCESS_CUTTING = ("blank 3", "distractor 3", "distractor 5", "fov 3", "fov 5", "light_dim 5", "pose 5")
 SUCCESS_CUTTING += ("robot_init 3", "robot_init 5", "table_texture 5")
@@ -299,7 +297,7 @@ def test_the_published_one_check_failure_alarm_of_the_paper_recipe_comes_out_of_
     assert sum(failed for failed, _ in flags) == 11 and len(flags) == 50
 
 
-BUDGET = Path(__file__).parents[1] / "benchmarks" / "results" / "quickstart_budget"
+BUDGET = Path(__file__).parents[1] / "research" / "results" / "quickstart_budget"
 
 
 def quickstart_aurocs(run: Path) -> dict[str, float]:
@@ -331,11 +329,11 @@ def test_the_contrastive_weight_choice_comes_out_of_the_committed_quickstart_run
     assert separated == {0.1: 3, 0.2: 4}[weight]
 
 
-KNN_CONFIRM = Path(__file__).parents[1] / "benchmarks" / "results" / "metaworld_sweep_knn_confirm" / "records"
+KNN_CONFIRM = Path(__file__).parents[1] / "research" / "results" / "metaworld_sweep_knn_confirm" / "records"
 
 
 def test_the_nearest_vanilla_context_holds_on_the_checkpoint_and_seeds_nothing_was_chosen_on(tmp_path):
-    """benchmarks/results/metaworld_sweep_knn_confirm/summary.md: k = 1 against the former k = 5 on a new
+    """research/results/metaworld_sweep_knn_confirm/summary.md: k = 1 against the former k = 5 on a new
     checkpoint and new seeds: pooled 0.910 / 0.842 against 0.876 / 0.816 over the first 1 / 3 chunks, 1.000 on
     the first 3 chunks under every condition that cuts success by 20+ points, Table III at k = 1.0 100% on every
     camera row over whole episodes."""
@@ -365,7 +363,7 @@ def summary_rows(report: str) -> dict[str, list[str]]:
 
 
 def default_by_the_rule(rows: dict[str, list[str]], names) -> str:
-    """benchmarks/results/metaworld_two_sided_scores/summary.md: the highest pooled first-3-chunk AUROC among the
+    """research/results/metaworld_two_sided_scores/summary.md: the highest pooled first-3-chunk AUROC among the
     scores no condition is confidently inverted for (`!`: its interval wholly below 0.5)."""
     return max((n for n in names if "!" not in rows[n][5]), key=lambda n: float(rows[n][0].split()[0]))
 

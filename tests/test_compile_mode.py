@@ -23,7 +23,7 @@ from .conftest import tiny_batch, tiny_config
 from .test_backbone_vlm import vlm_config, write_tiny_language_model
 
 # fp32, the same seed: inductor's fused kernels reassociate sums (measured: up to 2e-7 in the actions of the
-# light head, 2e-5 over 15 steps of the paper's head; docs/benchmarks_speed.md).
+# light head, 2e-5 over 15 steps of the paper's head; research/docs/benchmarks_speed.md).
 TOL = {"atol": 1e-5, "rtol": 1e-5}
 # One ResNet stage: the smallest light backbone, so inductor compiles it quickly.
 SMALL = {"vision_backbone_stages": 1}

@@ -1,4 +1,4 @@
-"""benchmarks/context_energy_split.py: the joint energy scored apart as E_c and the head's part (issue 32)."""
+"""research/benchmarks/context_energy_split.py: the joint energy scored apart as E_c and the head's part (issue 32)."""
 
 import dataclasses
 

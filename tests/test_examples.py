@@ -166,6 +166,6 @@ def test_window_monitor_flags_every_window_of_a_mild_shift_the_rollouts_pass_alo
     assert printed.count("no decision yet") == 7
     assert "17 of 17 windows atypical at alpha = 0.05" in printed and "-> shifted" in printed
 
-    fresh = EXAMPLES.parent / "benchmarks/results/metaworld_sweep_margin_full/seed12000/observation"
+    fresh = EXAMPLES.parent / "research/results/metaworld_sweep_margin_full/seed12000/observation"
     run_example("window_monitor_on_records.py", f"--rollouts={fresh / 'context_energy_fresh' / 'vanilla'}")
     assert "3 of 93 windows atypical" in capsys.readouterr().out  # fresh vanilla rollouts of the same policy

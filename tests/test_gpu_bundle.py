@@ -1,7 +1,7 @@
-"""The GPU bundle (`benchmarks/gpu_bundle.py`, issue 35) is complete before any GPU comes.
+"""The GPU bundle (`research/benchmarks/gpu_bundle.py`, issue 35) is complete before any GPU comes.
 
 The bundle is built from the package index, then installed, as on the lent GPU machine, into a fresh venv whose
-Python sees exactly the distributions the machine has (`benchmarks/device/gpu_machine_packages.txt`, linked from
+Python sees exactly the distributions the machine has (`research/benchmarks/device/gpu_machine_packages.txt`, linked from
 this environment), with pip's configuration, index and find-links switched off: only the bundle's wheels. In that
 venv the first stage of each GPU job runs at tiny size on the CPU: the LIBERO pipeline's recording (one short
 episode), `ebvla-train` for two steps (LeRobot's Diffusion Policy, trained beside it there, is imported), and the
@@ -76,7 +76,12 @@ def machine(built, machine_site, tmp_path_factory):
     bundle = tmp / "unpacked"
     unpack(sorted(out.glob("part*")), bundle)
     env = machine_env(tmp)
-    command = [sys.executable, str(REPO / "benchmarks" / "gpu_bundle.py"), "install", f"--bundle={bundle}"]
+    command = [
+        sys.executable,
+        str(REPO / "research" / "benchmarks" / "gpu_bundle.py"),
+        "install",
+        f"--bundle={bundle}",
+    ]
     command += [f"--venv={tmp / 'venv'}", f"--machine_site={machine_site}"]
     result = subprocess.run(command, env=env, capture_output=True, text=True)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
@@ -193,7 +198,12 @@ def test_a_wheel_missing_from_the_bundle_stops_the_install_naming_it(built, mach
     for part in manifest["parts"].values():
         part["files"] = [name for name in part["files"] if name != f"wheels/{wheel.name}"]
     (bundle / gpu_bundle.MANIFEST).write_text(json.dumps(manifest))
-    command = [sys.executable, REPO / "benchmarks" / "gpu_bundle.py", "install", f"--bundle={bundle}"]
+    command = [
+        sys.executable,
+        REPO / "research" / "benchmarks" / "gpu_bundle.py",
+        "install",
+        f"--bundle={bundle}",
+    ]
     command += [f"--venv={tmp_path / 'venv'}", f"--machine_site={machine_site}"]
     result = subprocess.run(
         [str(c) for c in command], env=machine_env(tmp_path), capture_output=True, text=True
@@ -220,7 +230,12 @@ def test_a_machine_whose_versions_moved_still_gets_the_bundle_and_is_told_what_c
     gpu_bundle.build_machine_site(site, gpu_bundle.machine_packages() | {"pillow": "13.0.0"})
     bundle = tmp / "unpacked"
     unpack(sorted(out.glob("part*")), bundle)
-    command = [sys.executable, REPO / "benchmarks" / "gpu_bundle.py", "install", f"--bundle={bundle}"]
+    command = [
+        sys.executable,
+        REPO / "research" / "benchmarks" / "gpu_bundle.py",
+        "install",
+        f"--bundle={bundle}",
+    ]
     command += [f"--venv={tmp / 'venv'}", f"--machine_site={site}"]
     env = machine_env(tmp)
     output = run(command, env, tmp).stdout
@@ -247,7 +262,7 @@ def test_libero_pipeline_records_and_trains_its_runs_in_the_machine_venv(machine
     """The LIBERO job's first stages: one short LIBERO-Object episode, then two steps of `ebvla-train`."""
     python, env, tmp = machine
     work = tmp / "libero_work"
-    pipeline = REPO / "benchmarks" / "libero_pipeline.py"
+    pipeline = REPO / "research" / "benchmarks" / "libero_pipeline.py"
     record = "--tasks 0 --episodes_per_task=1 --image_size=64 --max_steps=8 --keep_failed --jobs=1"
     run([python, pipeline, "record", f"--work={work}", *record.split()], env, tmp)
     assert (work / "data" / "all" / "meta" / "info.json").exists(), list((work / "logs").glob("*"))
@@ -263,7 +278,7 @@ def test_vlm_benchmark_runs_at_tiny_size_in_the_machine_venv(machine):
     """The latency job's first configurations: a trained tiny head, a training step, a profiled chunk."""
     python, env, tmp = machine
     out = tmp / "vlm_bench"
-    bench = REPO / "benchmarks" / "vlm_gpu_bench.py"
+    bench = REPO / "research" / "benchmarks" / "vlm_gpu_bench.py"
     args = "--tiny --batch-sizes 1 --train-head-steps 2 --train-steps 1 --chunks 1 --profile"
     run([python, bench, *args.split(), f"--out-dir={out}"], env, tmp)
     rows = {p.stem: json.loads(p.read_text()) for p in out.glob("*.json")}
@@ -275,11 +290,11 @@ def test_vlm_benchmark_runs_at_tiny_size_in_the_machine_venv(machine):
 
 def test_the_tree_that_travels_leaves_room_for_the_bundles_parts():
     """A device call carries 64 MiB: the tracked tree without the records (set aside for the calls by
-    benchmarks/device_travel.sh) must leave parts of at least 40 MiB, or every bundle needs more calls than the
-    15 minutes of device time allow. A large file belongs in benchmarks/results, never beside the code."""
+    research/benchmarks/device_travel.sh) must leave parts of at least 40 MiB, or every bundle needs more calls than the
+    15 minutes of device time allow. A large file belongs in research/results, never beside the code."""
     tracked = subprocess.run(["git", "ls-files", "-z"], cwd=REPO, check=True, capture_output=True).stdout
     names = [name.decode() for name in tracked.split(b"\0") if name]
-    travels = [n for n in names if not n.startswith("benchmarks/results/") and (REPO / n).is_file()]
+    travels = [n for n in names if not n.startswith("research/results/") and (REPO / n).is_file()]
     size_mib = sum((REPO / n).stat().st_size for n in travels) / 2**20
     assert gpu_bundle.CALL_LIMIT_MIB - size_mib - 8 >= 40, f"{size_mib:.1f} MiB travel with each call"
 
@@ -293,19 +308,20 @@ def test_parts_too_small_for_any_file_are_refused(tmp_path):
 
 
 def test_the_records_set_aside_for_device_calls_come_back_whole(tmp_path):
-    (tmp_path / "benchmarks" / "results" / "sweep").mkdir(parents=True)
-    (tmp_path / "benchmarks" / "results" / "sweep" / "records.jsonl.gz").write_bytes(b"records")
-    shutil.copy2(REPO / "benchmarks" / "device_travel.sh", tmp_path / "benchmarks")
+    (tmp_path / "research" / "results" / "sweep").mkdir(parents=True)
+    (tmp_path / "research" / "results" / "sweep" / "records.jsonl.gz").write_bytes(b"records")
+    (tmp_path / "research" / "benchmarks").mkdir()
+    shutil.copy2(REPO / "research" / "benchmarks" / "device_travel.sh", tmp_path / "research" / "benchmarks")
     subprocess.run(["git", "init", "-q"], cwd=tmp_path, check=True)
-    script = ["bash", str(tmp_path / "benchmarks" / "device_travel.sh")]
+    script = ["bash", str(tmp_path / "research" / "benchmarks" / "device_travel.sh")]
 
     subprocess.run([*script, "aside"], check=True, capture_output=True)
-    assert not (tmp_path / "benchmarks" / "results").exists()
+    assert not (tmp_path / "research" / "results").exists()
     assert (tmp_path / ".results_aside" / "results" / "sweep" / "records.jsonl.gz").exists()
     second = subprocess.run([*script, "aside"], capture_output=True, text=True)
     assert second.returncode != 0 and "run 'back' first" in second.stderr
     subprocess.run([*script, "back"], check=True, capture_output=True)
-    assert (tmp_path / "benchmarks" / "results" / "sweep" / "records.jsonl.gz").read_bytes() == b"records"
+    assert (tmp_path / "research" / "results" / "sweep" / "records.jsonl.gz").read_bytes() == b"records"
     assert not (tmp_path / ".results_aside").exists()
     again = subprocess.run([*script, "back"], capture_output=True, text=True)
     assert again.returncode != 0 and "nothing set aside" in again.stderr

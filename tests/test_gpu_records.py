@@ -1,6 +1,6 @@
 """The GPU figures of BENCHMARKS.md section 1 and docs/vlm_backbone.md ("`compile_mode` on a GPU", "`compile_mode=
 "chunk-graph"`") are those of the committed JSONs of the H200 sessions of 2026-11-26 and 2026-11-27
-(`benchmarks/vlm_gpu_bench.py`, one JSON per configuration)."""
+(`research/benchmarks/vlm_gpu_bench.py`, one JSON per configuration)."""
 
 import json
 from pathlib import Path
@@ -12,8 +12,8 @@ from tests.conftest import load_benchmark, tiny_batch
 from tests.test_compile_mode import BATCH_SIZE, aot_eager_compiles, clear_compiled, make_policy
 
 REPO = Path(__file__).parents[1]
-RECORDS = REPO / "benchmarks" / "results" / "gpu_h200_2026-11-26"
-CHUNK_GRAPH_RECORDS = REPO / "benchmarks" / "results" / "gpu_h200_2026-11-27"
+RECORDS = REPO / "research" / "results" / "gpu_h200_2026-11-26"
+CHUNK_GRAPH_RECORDS = REPO / "research" / "results" / "gpu_h200_2026-11-27"
 vlm_gpu_bench = load_benchmark("vlm_gpu_bench")
 
 

@@ -9,7 +9,7 @@ import pytest
 from lerobot_policy_ebvla.monitoring.metrics import auroc
 from lerobot_policy_ebvla.monitoring.records import group_by_episode, read_energy_records, records_file_in
 
-EVAL = Path(__file__).parents[1] / "benchmarks" / "results" / "libero_cpu" / "eval" / "ebvla_cpu"
+EVAL = Path(__file__).parents[1] / "research" / "results" / "libero_cpu" / "eval" / "ebvla_cpu"
 SHIFTS = [f"{p}{s}" for p in ("pose", "distance", "rotation", "fov") for s in (5, 3, 1)] + ["light_dim5"]
 
 

@@ -1,4 +1,4 @@
-"""The LIBERO-Object pipeline (`benchmarks/libero_pipeline.py`) and the library options it added.
+"""The LIBERO-Object pipeline (`research/benchmarks/libero_pipeline.py`) and the library options it added.
 
 Its queue, commands and packing are checked on temporary folders, without the simulator; one slow test runs
 every stage at a tiny size on CPU (it needs LIBERO set up, as the simulator tests of tests/test_libero.py).
@@ -339,7 +339,7 @@ def test_saved_results_restore_a_resumable_training_and_skip_finished_jobs(tmp_p
 
 
 def test_record_asks_every_piece_for_video_frames_when_told(tmp_path, monkeypatch):
-    """`--use_videos` reaches each recorder process (a dataset that travels in a GPU bundle, docs/libero.md)."""
+    """`--use_videos` reaches each recorder process (a dataset that travels in a GPU bundle, research/docs/libero_runs.md)."""
     commands = []
     monkeypatch.setattr(pipeline, "run_logged", lambda cmd, log: commands.append(cmd) or 0)
     with pytest.raises(RuntimeError, match="No task recorded"):

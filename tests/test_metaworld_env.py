@@ -115,7 +115,7 @@ def test_severity_zero_changes_nothing():
         np.testing.assert_array_equal(a, b)
 
 
-TASK = "push-v3"  # its puck and goal are visible, as in the gallery (benchmarks/metaworld_perturbation_gallery.py)
+TASK = "push-v3"  # its puck and goal are visible, as in the gallery (research/benchmarks/metaworld_perturbation_gallery.py)
 GRADED_IMAGE_PERTURBATIONS = [p for p in PERTURBATIONS if p not in ("none", "blank", "robot_init")]
 
 

@@ -1,4 +1,4 @@
-"""The with/without table of the OOD margin (benchmarks/results/metaworld_sweep_ood_margin/summary.md, issue 32),
+"""The with/without table of the OOD margin (research/results/metaworld_sweep_ood_margin/summary.md, issue 32),
 recomputed from its committed records by the script that printed it."""
 
 import json
@@ -14,7 +14,7 @@ from tests.conftest import load_benchmark
 from tests.test_committed_records import first_chunks_row, records_report, summary_rows
 
 ROOT = Path(__file__).parents[1]
-RESULTS = ROOT / "benchmarks" / "results" / "metaworld_sweep_ood_margin"
+RESULTS = ROOT / "research" / "results" / "metaworld_sweep_ood_margin"
 
 
 report = load_benchmark("energy_margin_report")
@@ -447,7 +447,7 @@ def test_random_convolutions_lift_most_fresh_near_misses_and_leave_the_sweeps_as
 
 
 def test_the_first_chunks_carry_the_outcome_within_vanilla_but_a_probe_fitted_there_misses_shift_failures():
-    """benchmarks/outcome_probe.py on two of the five `observation` sweeps (summary.md, "What the first chunks
+    """research/benchmarks/outcome_probe.py on two of the five `observation` sweeps (summary.md, "What the first chunks
     know"): a supervised probe on the first 3 chunks' pooled context tells vanilla failures at 0.85 and 0.93
     (cross-validated), and fitted on those vanilla outcomes it scores the perturbed rollouts' at 0.57 and 0.49; the
     final energy tells the vanilla failures at 0.38 and 0.22 (its sign flips between checkpoints)."""
@@ -883,7 +883,7 @@ def test_the_energy_slopes_predict_failure_weakly_and_the_context_terms_slope_no
 
 
 def test_a_shift_that_moves_nothing_is_marked_confidently_wrong_only_at_the_intervals_chance_rate():
-    """benchmarks/null_inversion_rate.py (summary.md, "How often ... by chance"): both sides drawn from one
+    """research/benchmarks/null_inversion_rate.py (summary.md, "How often ... by chance"): both sides drawn from one
     distribution, 8 against 40, the reports' bootstrap interval lies wholly below 0.5 about as often as a one-sided
     2.5-5% test would (3.8% at 2000 draws)."""
     null = load_benchmark("null_inversion_rate")
@@ -1238,7 +1238,7 @@ def median_mean_z(run: Path, condition: str, score_class) -> float:
 
 
 def test_the_heads_energy_leaves_the_band_under_the_harmful_shifts_and_e_c_under_all():
-    """docs/energy_study.md section 8.14's table, a few cells each way: E_c's z follows how far the image moved
+    """research/docs/energy_study.md section 8.14's table, a few cells each way: E_c's z follows how far the image moved
     (a retextured table, no failure, above a moved camera), E_head's leaves the band only under the shifts that cut
     success, below it under seed 27000's fov 5."""
     from lerobot_policy_ebvla.runtime.scores import ContextPhaseEnergy, HeadEnergyTwoSided

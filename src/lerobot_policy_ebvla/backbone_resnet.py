@@ -24,7 +24,7 @@ def keep_resnet_stages(encoder: DiffusionRgbEncoder, num_stages: int, config) ->
     """Cuts `encoder`'s ResNet after stage `num_stages` (1-4) and fits its spatial softmax to the finer map.
 
     Works on any config with Diffusion Policy's encoder fields, so a `diffusion` baseline can get the same
-    encoder as an `ebvla` policy (benchmarks/vision_dependence_offline.py does).
+    encoder as an `ebvla` policy (research/benchmarks/vision_dependence_offline.py does).
     """
     dropped_stages = 4 - num_stages
     if dropped_stages == 0:
@@ -43,7 +43,7 @@ class ResNetFeatureMap(DiffusionRgbEncoder):
 
     Spatial-softmax keypoints start out nearly uniform, so the few numbers they pass on barely change with the
     image, and the energy's second-order gradient is too weak to sharpen them in a short CPU run: the light
-    policies of docs/energy_study.md stayed blind. Feature-map cells differ with the image from the first step,
+    policies of research/docs/energy_study.md stayed blind. Feature-map cells differ with the image from the first step,
     and the head's cross-attention picks the cells it needs, as it does with the VLM's patch tokens.
     """
 

@@ -12,7 +12,7 @@ final-energy forward stay eager; training is never compiled. Shapes are static: 
 `num_restarts` for the energy) compiles on its first chunk. The graph modes ("reduce-overhead",
 "max-autotune") replay CUDA graphs on a CUDA device and run their no-graph form elsewhere
 (`effective_compile_mode`). A replay reuses its output buffers, so everything the compiled code returns is copied
-out. Compile times and gains: docs/benchmarks_speed.md and docs/vlm_backbone.md.
+out. Compile times and gains: research/docs/benchmarks_speed.md and research/docs/vlm_gpu.md.
 
 "chunk-graph" goes further where the per-step graphs leave the GPU idle: after each of the K_inf graph replays the
 eager sampling loop and the autograd call cost more host time than the step's GPU work. It encodes the context as

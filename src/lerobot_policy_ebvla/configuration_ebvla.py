@@ -66,7 +66,7 @@ class EBVLAConfig(PreTrainedConfig):
         camera_tokens: What the light backbone passes on per camera. "keypoints" (Diffusion Policy's encoder):
             one token from spatial-softmax keypoints. "feature_map": one token per cell of the last kept ResNet
             feature map (with `vision_backbone_stages=3`, 6x6 at 96 px), which the head's cross-attention reads
-            like the VLM's patch tokens; it learns to see far sooner (docs/energy_study.md).
+            like the VLM's patch tokens; it learns to see far sooner (research/docs/energy_study.md).
         use_separate_rgb_encoder_per_camera: One light image encoder per camera instead of a shared one.
         state_dropout: Probability of hiding the state token p from the light backbone's context for a
             training sample. When the state alone predicts the expert well, a policy trained with it never
@@ -182,7 +182,7 @@ class EBVLAConfig(PreTrainedConfig):
         energy_ood_margin_chunk: Which chunk's energies the hinge compares: "expert", a* under C~ against a*
             under C; "refined", the chunk refined under C~ (same a^(0) and step sizes, no graph) against the
             training chain's refined chunk under C, so that min_a E(a, C~) rises (the shift's refined energy can
-            fall while E(a*, C~) rises: docs/energy_study.md).
+            fall while E(a*, C~) rises: research/docs/energy_study.md).
         energy_ood_corruptions: Corruptions drawn from (one per observation), a non-empty subset of
             `training_signal.CORRUPTIONS`: "channel_gain" (random per-channel gains), "patch_swap" (a
             rectangle from another observation of the batch), "shift" (a translation with a black border),
@@ -195,12 +195,12 @@ class EBVLAConfig(PreTrainedConfig):
             state, `training_signal.graded_corruption`) and its margin is s m, so that the energy learns to
             rise with how far an observation left the data, not only whether. (1, 1) (default): the full
             corruption at margin m. (0.1, 1) lifted mild blur and noise on two of three training seeds and
-            inverted light direction on the third (docs/energy_study.md, section 8.7): opt-in.
+            inverted light direction on the third (research/docs/energy_study.md, section 8.7): opt-in.
         energy_ood_gradient_penalty: Weight gamma of a gradient penalty on the context energy at the data,
             gamma E ||d E_c(C(x)) / d x||^2 over the real images x (R1, Mescheder et al., ICML 2018), added to
             the margin's loss; needs `energy_ood_margin_on="observation"`. The margin lifts E_c on the training
             corruptions only; a shift it never saw moves E_c by its gradient at the image, up in one scene and
-            down in another, and a mild one lands inside the vanilla band on either side (docs/energy_study.md,
+            down in another, and a mild one lands inside the vanilla band on either side (research/docs/energy_study.md,
             section 8.11). With no gradient at the data every small change of the image moves E_c at second
             order, where the margin has made it rise. 0 (default) is off; it differentiates E_c twice through
             the observation encoder at each training step.
@@ -228,8 +228,8 @@ class EBVLAConfig(PreTrainedConfig):
             (`torch._dynamo.config.recompile_limit`), so warm up with one chunk at every batch size you deploy;
             each new combination of the light backbone's `task_instructions` in a batch compiles the encoding
             again. Actions and energies equal eager mode up to float rounding (within 1e-5 in fp32;
-            tests/test_compile_mode.py). Compile times and gains: docs/benchmarks_speed.md (CPU) and
-            docs/vlm_backbone.md (H100).
+            tests/test_compile_mode.py). Compile times and gains: research/docs/benchmarks_speed.md (CPU) and
+            research/docs/vlm_gpu.md (H100).
         rtc_config: LeRobot's real-time chunking (`RTCConfig`), which `lerobot-rollout --inference.type=rtc`
             sets from `--inference.rtc.*`. When set and enabled, `predict_action_chunk(batch, inference_delay=d,
             prev_chunk_left_over=abar)` refines the chunk as inpainting (`mcmc.py`): the first d actions are

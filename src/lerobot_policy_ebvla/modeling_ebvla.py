@@ -69,7 +69,7 @@ class EnergyReadout:
         context_energy: E_c(C), (B,), the joint energy's context term, already inside `final_energy`; None
             without a joint energy (it has one with `energy_ood_margin_on` "context", "context_backbone" or
             "observation"). Recorded apart because its rise under a shift can be small beside the spread of
-            the head's part (docs/energy_study.md, section 8.8).
+            the head's part (research/docs/energy_study.md, section 8.8).
     """
 
     initial_energy: Tensor

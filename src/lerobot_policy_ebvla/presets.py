@@ -10,7 +10,7 @@ LIGHT_POLICY: dict[str, Any] = {
     # A 2-stage ResNet keeps an 8x8 keypoint map at 64 px (4 stages leave 2x2) and trains 4x faster.
     "vision_backbone_stages": 2,
     # With the paper's training signal alone the light policy learns from the 4-d state and ignores its camera
-    # (docs/energy_study.md, section 1b). Hiding the state from half the samples and keeping each expert chunk
+    # (research/docs/energy_study.md, section 1b). Hiding the state from half the samples and keeping each expert chunk
     # below the batch's other chunks is what made it read the camera and its energy react.
     "state_dropout": 0.5,
     # Weight 0.2, not the study's 0.1: over five paired seeds of the quickstart, its energy separated both camera
@@ -42,7 +42,7 @@ LIGHT_POLICY: dict[str, Any] = {
     # saw moved E_c by its gradient, up in one scene and down in another, and every score of it was confidently
     # wrong on some training seed; with it every sweep shift raises E_c, and its one-sided score at each chunk index
     # (`context_phase_energy`) was confidently wrong on none of four seeds, two trained after the rule was written
-    # (benchmarks/results/metaworld_sweep_margin_full/summary.md, "E_c flat at the data"). A training step costs
+    # (research/results/metaworld_sweep_margin_full/summary.md, "E_c flat at the data"). A training step costs
     # about a third more. Its gradient reaches E_c's own encoder only, and the policy's updates only through
     # LeRobot's clipping of the total gradient norm (10), which binds in the first steps: a new training realization,
     # whose vanilla success (110/160 on four seeds) is within the preset's spread over fourteen (50-82%).
@@ -60,7 +60,7 @@ Its training recipe is NOT the paper's Table V: it samples K_train in (2, 4) MCM
 instead of [8, 15], adds the contrastive term (`energy_contrastive_weight=0.2`) and state dropout
 (`state_dropout=0.5`), which the paper does not have, and trains at a learning rate of 5e-4 instead of 1e-4.
 The contrastive term and state dropout are what made this policy read its camera and its energy react to
-camera shifts (docs/energy_study.md, section 1b). Its final energy is the joint energy E(a, C) + E_c(C)
+camera shifts (research/docs/energy_study.md, section 1b). Its final energy is the joint energy E(a, C) + E_c(C)
 (`energy_ood_margin_on="observation"`), which keeps it from reading a shift as more familiar than vanilla, with E_c
 trained flat at the data (`energy_ood_gradient_penalty=0.1`) so that every shift raises it.
 Inference (K_inf, alpha, tau, ...) keeps Table V's values.

@@ -6,7 +6,7 @@ Outlier exposure: the expert chunk must cost more under a corrupted context.
 The paper's loss (Eq. 4, the L1 of the refined chunk) and the contrastive ranking both leave the energy's level
 per context free: adding any f(C) to E(a, C) changes neither the descent direction nor the ranking of chunks
 under one context. Nothing then stops a context the policy never saw from sitting *lower* than the data, and
-the final energy from flagging it as more familiar than vanilla (docs/energy_study.md, section "Why the energy
+the final energy from flagging it as more familiar than vanilla (research/docs/energy_study.md, section "Why the energy
 falls"). `energy_margin_loss` pins the level: for each observation, under a generically corrupted copy C~ of its
 context (`corrupt_observation`, never the evaluation's perturbations), the expert chunk a* must cost at least
 `margin` more than under the real context,
@@ -235,7 +235,7 @@ def graded_corruption(
 
     on its images and state alike, with the strengths s (B,) to scale its margin by (`energy_margin_loss`).
 
-    Why (a hypothesis, docs/energy_study.md section 8.7): a hinge met on full corruptions, far from the data,
+    Why (a hypothesis, research/docs/energy_study.md section 8.7): a hinge met on full corruptions, far from the data,
     asks nothing of the energy near the data, where mild shifts sit; a margin s m on an observation moved by s
     asks for an energy that rises with how far, not only whether. Measured there on three training seeds: it
     sees mild blur and noise on two and puts light direction confidently under the data on the third, so it is

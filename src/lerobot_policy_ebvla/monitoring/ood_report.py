@@ -73,7 +73,7 @@ from .window_report import window_values_of
 logger = logging.getLogger(__name__)
 
 # The score `--calibrate_to` saves without `--score`: the best held out on the MetaWorld sweep of every
-# perturbation (benchmarks/results/metaworld_two_sided_scores/summary.md): the highest pooled AUROC over the
+# perturbation (research/results/metaworld_two_sided_scores/summary.md): the highest pooled AUROC over the
 # first 3 chunks among the scores no condition is confidently inverted for (its bootstrap 95% interval wholly
 # below 0.5). It reads the pooled context; records without it get the best energy-only score by the same rule.
 DEFAULT_SCORE = "context_knn"
@@ -82,7 +82,7 @@ DEFAULT_ENERGY_SCORE = "phase_energy_two_sided"
 # term E_c, two-sided against the vanilla E_c at each chunk index, pools 0.91-0.99 over the first 3 chunks on the
 # sweeps of eight training seeds, above the final energy's 0.87-0.95 on every one, with 0-2% alarms on held-out
 # vanilla (the final energy 5-25%). Neither is never wrong: each is confidently inverted on one seed's sweep, and
-# on fresh rollouts E_c under three mild shifts that cost no success (benchmarks/results/metaworld_sweep_margin_full/
+# on fresh rollouts E_c under three mild shifts that cost no success (research/results/metaworld_sweep_margin_full/
 # summary.md, "The run-time context-energy score" to "Fresh rollouts of the default's near misses"). Records
 # without E_c (a recorder before 2026-11-26) keep the final energy, which beats the context k-NN there (0.91-0.95
 # against 0.77-0.92 on five seeds).

@@ -21,7 +21,7 @@ Records to commit are gzip-compressed: `energy_records.jsonl.gz`, its features
 compressing the same records twice gives the same bytes. Every reader takes either form (a folder must hold
 one of them, not both); `compress_records` turns a folder of records into the compressed form:
 
-    python -m lerobot_policy_ebvla.monitoring.records --paths='[benchmarks/results/my_study]'
+    python -m lerobot_policy_ebvla.monitoring.records --paths='[research/results/my_study]'
 """
 
 import dataclasses

@@ -5,7 +5,7 @@ test's reference), held-out vanilla rollouts (the false alarms) and conditions. 
 set (all C(N, n) of them, or `max_windows` drawn without repeats when there are more) is tested, and the share
 that is atypical is the set's window alarm rate. Beside it, per rollout: the score's AUROC against the held-out
 vanilla and its alarm rate at the shipped T = mu_v + k sigma_v, so a condition the per-rollout score misses or
-inverts can be read against what the window makes of it. `benchmarks/window_typicality.py` is the command.
+inverts can be read against what the window makes of it. `research/benchmarks/window_typicality.py` is the command.
 """
 
 import itertools

@@ -48,7 +48,7 @@ A policy trained with a joint energy (`energy_ood_margin_on`) reports its contex
 - "context_energy_two_sided" (`ContextEnergyTwoSided`): |z| of E_c against the vanilla E_c at the same chunk
   index, as the two-sided phase energy is of the final energy. Issue 32's sweeps put some shifts *under* the
   vanilla E_c (blur, a light from another side); this form is confidently wrong on one of eight training seeds'
-  sweeps (first 3 chunks), the final energy on one too, E_c one-sided on three (docs/energy_study.md section 8.9).
+  sweeps (first 3 chunks), the final energy on one too, E_c one-sided on three (research/docs/energy_study.md section 8.9).
 - "head_energy_two_sided" (`HeadEnergyTwoSided`): |z| of the head's part of the joint energy, E - E_c, against the
   vanilla E - E_c at the same chunk index: a failure score, not an OOD one (E_c flags every shift, harmless ones
   too; the head's part leaves the band where the chain finds no chunk it trusts).
@@ -592,7 +592,7 @@ class ContextPhaseEnergy(PhaseEnergy):
 
     The matched test for an E_c trained flat at the data (`energy_ood_gradient_penalty`), under which every shift
     of the sweep raises E_c in every scene; the two-sided form then reads the rollouts of low-E_c scenes that a
-    mild shift lifts into the band's middle as typical (docs/energy_study.md, section 8.12).
+    mild shift lifts into the band's middle as typical (research/docs/energy_study.md, section 8.12).
     """
 
     name = "context_phase_energy"
@@ -608,7 +608,7 @@ class ContextEnergyTwoSided(PhaseEnergyTwoSided):
     *under* the data (issue 32's blur, a light from another side) is flagged too.
 
     Per chunk index, not one band for every chunk: E_c follows the task's phase, and against one band the first
-    chunks of a shifted rollout can land nearer its centre than vanilla's own (docs/energy_study.md section 8.9).
+    chunks of a shifted rollout can land nearer its centre than vanilla's own (research/docs/energy_study.md section 8.9).
     """
 
     name = "context_energy_two_sided"

@@ -1,0 +1,820 @@
+"""LIBERO-Object at scale (issue 21) in resumable stages, each of which fits one short GPU slice.
+
+The paper's LIBERO experiment with a light `ebvla`: scripted demonstrations of all ten LIBERO-Object tasks,
+`ebvla-train` (lerobot-train reading each action chunk from its column alone: the demonstrations' frames are
+stored as images) of the paper's recipe (Table V's K_train 8-15, K_inf 15), of the contrastive variant and of
+LeRobot's Diffusion Policy on the same data, evaluation in LeRobot's LIBERO env with energy records (vanilla
+calibration and held-out rollouts, LIBERO-Plus camera perturbations), then Table III and Table IV from the
+records. Every stage skips what its folder already holds, so a stage cut short by the end of a GPU slice is
+run again in the next one and resumes; `pack` gathers what must come back (records, logs, the light
+checkpoints) into one archive.
+
+    W=outputs/libero_pipeline
+    python research/benchmarks/libero_pipeline.py record --work=$W --jobs=10          # ~20 attempts per task
+    python research/benchmarks/libero_pipeline.py train --work=$W --device=cuda --detach
+    python research/benchmarks/libero_pipeline.py eval --work=$W --device=cuda --jobs=14 --deadline_s=480
+    python research/benchmarks/libero_pipeline.py pack --work=$W --archive=$OUT/libero_results.tar.gz
+    python research/benchmarks/libero_pipeline.py report --work=$W                    # Table III and IV, on any CPU
+
+Frames are recorded and evaluated at 128 px (`--image_size`): the light policies resize to 128 anyway, and a
+128 px PNG decodes about four times faster than HuggingFaceVLA/libero's 256, which is what bounds the
+loader. LeRobot's LIBERO env starts episode i of a task at initial state i (`--env.first_init_state` shifts
+it), so calibration and held-out rollouts are initial states [0, V/2) and [V/2, V), and the perturbed
+rollouts start from the calibration's states: only the camera differs.
+"""
+
+import argparse
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tarfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+REPO_ID = "local/libero_object_expert"
+SUITE = "libero_object"
+
+# The light `ebvla` for LIBERO-Object: both cameras resized to 128 px, keypoints of a 3-stage ResNet-18 from
+# scratch, one learned token per task instruction (the ten tasks share one scene and differ only by the object
+# the instruction names, which the light backbone cannot read), a D=256, 8-head, L=2 energy head. Everything
+# else is `EBVLAConfig`'s default: Table V's MCMC (K_train 8-15, alpha in [0.05, 0.4], K_inf 15, alpha 0.22).
+EBVLA_LIGHT = [
+    "--policy.type=ebvla",
+    "--policy.backbone=resnet",
+    "--policy.resize_shape=[128,128]",
+    "--policy.vision_backbone_stages=3",
+    "--policy.task_instructions=[]",
+    "--policy.dim_model=256",
+    "--policy.n_heads=8",
+    "--policy.n_blocks=2",
+    "--policy.optimizer_lr=3e-4",
+    "--policy.push_to_hub=false",
+]
+RUNS = {
+    # The paper's training signal (Eq. 4 alone) at Table V's K_train 8-15.
+    "ebvla_paper": EBVLA_LIGHT,
+    # The variant the MetaWorld study favours for detection: the contrastive term and state dropout.
+    "ebvla_variant": [*EBVLA_LIGHT, "--policy.energy_contrastive_weight=0.1", "--policy.state_dropout=0.5"],
+    # LeRobot's Diffusion Policy at its defaults, both cameras, random crops of 90% of the frame (`run_args`),
+    # its ResNet-18 from scratch as ebvla's (ImageNet weights cannot be downloaded offline). It has no language
+    # input: on LIBERO-Object it cannot know which object the instruction names.
+    "diffusion": [
+        "--policy.type=diffusion",
+        "--policy.pretrained_backbone_weights=null",
+        "--policy.push_to_hub=false",
+    ],
+}
+
+# The two-core protocol (research/docs/libero_runs.md, "On two cores"). `ebvla_cpu` is the quickstart's light policy
+# (presets.LIGHT_POLICY: D=128, 4 heads, L=2, a 2D FFN, a 2-stage ResNet-18 from scratch, the contrastive term
+# and state dropout, which made it read its camera on MetaWorld) with both cameras at 96 px, one token per task
+# instruction and Table V's K_train 8-15, without the preset's joint energy on its own encoder (added to the preset
+# after these runs, 2026-11-26); `diffusion_cpu` is LeRobot's Diffusion Policy with the CPU-sized
+# U-Net of the MetaWorld comparison (down_dims 128/256/512), the same 96 px cameras and 8-step chunks.
+EBVLA_CPU = [
+    "--policy.type=ebvla",
+    "--policy.backbone=resnet",
+    "--policy.resize_shape=[96,96]",
+    "--policy.vision_backbone_stages=2",
+    "--policy.task_instructions=[]",
+    "--policy.dim_model=128",
+    "--policy.n_heads=4",
+    "--policy.n_blocks=2",
+    "--policy.ffn_multiplier=2",
+    "--policy.state_dropout=0.5",
+    "--policy.energy_contrastive_weight=0.2",
+    "--policy.energy_contrastive_dtype=auto",
+    "--policy.optimizer_lr=5e-4",
+    "--policy.push_to_hub=false",
+]
+RUNS["ebvla_cpu"] = EBVLA_CPU
+RUNS["diffusion_cpu"] = [
+    "--policy.type=diffusion",
+    "--policy.pretrained_backbone_weights=null",
+    "--policy.resize_shape=[96,96]",
+    "--policy.crop_ratio=0.9",
+    "--policy.down_dims=[128,256,512]",
+    "--policy.n_obs_steps=1",
+    "--policy.horizon=8",
+    "--policy.n_action_steps=8",
+    "--policy.drop_n_last_frames=0",
+    "--policy.push_to_hub=false",
+]
+
+# Camera perturbations of LIBERO-Plus (Table III's), most informative first: severities 5 and 3 of both.
+CAMERA_CONDITIONS = (("pose", 5), ("fov", 5), ("pose", 3), ("fov", 3), ("pose", 1), ("fov", 1))
+
+
+def bin_path(name: str) -> str:
+    """A console script of this Python's environment (the venv's `lerobot-train`, not another one on PATH),
+    else the one on PATH (packages installed with `pip install --target` put theirs in `<target>/bin`)."""
+    sibling = Path(sys.executable).with_name(name)
+    return str(sibling) if sibling.exists() else (shutil.which(name) or name)
+
+
+def child_env() -> dict[str, str]:
+    # One thread per child: the stages run many children side by side on the machine's cores.
+    return {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), "OMP_NUM_THREADS": "1"}
+
+
+def run_logged(cmd: list[str], log: Path, timeout_s: float | None = None) -> int:
+    """Runs `cmd` in its own process group with its output in `log`; kills the whole group at the timeout.
+
+    Returns the exit status, or -1 when the timeout killed it.
+    """
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "w") as out:
+        process = subprocess.Popen(
+            cmd, stdout=out, stderr=subprocess.STDOUT, env=child_env(), start_new_session=True
+        )
+        try:
+            return process.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+            return -1
+
+
+# Record ------------------------------------------------------------------------------------------------------
+
+
+def record(
+    work: Path,
+    tasks: list[int],
+    episodes_per_task: int,
+    image_size: int,
+    jobs: int,
+    parts: int = 1,
+    max_steps: int | None = None,
+    keep_failed: bool = False,
+    placement_seed: int | None = None,
+    use_videos: bool = False,
+) -> Path:
+    """Records each task in `parts` processes (each from its own initial states), then aggregates every part
+    into `<work>/data/all`.
+
+    `max_steps`, `keep_failed`, `placement_seed` and `use_videos` are the recorder's (tiny test runs keep the
+    expert's unfinished episodes; with `placement_seed`, demonstrations start from freshly sampled placements, never
+    from the fixed initial states that evaluation uses; `use_videos` stores the frames as video, about a twelfth of
+    the images' size, for a dataset that must travel in a GPU bundle: research/docs/libero_runs.md)."""
+    merged = work / "data" / "all"
+    if (merged / "meta" / "info.json").exists():
+        print(f"record: {merged} exists")
+        return merged
+    per_part = -(-episodes_per_task // parts)
+    pieces = [
+        (task, first, min(per_part, episodes_per_task - first))
+        for task in tasks
+        for first in range(0, episodes_per_task, per_part)
+    ]
+
+    def record_piece(piece: tuple[int, int, int]) -> int:
+        task, first, n = piece
+        root = work / "data" / f"task{task}_from{first}"
+        if (root / "meta" / "recording_report.json").exists():
+            return 0
+        cmd = [
+            bin_path("ebvla-record-libero"),
+            f"--env.task={SUITE}",
+            f"--env.task_ids=[{task}]",
+            f"--env.first_init_state={first}",
+            f"--episodes_per_task={n}",
+            f"--image_size={image_size}",
+            f"--repo_id=local/libero_object_task{task}_from{first}",
+            f"--root={root}",
+            "--overwrite=true",  # a folder without a report is an interrupted recording
+            f"--keep_failed={str(keep_failed).lower()}",
+            f"--use_videos={str(use_videos).lower()}",
+        ]
+        if max_steps is not None:
+            cmd.append(f"--max_steps={max_steps}")
+        if placement_seed is not None:
+            cmd.append(f"--placement_seed={placement_seed}")
+        return run_logged(cmd, work / "logs" / f"record_{root.name}.log")
+
+    start = time.time()
+    with ThreadPoolExecutor(jobs) as pool:
+        statuses = list(pool.map(record_piece, pieces))
+    print(f"record: {len(pieces)} pieces in {time.time() - start:.0f} s, exit statuses {statuses}")
+    reports = {}
+    for task, first, _ in pieces:
+        path = work / "data" / f"task{task}_from{first}" / "meta" / "recording_report.json"
+        if path.exists():
+            reports[(task, first)] = json.loads(path.read_text())
+    kept = [key for key, report in reports.items() if report["n_kept"] > 0]
+    if not kept:
+        raise RuntimeError(f"No task recorded a successful episode; logs in {work / 'logs'}.")
+    from lerobot.datasets.aggregate import aggregate_datasets
+
+    aggregate_datasets(
+        repo_ids=[f"local/libero_object_task{task}_from{first}" for task, first in kept],
+        aggr_repo_id=REPO_ID,
+        roots=[work / "data" / f"task{task}_from{first}" for task, first in kept],
+        aggr_root=merged,
+    )
+    summary = {
+        "image_size": image_size,
+        "episodes_per_task": episodes_per_task,
+        "placement_seed": placement_seed,
+        "use_videos": use_videos,
+        "tasks": {},
+    }
+    for (task, _), report in sorted(reports.items()):
+        name = next(iter(report["success_rate_per_task"]))
+        entry = summary["tasks"].setdefault(
+            task, {"task": name, "attempts": 0, "kept": 0, "steps_of_kept": []}
+        )
+        entry["attempts"] += report["n_attempted"]
+        entry["kept"] += report["n_kept"]
+        entry["steps_of_kept"] += [ep["n_steps"] for ep in report["episodes"] if ep["kept"]]
+    summary["seconds"] = round(time.time() - start, 1)
+    (work / "recording_summary.json").write_text(json.dumps(summary, indent=1))
+    return merged
+
+
+# Train -------------------------------------------------------------------------------------------------------
+
+
+def run_args(run: str, image_size: int) -> list[str]:
+    """`RUNS[run]` for frames of `image_size` (Diffusion Policy crops 90% of them, 115 px of 128)."""
+    if run == "diffusion":  # `diffusion_cpu` resizes, then crops by `crop_ratio`
+        crop = int(0.9 * image_size)
+        return [*RUNS[run], f"--policy.crop_shape=[{crop},{crop}]"]
+    return RUNS[run]
+
+
+def train_command(
+    work: Path, run: str, steps: int, batch_size: int, device: str, workers: int, save_freq: int | None = None
+) -> list[str]:
+    """`ebvla-train` (lerobot-train reading action chunks from their column) of `run`, or its resumption.
+
+    `save_freq` (default: a tenth of `steps`) bounds what a training cut short loses."""
+    out = work / "train" / run
+    last = out / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
+    if last.exists():
+        return [bin_path("ebvla-train"), f"--config_path={last}", "--resume=true", f"--steps={steps}"]
+    image_size = json.loads((work / "recording_summary.json").read_text())["image_size"]
+    return [
+        bin_path("ebvla-train"),
+        *run_args(run, image_size),
+        f"--policy.device={device}",
+        f"--dataset.repo_id={REPO_ID}",
+        f"--dataset.root={work / 'data' / 'all'}",
+        f"--batch_size={batch_size}",
+        f"--steps={steps}",
+        f"--save_freq={save_freq or max(steps // 10, 1)}",
+        "--log_freq=100",
+        f"--num_workers={workers}",
+        "--seed=1000",
+        "--wandb.enable=false",
+        f"--output_dir={out}",
+    ]
+
+
+def train(
+    work: Path,
+    runs: list[str],
+    steps: int,
+    batch_size: int,
+    device: str,
+    workers: int,
+    detach: bool,
+    until_s: float | None = None,
+    save_freq: int | None = None,
+    threads: int = 2,
+):
+    """Trains `runs` side by side (each with `workers` loader processes); `detach` returns at once.
+
+    A detached training starts a session of its own, so it outlives the command that started it. `until_s`
+    stops the trainings after that many seconds (their last checkpoint stays; the next call resumes from it),
+    so that a long training runs in parts.
+    """
+    processes = []
+    for run in runs:
+        if (work / "train" / run / "DONE").exists():
+            print(f"train: {run} done")
+            continue
+        cmd = train_command(work, run, steps, batch_size, device, workers, save_freq)
+        # Marks the run done only when the training exits 0.
+        script = f'{subprocess.list2cmdline(cmd)} && touch "{work / "train" / run / "DONE"}"'
+        log = work / "logs" / f"train_{run}.log"
+        log.parent.mkdir(parents=True, exist_ok=True)
+        processes.append(
+            subprocess.Popen(
+                ["bash", "-c", script],
+                stdout=open(log, "a"),  # noqa: SIM115 (the child keeps it open)
+                stderr=subprocess.STDOUT,
+                env=child_env() | {"OMP_NUM_THREADS": str(threads)},
+                start_new_session=True,
+            )
+        )
+        print(f"train: {run} started (pid {processes[-1].pid}), log {log}")
+    if detach:
+        return
+    stop_at = None if until_s is None else time.time() + until_s
+    for process in processes:
+        try:
+            process.wait(timeout=None if stop_at is None else max(stop_at - time.time(), 0))
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, signal.SIGTERM)
+            process.wait()
+            print(f"train: stopped after {until_s:.0f} s (pid {process.pid}); the next call resumes")
+
+
+def stop_training(work: Path) -> None:
+    """Stops every training of `work` (their last checkpoint stays): the GPU slice is needed for evaluation."""
+    subprocess.run(["pkill", "-f", f"ebvla-train.*{work / 'train'}"], check=False)
+
+
+def last_checkpoint(work: Path, run: str) -> Path | None:
+    path = work / "train" / run / "checkpoints" / "last" / "pretrained_model"
+    return path if (path / "model.safetensors").exists() else None
+
+
+# Evaluate ----------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class EvalJob:
+    """`n` episodes of one task, one condition and one policy, from initial states [first, first + n)."""
+
+    run: str
+    condition: str  # vanilla_calib, vanilla_heldout, or <perturbation><severity>
+    task: int
+    first: int
+    n: int
+    seed: int
+    perturbation: str = "none"
+    severity: int = 0
+
+    @property
+    def name(self) -> str:
+        return f"{self.run}/{self.condition}/task{self.task}"
+
+
+def eval_jobs(
+    runs: list[str],
+    tasks: list[int],
+    vanilla: int,
+    perturbed: int,
+    conditions=CAMERA_CONDITIONS,
+    calibration: int | None = None,
+) -> list[EvalJob]:
+    """The evaluation queue, most needed first: vanilla calibration and held-out rollouts of the `ebvla` runs,
+    then the camera perturbations of the `ebvla` runs in the order of `conditions`; the other policies (no
+    energy to calibrate a monitor on) get the held-out rollouts alone, their success beside ebvla's.
+
+    Without `calibration`, initial states [0, vanilla / 2) calibrate, [vanilla / 2, vanilla) are held out and
+    the perturbed rollouts start from the calibration's states. With it, states [0, calibration) calibrate,
+    `vanilla` held-out rollouts follow them, and the perturbed rollouts start from the held-out states, so that
+    a perturbed rollout and a held-out vanilla one differ only by the perturbation.
+    """
+    half = vanilla // 2 if calibration is None else calibration
+    heldout = vanilla - half if calibration is None else vanilla
+    perturbed_first = 0 if calibration is None else calibration
+    ebvla_runs = [run for run in runs if run.startswith("ebvla")]
+    other_runs = [run for run in runs if run not in ebvla_runs]
+
+    def vanilla_jobs(run: str) -> list[EvalJob]:
+        return [
+            job
+            for task in tasks
+            for job in (
+                EvalJob(run, "vanilla_calib", task, 0, half, 1000),
+                EvalJob(run, "vanilla_heldout", task, half, heldout, 2000),
+            )
+        ]
+
+    def camera_jobs(perturbation: str, severity: int) -> list[EvalJob]:
+        condition = f"{perturbation}{severity}"
+        return [
+            EvalJob(run, condition, task, perturbed_first, perturbed, 3000, perturbation, severity)
+            for run in ebvla_runs
+            for task in tasks
+        ]
+
+    # The other policies' vanilla success comes after the first two camera conditions: Table III needs those
+    # more, and it is the first thing a short slice drops.
+    queue = [job for run in ebvla_runs for job in vanilla_jobs(run)]
+    for perturbation, severity in conditions[:2]:
+        queue += camera_jobs(perturbation, severity)
+    queue += [job for run in other_runs for job in vanilla_jobs(run) if job.condition == "vanilla_heldout"]
+    for perturbation, severity in conditions[2:]:
+        queue += camera_jobs(perturbation, severity)
+    return queue
+
+
+def eval_command(work: Path, job: EvalJob, device: str, episode_length: int | None = None) -> list[str]:
+    """`ebvla-eval` (energy records with context features) for `ebvla`, `lerobot-eval` for other policies."""
+    program = "ebvla-eval" if job.run.startswith("ebvla") else "lerobot-eval"
+    # Rendered at the recorded size, so that the policy sees frames as in its data.
+    image_size = json.loads((work / "recording_summary.json").read_text())["image_size"]
+    cmd = [
+        bin_path(program),
+        f"--policy.path={last_checkpoint(work, job.run)}",
+        f"--policy.device={device}",
+        "--env.type=libero_ebvla",
+        f"--env.task={SUITE}",
+        f"--env.task_ids=[{job.task}]",
+        f"--env.first_init_state={job.first}",
+        f"--env.perturbation={job.perturbation}",
+        f"--env.perturbation_severity={job.severity}",
+        f"--env.observation_height={image_size}",
+        f"--env.observation_width={image_size}",
+        f"--eval.n_episodes={job.n}",
+        "--eval.batch_size=1",
+        f"--seed={job.seed}",
+        f"--output_dir={work / 'eval' / job.name}",
+    ]
+    if episode_length is not None:
+        cmd.append(f"--env.episode_length={episode_length}")
+    if program == "ebvla-eval":
+        cmd.append("--record_context_features=true")
+    return cmd
+
+
+def evaluate(
+    work: Path,
+    jobs: list[EvalJob],
+    device: str,
+    parallel: int,
+    deadline_s: float,
+    episode_length: int | None = None,
+) -> dict:
+    """Runs the queue `parallel` at a time until it is empty or `deadline_s` has passed; a job cut short is
+    removed, so that the next call runs it again. Returns {job name: status}."""
+    stop_at = time.time() + deadline_s
+    statuses = {}
+
+    def run_job(job: EvalJob) -> None:
+        folder = work / "eval" / job.name
+        if (folder / "eval_info.json").exists():
+            statuses[job.name] = "done before"
+            return
+        if last_checkpoint(work, job.run) is None or time.time() > stop_at - 30:
+            statuses[job.name] = "not run"
+            return
+        shutil.rmtree(folder, ignore_errors=True)
+        log = work / "logs" / "eval" / f"{job.name.replace('/', '_')}.log"
+        command = eval_command(work, job, device, episode_length)
+        status = run_logged(command, log, timeout_s=stop_at - time.time())
+        if status != 0 or not (folder / "eval_info.json").exists():
+            shutil.rmtree(folder, ignore_errors=True)
+        statuses[job.name] = (
+            "done" if status == 0 else ("cut at the deadline" if status == -1 else f"exit {status}")
+        )
+
+    with ThreadPoolExecutor(parallel) as pool:
+        list(pool.map(run_job, jobs))
+    counts = {s: sum(v == s for v in statuses.values()) for s in set(statuses.values())}
+    print(f"eval: {counts}")
+    return statuses
+
+
+def camera_check(work: Path, run: str, frames: int = 32) -> None:
+    """The camera check on dataset frames (both cameras blanked) of `run`'s checkpoint, into
+    `<work>/eval/<run>/camera_check.json`: read it before any claim about images."""
+    out = work / "eval" / run / "camera_check.json"
+    checkpoint = last_checkpoint(work, run)
+    if out.exists() or checkpoint is None:
+        return
+    from lerobot_policy_ebvla.monitoring.vision import checkpoint_camera_dependence
+
+    result = checkpoint_camera_dependence(str(checkpoint), str(work / "data" / "all"), REPO_ID, frames, 1000)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"summary": result.summary(), **vars(result)}, indent=1, default=str))
+    print(f"camera check {run}: {result.summary()}")
+
+
+# Pack and report ---------------------------------------------------------------------------------------------
+
+
+def light_checkpoint(run: str) -> bool:
+    """Whether a run's checkpoint is light enough to bring back and commit: the `ebvla` runs' (a few MB). Diffusion
+    Policy's (its U-Net and ResNet-18 with their optimizer state, hundreds of MB) is not, so it trains and is
+    evaluated within one slice."""
+    return run.startswith("ebvla")
+
+
+def pack(work: Path, archive: Path) -> None:
+    """Records (with their context features), eval infos, logs, summaries and the light `ebvla` runs' last
+    checkpoints (a few MB each) in one archive."""
+    archive.parent.mkdir(parents=True, exist_ok=True)
+    kept_names = ("eval_info.json", "camera_check.json", "recording_summary.json", "recording_report.json")
+    with tarfile.open(archive, "w:gz") as tar:
+        for path in sorted(work.rglob("*")):
+            relative = path.relative_to(work)
+            if relative.parts[0] == "train" or not path.is_file():
+                continue
+            if relative.parts[0] == "data" and path.name not in kept_names:
+                continue  # the frames, and the PNGs an interrupted recording leaves
+            if path.suffix in (".jsonl", ".npy", ".log", ".md", ".png") or path.name in kept_names:
+                tar.add(path, arcname=str(relative))
+        for run in RUNS:
+            checkpoint = last_checkpoint(work, run)
+            if light_checkpoint(run) and checkpoint is not None:
+                tar.add(checkpoint.resolve(), arcname=f"train/{run}/pretrained_model")
+    print(f"pack: {archive} ({archive.stat().st_size / 2**20:.1f} MiB)")
+
+
+def save_results(work: Path, results: Path) -> None:
+    """Copies what the next session needs to go on, and what a table is recomputed from, into `results` (a
+    folder to commit): the recording summaries, each light run's last checkpoint with its optimizer state
+    (resume; `light_checkpoint`), `DONE` markers, eval infos, gzip records with their context features, camera
+    checks, reports, timings.
+
+    The frames are not saved: `record` with the same `--placement_seed` makes the same dataset again.
+    """
+    from lerobot_policy_ebvla.monitoring.records import (
+        GZIP_SUFFIX,
+        read_energy_records,
+        records_file_in,
+        write_energy_records,
+    )
+
+    results.mkdir(parents=True, exist_ok=True)
+    small = ["recording_summary.json", "success.json", "timings.jsonl", "eval_status.json"]
+    small += [str(p.relative_to(work)) for p in work.glob("eval/*/camera_check.json")]
+    small += [str(p.relative_to(work)) for p in work.glob("eval/*/*/task*/eval_info.json")]
+    small += [str(p.relative_to(work)) for p in work.glob("train/*/DONE")]
+    small += [str(p.relative_to(work)) for p in work.glob("reports/**/*") if p.is_file()]
+    for name in small:
+        if (work / name).is_file():
+            (results / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(work / name, results / name)
+    # Under a name of their own: restored into data/, a piece's report would mark it recorded without its frames.
+    for report in work.glob("data/*/meta/recording_report.json"):
+        target = results / "recording_reports" / f"{report.parents[1].name}.json"
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(report, target)
+    for info in work.glob("eval/*/*/task*/eval_info.json"):
+        source = records_file_in(info.parent)
+        target = results / info.parent.relative_to(work) / "energy_records.jsonl.gz"
+        if source is not None and not target.exists():
+            records = read_energy_records(source)
+            if source.name.endswith(GZIP_SUFFIX):
+                shutil.copyfile(source, target)
+                features = source.with_name(source.name.replace(".jsonl.gz", ".features.npy.gz"))
+                if features.exists():
+                    shutil.copyfile(features, target.with_name(features.name))
+            else:
+                write_energy_records(target, records)
+    for run_dir in sorted((work / "train").glob("*")):
+        last = run_dir / "checkpoints" / "last"
+        if (
+            not light_checkpoint(run_dir.name)
+            or not (last / "pretrained_model" / "model.safetensors").exists()
+        ):
+            continue
+        target = results / "train" / run_dir.name / "last"
+        shutil.rmtree(target, ignore_errors=True)
+        shutil.copytree(last.resolve(), target)
+    print(f"save: {results}")
+
+
+def restore_results(results: Path, work: Path) -> None:
+    """The reverse of `save_results`: puts what `results` holds into `work` where `work` lacks it, so that every
+    stage resumes (training from the saved checkpoint, evaluation after the jobs already done)."""
+    for path in sorted(results.rglob("*")):
+        relative = path.relative_to(results)
+        if not path.is_file() or relative.parts[0] == "train" and "last" in relative.parts:
+            continue
+        target = work / relative
+        # The compressed copy of records `work` still holds uncompressed (the session that saved them) would
+        # leave two record files in one folder.
+        uncompressed = target.with_name(target.name.removesuffix(".gz"))
+        if not target.exists() and not (target.name.endswith(".gz") and uncompressed.exists()):
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(path, target)
+    for last in sorted(results.glob("train/*/last")):
+        checkpoints = work / "train" / last.parent.name / "checkpoints"
+        if (checkpoints / "last").exists():
+            continue
+        step = json.loads((last / "training_state" / "training_step.json").read_text())["step"]
+        shutil.copytree(last, checkpoints / f"{step:06d}")
+        (checkpoints / "last").symlink_to(f"{step:06d}")
+        # LeRobot resumes from the config the checkpoint names; it must point at this work folder.
+        config = checkpoints / f"{step:06d}" / "pretrained_model" / "train_config.json"
+        train_config = json.loads(config.read_text())
+        train_config["output_dir"] = str(work / "train" / last.parent.name)
+        train_config["dataset"]["root"] = str(work / "data" / "all")
+        config.write_text(json.dumps(train_config, indent=4))
+    print(f"restore: {results} -> {work}")
+
+
+def log_timing(work: Path, stage: str, seconds: float, args: list[str]) -> None:
+    """Appends a stage's wall time to `<work>/timings.jsonl` (the protocol's costs, stage by stage)."""
+    row = {
+        "stage": stage,
+        "seconds": round(seconds, 1),
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+    }
+    with open(work / "timings.jsonl", "a") as out:
+        out.write(json.dumps({**row, "args": args, "cpus": os.cpu_count()}) + "\n")
+
+
+def success_table(work: Path) -> dict:
+    """Success per run, condition and task from lerobot-eval's `eval_info.json` files."""
+    table: dict = {}
+    for info in sorted((work / "eval").glob("*/*/task*/eval_info.json")):
+        run, condition, task = info.parent.relative_to(work / "eval").parts
+        # lerobot-eval's multi-task layout: one entry per (suite, task id), each with its episodes' successes.
+        successes = [
+            bool(s) for t in json.loads(info.read_text())["per_task"] for s in t["metrics"]["successes"]
+        ]
+        table.setdefault(run, {}).setdefault(condition, {})[task] = [sum(successes), len(successes)]
+    return table
+
+
+def report(work: Path, runs: list[str], failure_calibration_shifts: tuple[str, ...] = ()) -> None:
+    """Success per task, Table III (ebvla-ood-report) and Table IV (ebvla-failure-report) of each run.
+
+    Table IV needs failures on both sides: a policy that rarely fails in vanilla gives its calibration none to
+    choose an alarm on. The rollouts under `failure_calibration_shifts` (perturbation names) then join the
+    calibration, and those under every other shift join the held-out episodes: the alarm is chosen on some
+    shifts and reported on others, never on the rollouts it was chosen on. Without them, Table IV is vanilla
+    calibration against held-out vanilla.
+    """
+    table = success_table(work)
+    (work / "success.json").write_text(json.dumps(table, indent=1))
+    for run, conditions in table.items():
+        for condition, tasks in sorted(conditions.items()):
+            wins, total = (sum(v[i] for v in tasks.values()) for i in (0, 1))
+            print(
+                f"{run:14} {condition:16} {wins:3}/{total:<3} "
+                + " ".join(f"{a}/{b}" for a, b in tasks.values())
+            )
+    for run in runs:
+        folder = work / "eval" / run
+        if not run.startswith("ebvla") or not (folder / "vanilla_calib").exists():
+            continue
+        # Each condition's records sit in one folder per task.
+        perturbed = sorted(
+            p.name for p in folder.glob("*") if p.is_dir() and not p.name.startswith("vanilla")
+        )
+        calibration, heldout = (str(folder / name / "task*") for name in ("vanilla_calib", "vanilla_heldout"))
+        if perturbed:
+            subprocess.run(
+                [
+                    bin_path("ebvla-ood-report"),
+                    f"--calibration=[{calibration}]",
+                    f"--vanilla=[{heldout}]",
+                    f"--ood=[{','.join(str(folder / name / 'task*') for name in perturbed)}]",
+                    f"--output_dir={work / 'reports' / run / 'ood'}",
+                ],
+                check=True,
+            )
+        failure_calibration, failure_heldout = [calibration], [heldout]
+        for name in perturbed if failure_calibration_shifts else []:
+            side = (
+                failure_calibration
+                if name.rstrip("0123456789") in failure_calibration_shifts
+                else failure_heldout
+            )
+            side.append(str(folder / name / "task*"))
+        subprocess.run(
+            [
+                bin_path("ebvla-failure-report"),
+                f"--calibration=[{','.join(failure_calibration)}]",
+                f"--records=[{','.join(failure_heldout)}]",
+                f"--output_dir={work / 'reports' / run / 'failure'}",
+            ],
+            check=True,
+        )
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "stage", choices=["record", "train", "stop", "eval", "pack", "report", "save", "restore"]
+    )
+    parser.add_argument("--work", type=Path, default=Path("outputs/libero_pipeline"))
+    parser.add_argument("--tasks", type=int, nargs="+", default=list(range(10)))
+    parser.add_argument("--episodes_per_task", type=int, default=22, help="expert attempts per task")
+    parser.add_argument("--image_size", type=int, default=128)
+    parser.add_argument("--parts", type=int, default=1, help="record: processes per task")
+    parser.add_argument(
+        "--max_steps", type=int, default=None, help="record: the expert's step cap (LeRobot's 280)"
+    )
+    parser.add_argument(
+        "--keep_failed", action="store_true", help="record: keep the expert's failed episodes"
+    )
+    parser.add_argument(
+        "--placement_seed",
+        type=int,
+        default=None,
+        help="record: start demonstrations from placements sampled with this seed (+ attempt), not from the "
+        "fixed initial states evaluation uses",
+    )
+    parser.add_argument(
+        "--use_videos", action="store_true", help="record: frames as video (a dataset small enough to travel)"
+    )
+    parser.add_argument("--jobs", type=int, default=10, help="processes side by side (record, eval)")
+    parser.add_argument("--runs", nargs="+", choices=list(RUNS), default=["ebvla_paper", "diffusion"])
+    parser.add_argument(
+        "--failure_calibration_shifts",
+        nargs="*",
+        default=[],
+        help="report: the perturbations whose rollouts join Table IV's calibration (the others' join its held-out "
+        "episodes); none: vanilla calibration only",
+    )
+    parser.add_argument("--steps", type=int, default=8000)
+    parser.add_argument("--batch_size", type=int, default=32)
+    parser.add_argument("--workers", type=int, default=5, help="loader processes per training")
+    parser.add_argument("--device", default="cuda")
+    parser.add_argument("--detach", action="store_true", help="train: return while the trainings run on")
+    parser.add_argument(
+        "--train_until_s", type=float, default=None, help="train: stop after this long (resume next call)"
+    )
+    parser.add_argument("--save_freq", type=int, default=None, help="train: steps between checkpoints")
+    parser.add_argument("--threads", type=int, default=2, help="train: torch threads per training")
+    parser.add_argument(
+        "--calibration",
+        type=int,
+        default=None,
+        help="eval: calibration episodes per task (states [0, N)); then --vanilla held-out ones and the "
+        "perturbed ones start from the held-out states. Default: --vanilla is split in half",
+    )
+    parser.add_argument(
+        "--vanilla", type=int, default=20, help="vanilla episodes per task and run (half calibrate)"
+    )
+    parser.add_argument("--perturbed", type=int, default=5, help="episodes per task and camera condition")
+    parser.add_argument(
+        "--deadline_s", type=float, default=480.0, help="eval: stop starting and cut jobs after this"
+    )
+    parser.add_argument(
+        "--conditions",
+        nargs="*",
+        default=[f"{p}:{s}" for p, s in CAMERA_CONDITIONS],
+        help="eval: camera conditions as perturbation:severity, in the order they are run",
+    )
+    parser.add_argument(
+        "--episode_length", type=int, default=None, help="eval: steps per episode (LeRobot's 280)"
+    )
+    parser.add_argument("--archive", type=Path, default=None, help="pack: the archive to write")
+    parser.add_argument(
+        "--results", type=Path, default=None, help="save / restore: the folder of committed products"
+    )
+    args = parser.parse_args(argv)
+    work = args.work.resolve()
+    work.mkdir(parents=True, exist_ok=True)
+    start = time.time()
+    if args.stage == "save":
+        save_results(work, args.results.resolve())
+    elif args.stage == "restore":
+        restore_results(args.results.resolve(), work)
+    elif args.stage == "record":
+        record(
+            work,
+            args.tasks,
+            args.episodes_per_task,
+            args.image_size,
+            args.jobs,
+            args.parts,
+            args.max_steps,
+            args.keep_failed,
+            args.placement_seed,
+            args.use_videos,
+        )
+    elif args.stage == "train":
+        train(
+            work,
+            args.runs,
+            args.steps,
+            args.batch_size,
+            args.device,
+            args.workers,
+            args.detach,
+            args.train_until_s,
+            args.save_freq,
+            args.threads,
+        )
+    elif args.stage == "stop":
+        stop_training(work)
+    elif args.stage == "eval":
+        start = time.time()
+        for run in args.runs:
+            if run.startswith("ebvla"):
+                camera_check(work, run)
+        conditions = [(c.split(":")[0], int(c.split(":")[1])) for c in args.conditions]
+        jobs = eval_jobs(args.runs, args.tasks, args.vanilla, args.perturbed, conditions, args.calibration)
+        remaining = args.deadline_s - (time.time() - start)
+        statuses = evaluate(work, jobs, args.device, args.jobs, remaining, args.episode_length)
+        (work / "eval_status.json").write_text(json.dumps(statuses, indent=1))
+    elif args.stage == "pack":
+        pack(work, args.archive or work / "libero_results.tar.gz")
+    else:
+        report(work, args.runs, tuple(args.failure_calibration_shifts))
+    if args.stage in ("record", "train", "eval", "report"):
+        log_timing(work, args.stage, time.time() - start, argv if argv is not None else sys.argv[1:])
+
+
+if __name__ == "__main__":
+    main()
