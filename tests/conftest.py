@@ -1,31 +1,11 @@
 """Shared fixtures: tiny policies and a tiny LeRobotDataset written locally (the Hub is not needed)."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 
 from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
-
-BENCHMARKS = Path(__file__).parents[1] / "research" / "benchmarks"
-
-
-def load_benchmark(name: str):
-    """The module of `research/benchmarks/<name>.py`, loaded with that folder on `sys.path` while it runs, so that its
-    imports of sibling scripts resolve as when it runs from there."""
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(BENCHMARKS))
-    return module
-
 
 TINY_HEAD = {"dim_model": 32, "n_heads": 2, "n_blocks": 2}
 IMAGE_SHAPE = (3, 64, 64)

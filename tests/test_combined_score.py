@@ -13,8 +13,7 @@ import torch
 
 from lerobot_policy_ebvla import EBVLAPolicy
 from lerobot_policy_ebvla.monitoring.baselines import fit_score_reference
-from lerobot_policy_ebvla.monitoring.metrics import auroc, format_auroc
-from lerobot_policy_ebvla.monitoring.ood import ood_detection_table
+from lerobot_policy_ebvla.monitoring.metrics import format_auroc
 from lerobot_policy_ebvla.monitoring.ood_report import OODReportConfig, write_ood_report
 from lerobot_policy_ebvla.monitoring.records import (
     load_episodes,
@@ -384,36 +383,6 @@ def test_the_report_saves_the_energy_and_context_calibration_its_tables_score(re
     ]
     np.testing.assert_allclose(scored, expected)
     assert f"| energy_and_context | 12 | {calibration.mu_v:.4g} | {calibration.sigma_v:.4g} |" in text
-
-
-# The committed records (research/results/metaworld_sweep_context_distance/combined_score.md).
-
-SWEEP = Path(__file__).parents[1] / "research" / "results" / "metaworld_sweep_context_distance" / "records"
-
-
-def test_the_combined_score_of_the_committed_sweep_catches_pose_3_which_neither_score_alone_does():
-    """combined_score.md, pose 3 (success 100% -> 60%): whole-episode AUROC final energy 0.800, mahalanobis
-    0.720, energy_and_context 0.960; Table III balanced accuracy at k = 1.0: 70.0%."""
-    calibration, vanilla, pose = (
-        load_episodes([SWEEP / name]) for name in ("calibration", "vanilla", "pose_s3")
-    )
-    reference = fit_score_reference(calibration)
-
-    def scores(episodes):
-        return [
-            episode_scores(episodes, n, reference=reference) for n in ("final_energy", "context_distance")
-        ]
-
-    statistics = CombinedStatistics.fit(*scores(calibration))
-    negatives, positives = statistics.combine(*scores(vanilla)), statistics.combine(*scores(pose))
-    assert [f"{auroc(a, b):.3f}" for a, b in zip(scores(vanilla), scores(pose), strict=True)] == [
-        "0.800",
-        "0.720",
-    ]
-    assert f"{auroc(negatives, positives):.3f}" == "0.960"
-    fit = OODCalibration.fit(statistics.combine(*scores(calibration)))
-    row = {r.multiplier: r for r in ood_detection_table(negatives, positives, calibration=fit)}[1.0]
-    assert f"{row.balanced_accuracy:.1%}" == "70.0%"
 
 
 def test_the_outcome_tables_show_what_knowing_the_conditions_alone_reaches(record_dirs, tmp_path):

@@ -17,6 +17,7 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 
 from lerobot_policy_ebvla import EBVLAPolicy, make_ebvla_pre_post_processors
 from lerobot_policy_ebvla.envs import libero_assets as installer
+from lerobot_policy_ebvla.envs.libero_configs import LiberoEBVLAEnv
 from tests.conftest import tiny_config
 
 EPISODE_STEPS = 8
@@ -370,3 +371,72 @@ def test_expert_grasps_a_long_box_clear_of_a_tall_neighbour_and_a_can_at_its_cen
         vec_env.close()
     assert bool(abs(grasp[0] - centre[0]) > 0.01) == slides
     assert low[0] < grasp[0] < high[0] and grasp[1] == pytest.approx(centre[1])
+
+
+# The options the LIBERO pipelines use (research/benchmarks/libero_pipeline.py): initial states, placements and
+# frame sizes.
+
+
+def test_placement_seed_turns_the_fixed_initial_states_off():
+    from lerobot_policy_ebvla.recording.libero import RecordLiberoConfig
+
+    assert RecordLiberoConfig().env.init_states
+    assert not RecordLiberoConfig(placement_seed=100000).env.init_states
+    with pytest.raises(ValueError, match="`placement_seed` must be >= 0"):
+        RecordLiberoConfig(placement_seed=-1)
+
+
+@requires_libero
+@pytest.mark.slow
+def test_sampled_placements_repeat_with_their_seed_and_are_none_of_the_fixed_initial_states(monkeypatch):
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    from lerobot.envs.libero import get_task_init_states
+
+    from lerobot_policy_ebvla.lerobot_private import get_libero_suite
+
+    cfg = LiberoEBVLAEnv(task_ids=[2], init_states=False, observation_height=32, observation_width=32)
+    vec_env = cfg.create_envs(n_envs=1)["libero_object"][2]
+    env = vec_env.envs[0]
+    try:
+        scenes = []
+        for seed in (100000, 100000, 100001):
+            env.reset(seed=seed)
+            scenes.append(env._env.sim.get_state().flatten().copy())
+        fixed = np.asarray(get_task_init_states(get_libero_suite("libero_object"), 2))
+    finally:
+        vec_env.close()
+    np.testing.assert_array_equal(scenes[0], scenes[1])
+    assert not np.allclose(scenes[0], scenes[2])
+    # Objects (the state past the robot's joints) differ from every one of LIBERO's fixed initial states.
+    n = min(fixed.shape[1], scenes[0].size)
+    assert np.abs(fixed[:, 10:n] - scenes[0][10:n]).max(axis=1).min() > 1e-3
+
+
+def test_first_init_state_must_not_be_negative():
+    with pytest.raises(ValueError, match="`first_init_state` must be >= 0"):
+        LiberoEBVLAEnv(first_init_state=-1)
+
+
+def test_first_init_state_reaches_the_env_factory():
+    assert LiberoEBVLAEnv().gym_kwargs["first_init_state"] == 0
+    assert LiberoEBVLAEnv(first_init_state=10).gym_kwargs["first_init_state"] == 10
+
+
+def test_recorder_renders_at_its_image_size_and_refuses_tiny_frames():
+    from lerobot_policy_ebvla.recording.libero import RecordLiberoConfig
+
+    cfg = RecordLiberoConfig(image_size=64)
+    assert (cfg.env.observation_height, cfg.env.observation_width) == (64, 64)
+    with pytest.raises(ValueError, match="`image_size` must be >= 16"):
+        RecordLiberoConfig(image_size=8)
+
+
+def test_dataset_cameras_have_the_recorded_image_size():
+    from lerobot_policy_ebvla.recording.libero import dataset_features
+
+    cameras = ("observation.images.image", "observation.images.image2")
+    features = dataset_features(False, 128)
+    assert [(features[key]["dtype"], features[key]["shape"]) for key in cameras] == [
+        ("image", (128, 128, 3))
+    ] * 2
+    assert [dataset_features(True)[key]["shape"] for key in cameras] == [(256, 256, 3)] * 2

@@ -1,7 +1,5 @@
 """Real-time chunking (RTC): the next chunk inpaints the previous chunk's leftover on the energy landscape."""
 
-import math
-
 import numpy as np
 import pytest
 import torch
@@ -11,7 +9,7 @@ from lerobot.policies.rtc.configuration_rtc import RTCConfig
 from lerobot_policy_ebvla import EBVLAPolicy
 from lerobot_policy_ebvla import modeling_ebvla as modeling
 from lerobot_policy_ebvla.mcmc import RTCPrefix, refine_actions, sample_initial_actions
-from tests.conftest import load_benchmark, tiny_batch, tiny_config
+from tests.conftest import tiny_batch, tiny_config
 from tests.test_mcmc import TARGET, quadratic
 
 CHUNK, HORIZON = 8, 6
@@ -208,24 +206,6 @@ def test_zero_rows_lerobot_pads_the_leftover_with_are_not_guided(leftover):
     actions, _ = chunk(policy, batch, inference_delay=1, prev_chunk_left_over=padded)
     unpadded, _ = chunk(policy, batch, inference_delay=1, prev_chunk_left_over=leftover[:, :3])
     assert torch.equal(actions, unpadded)
-
-
-def test_the_metaworld_benchmark_measures_both_arms_at_each_latency(tmp_path):
-    pytest.importorskip("metaworld")
-    from tests.test_ood_response import metaworld_config, save_checkpoint
-
-    benchmark = load_benchmark("rtc_metaworld")
-    checkpoint = save_checkpoint(tmp_path, metaworld_config(), None, action_dim=4, state_dim=4)
-    rows = benchmark.run(checkpoint, task="reach-v3", episodes=1, max_episode_steps=8, latencies=(1,))
-    assert [(r["latency"], r["arm"]) for r in rows] == [(1, "naive"), (1, "rtc")]
-    for row in rows:
-        # chunk_size 4, the next chunk asked for at 2 actions left: a switch every 2 steps after the first chunk.
-        assert row["switches"] == 3
-        assert math.isfinite(row["mean_jump"]) and math.isfinite(row["mean_final_energy"])
-    naive, rtc = rows
-    assert rtc["mean_jump"] < naive["mean_jump"]
-    with pytest.raises(ValueError, match="Latencies must be"):
-        benchmark.run(checkpoint, task="reach-v3", episodes=1, max_episode_steps=8, latencies=(2,))
 
 
 def test_a_leftover_made_under_inference_mode_is_inpainted_as_in_lerobot_eval(leftover):

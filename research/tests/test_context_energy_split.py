@@ -10,8 +10,7 @@ from lerobot_policy_ebvla.monitoring.records import (
     EnergyRecord,
     write_energy_records,
 )
-
-from .conftest import load_benchmark
+from research.tests.conftest import load_benchmark
 
 split = load_benchmark("context_energy_split")
 

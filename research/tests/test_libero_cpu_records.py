@@ -1,15 +1,15 @@
-"""The LIBERO-Object two-core figures (BENCHMARKS.md section 13, issue 33), recomputed from the committed records."""
+"""The LIBERO-Object two-core figures (research/docs/benchmarks_history.md section 13, issue 33), recomputed from the committed records."""
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from lerobot_policy_ebvla.monitoring.metrics import auroc
 from lerobot_policy_ebvla.monitoring.records import group_by_episode, read_energy_records, records_file_in
+from research.tests.conftest import RESULTS
 
-EVAL = Path(__file__).parents[1] / "research" / "results" / "libero_cpu" / "eval" / "ebvla_cpu"
+EVAL = RESULTS / "libero_cpu" / "eval" / "ebvla_cpu"
 SHIFTS = [f"{p}{s}" for p in ("pose", "distance", "rotation", "fov") for s in (5, 3, 1)] + ["light_dim5"]
 
 

@@ -20,11 +20,9 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import load_benchmark
+from research.tests.conftest import ROOT as REPO
+from research.tests.conftest import load_benchmark
 from tests.test_libero import requires_libero
-
-REPO = Path(__file__).parents[1]
-
 
 gpu_bundle = load_benchmark("gpu_bundle")
 PART_MIB = 40.0

@@ -2,14 +2,12 @@
 recomputed from its committed records by the script that printed it."""
 
 import json
-from pathlib import Path
 
 import pytest
 
-from tests.conftest import load_benchmark
+from research.tests.conftest import RESULTS, load_benchmark
 
-ROOT = Path(__file__).parents[1]
-RESULTS = ROOT / "research" / "results" / "metaworld_best_of_n"
+BEST_OF_N = RESULTS / "metaworld_best_of_n"
 
 
 @pytest.fixture(scope="module")
@@ -19,7 +17,7 @@ def script():
 
 @pytest.fixture(scope="module")
 def results(script):
-    return script.table(RESULTS)[1]
+    return script.table(BEST_OF_N)[1]
 
 
 def pooled(rows: dict) -> tuple[int, int]:
@@ -56,16 +54,16 @@ def test_the_chunks_compute_is_what_each_variant_asked_for(results):
     # Adaptive: one chain, or 8 where the first chunk's energy was above the calibration's 75th percentile.
     chains = [rows["chains_per_chunk"] for rows in results["adaptive_8"].values()]
     assert min(chains) > 1 and max(chains) < 8
-    threshold = json.loads((RESULTS / "adaptive_8" / "threshold.json").read_text())
+    threshold = json.loads((BEST_OF_N / "adaptive_8" / "threshold.json").read_text())
     assert threshold["quantile"] == 0.75 and threshold["from"] == "restarts_1/calibration"
 
 
 def test_the_threshold_is_the_calibrations_quantile(script):
     class Args:
-        output_dir = RESULTS
+        output_dir = BEST_OF_N
         adaptive_quantile = 0.75
 
-    saved = json.loads((RESULTS / "adaptive_8" / "threshold.json").read_text())["threshold"]
+    saved = json.loads((BEST_OF_N / "adaptive_8" / "threshold.json").read_text())["threshold"]
     assert script.adaptive_threshold(Args) == pytest.approx(saved, rel=1e-6)
 
 
