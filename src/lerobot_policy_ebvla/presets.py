@@ -14,25 +14,25 @@ LIGHT_POLICY: dict[str, Any] = {
     # below the batch's other chunks is what made it read the camera and its energy react.
     "state_dropout": 0.5,
     # Weight 0.2, not the study's 0.1: over five paired seeds of the quickstart, its energy separated both camera
-    # shifts (AUROC >= 0.9) on 4 against 3, and its camera check was higher on 4 (BENCHMARKS.md, section 7).
+    # shifts (AUROC >= 0.9) on 4 against 3, and its camera check was higher on 4 (research/docs/benchmarks_history.md, section 7).
     "energy_contrastive_weight": 0.2,
     "dim_model": 128,
     "n_heads": 4,
     "n_blocks": 2,
     # A SwiGLU FFN of 2D instead of the paper's 4D: the FFN is two thirds of the head's work, and the head runs
     # on every contrastive candidate; a training step costs about 11% less, and in the quickstart's 1000 steps it
-    # kept the energy's separation of both shifts on two seeds where the 4D head lost part of it (BENCHMARKS.md,
-    # section 7).
+    # kept the energy's separation of both shifts on two seeds where the 4D head lost part of it
+    # (research/docs/benchmarks_history.md, section 7).
     "ffn_multiplier": 2,
     # The contrastive term is half of a light training step; its head pass in bf16 where the CPU (or GPU)
     # multiplies bf16 natively takes a step from about 231 to 198 ms on an AMD EPYC with AVX512-BF16, and is
-    # fp32 elsewhere (BENCHMARKS.md, section 7, fourth round).
+    # fp32 elsewhere (research/docs/benchmarks_history.md, section 7, fourth round).
     "energy_contrastive_dtype": "auto",
     "train_mcmc_steps_range": (2, 4),
     # The joint energy E(a, C) + E_c(C), E_c on its own copy of the backbone, trained by a margin on generic
     # corruptions (issue 32): without it the final energy fell *below* vanilla under lighting and colour shifts
     # that made the policy fail. Over five training seeds of this preset its final energy pooled 0.91-0.95 over
-    # 26 sweep conditions, where the context k-NN pooled 0.77-0.92 (BENCHMARKS.md, section 16); it still misses
+    # 26 sweep conditions, where the context k-NN pooled 0.77-0.92 (research/docs/benchmarks_history.md, section 16); it still misses
     # mild blur and light direction. The policy's backbone and head train and refine exactly as without it; it
     # costs a second backbone pass per chunk and two per training step.
     "energy_ood_margin_on": "observation",

@@ -140,7 +140,7 @@ class OODReportConfig:
     calibration: list[str] = field(default_factory=list)
     # Fit on the calibration rollouts that succeeded only. A failed vanilla rollout can drift far from the
     # others (the arm astray): with few calibration rollouts it inflates sigma_v, and the context distance's
-    # threshold then flags nothing (BENCHMARKS.md section 6, the sweep).
+    # threshold then flags nothing (research/docs/benchmarks_history.md section 6, the sweep).
     calibration_successes_only: bool = False
     # Held-out vanilla rollouts (other seeds than the calibration's): the negatives.
     vanilla: list[str] = field(default_factory=list)

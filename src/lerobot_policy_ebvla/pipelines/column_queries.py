@@ -5,7 +5,7 @@ LeRobot 0.6.1's `DatasetReader` fetches a sample's delta rows (its chunk of `chu
 `hf_transform_to_torch`) answers that by formatting whole rows, so on a dataset that stores its frames as images
 every sample decodes `chunk_size` frames per camera only to read the action column (LeRobot issue #4392; fixed
 upstream by PR #4314, after 0.6.1). On the quickstart's 64 px dataset a sample took 4.1 ms instead of 0.6, and
-a training step of batch 16 on two cores 226 ms instead of 182 (BENCHMARKS.md, section 7).
+a training step of batch 16 on two cores 226 ms instead of 182 (research/docs/benchmarks_history.md, section 7).
 
 `read_delta_rows_from_columns(dataset)` answers those queries, for that one dataset object, from
 `select_columns` views of the one queried column (a projection of the Arrow table, no copy), with the same

@@ -65,7 +65,7 @@ class QuickstartConfig:
     record_episodes: int = 10
     # Side of the square images stored in the dataset (the policy resizes them to `policy.resize_shape`). The
     # light policy's own 64 px: LeRobot's loader decodes every stored frame of a sample's action chunk, so
-    # frames stored at the size the policy sees halve the loader's time (BENCHMARKS.md, section 7).
+    # frames stored at the size the policy sees halve the loader's time (research/docs/benchmarks_history.md, section 7).
     image_size: int = 64
     # Side of the frames MetaWorld renders, in recording and in evaluation alike (`--env.observation_size`;
     # LeRobot's env renders 480 px). Frames are resized to `image_size` when recorded; a smaller frame renders

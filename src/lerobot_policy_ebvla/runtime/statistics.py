@@ -27,8 +27,8 @@ from .threshold import ArrayLike, MeanStd, as_array
 # Which nearest vanilla context the context k-NN distance measures to, unless told. The nearest: vanilla
 # rollouts differ mostly by where the scene's objects start, so a vanilla chunk has a close twin among the
 # calibration chunks while a shifted one does not; from the 5th the spread of starting scenes drowns a small
-# shift (a distractor: AUROC 0.65 / 0.74 on the first 3 chunks at k = 5, 0.98 / 1.00 at k = 1; BENCHMARKS.md,
-# section 6).
+# shift (a distractor: AUROC 0.65 / 0.74 on the first 3 chunks at k = 5, 0.98 / 1.00 at k = 1;
+# research/docs/benchmarks_history.md, section 6).
 DEFAULT_KNN_K = 1
 # sigma_v[t] is at least this fraction of the pooled sigma of all vanilla chunk energies.
 PHASE_SIGMA_FLOOR = 0.1
