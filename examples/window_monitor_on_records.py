@@ -20,11 +20,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import draccus
-import numpy as np
 
 from lerobot_policy_ebvla.monitoring.records import load_episodes
 from lerobot_policy_ebvla.monitoring.window_report import score_sets
-from lerobot_policy_ebvla.runtime import WindowTypicalityMonitor
+from lerobot_policy_ebvla.runtime import EnergyReadout, WindowTypicalityMonitor
 
 RECORDS = (
     Path(__file__).resolve().parents[1]
@@ -60,8 +59,9 @@ def main(cfg: WindowExampleConfig) -> None:
     for chunks in ordered:
         chunks = chunks[: cfg.first_chunks]
         decision = monitor.add_rollout(
-            np.array([c.final_energy for c in chunks]),
-            context_energies=np.array([c.context_energy for c in chunks]),
+            EnergyReadout.of_arrays(
+                [c.final_energy for c in chunks], context_energy=[c.context_energy for c in chunks]
+            )
         )
         episode = chunks[0].episode_index
         if decision is None:

@@ -22,6 +22,7 @@ from lerobot_policy_ebvla.monitoring.scores import episode_chunk_scores, episode
 from lerobot_policy_ebvla.runtime import EnergyOODError
 from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
 from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
+from lerobot_policy_ebvla.runtime.readout import EnergyReadout
 from lerobot_policy_ebvla.runtime.scores import CONTEXT_FILE, NEIGHBOURS_FILE, SCORES, ContextKNN
 from lerobot_policy_ebvla.runtime.statistics import ContextNeighbours
 from lerobot_policy_ebvla.scripts import ood_report
@@ -115,14 +116,16 @@ def test_a_context_knn_calibration_scores_a_chunk_by_its_knn_distance():
     calibration = knn_calibration()
     features = np.array([[0.0, 0.0, 0.0, 0.0], [5.0, 5.0, 5.0, 5.0]])
     np.testing.assert_allclose(
-        calibration.chunk_score(torch.tensor([9.0, 9.0]), context_features=torch.from_numpy(features)),
+        calibration.chunk_score(
+            EnergyReadout.of_arrays(torch.tensor([9.0, 9.0]), 0, torch.from_numpy(features))
+        ),
         calibration.score.neighbours.distance(features),
     )
 
 
 def test_a_context_knn_calibration_needs_the_context_features():
     with pytest.raises(ValueError, match="context_knn score needs each chunk's pooled context"):
-        knn_calibration().chunk_score(1.0, chunk_index=0)
+        knn_calibration().chunk_score(EnergyReadout.of_arrays(1.0, 0))
 
 
 def test_a_context_knn_calibration_needs_its_neighbours():
@@ -235,14 +238,16 @@ def calibrated_monitor() -> EnergyOODMonitor:
 def test_the_monitor_passes_an_in_distribution_context_and_flags_a_shifted_one():
     monitor = calibrated_monitor()
     centre = monitor.calibration.score.neighbours.mean
-    assert monitor.check(0.0, context_features=centre).in_distribution
-    assert monitor.check(0.0, context_features=centre + 4.0).is_ood
+    assert monitor.check(EnergyReadout.of_arrays(0.0, 0, centre))[0].in_distribution
+    assert monitor.check(EnergyReadout.of_arrays(0.0, 0, centre + 4.0))[0].is_ood
 
 
 def test_the_monitor_scores_each_environments_chunk_by_its_knn_distance():
     monitor = calibrated_monitor()
     features = np.array([[0.0, 0.0, 0.0, 0.0], [5.0, 5.0, 5.0, 5.0]])
-    decisions = monitor.update(torch.tensor([9.0, 9.0]), context_features=features)
+    decisions = monitor.update(
+        EnergyReadout(None, torch.tensor([9.0, 9.0]), context_features=torch.from_numpy(features))
+    )
     expected = monitor.calibration.score.neighbours.distance(features)
     assert [d.energy for d in decisions] == pytest.approx(expected.tolist())
     assert [d.is_ood for d in decisions] == [False, True]
@@ -298,7 +303,8 @@ def test_ood_report_saves_a_context_knn_calibration_of_the_reports_knn_score(rec
     held_out = episode_chunk_scores(vanilla, "context_knn", reference)
     for key, episode in vanilla.items():
         energies = [r.final_energy for r in episode]
-        decision = monitor.check_rollout(energies, np.stack([r.context_feature for r in episode]))
+        features = np.stack([r.context_feature for r in episode])
+        decision = monitor.check_rollout(EnergyReadout.of_arrays(energies, context_features=features))
         assert decision.energy == pytest.approx(held_out[key].mean(), rel=1e-12)
 
 

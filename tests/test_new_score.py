@@ -23,6 +23,7 @@ from lerobot_policy_ebvla.runtime import (
     OODCalibration,
     VanillaRollouts,
 )
+from lerobot_policy_ebvla.runtime.readout import EnergyReadout
 
 from .conftest import tiny_config, write_calibration_vanilla_and_ood
 
@@ -115,11 +116,13 @@ def test_a_registered_score_is_saved_loaded_and_monitored_as_the_report_scores_i
     monitor = EnergyOODMonitor(calibration)
     for episode in held_out.values():
         expected = np.mean((energies(episode) - calibration.score.mean) / calibration.score.std)
-        assert monitor.check_rollout(energies(episode)).energy == pytest.approx(expected)
+        assert monitor.check_rollout(EnergyReadout.of_arrays(energies(episode))).energy == pytest.approx(
+            expected
+        )
     first = energies(next(iter(held_out.values())))
-    for energy in first:
-        running = monitor.update(torch.tensor([energy]))
-    assert running[0].energy == pytest.approx(monitor.check_rollout(first).energy)
+    for index, energy in enumerate(first):
+        running = monitor.update(EnergyReadout(None, torch.tensor([energy]), chunk_index=index))
+    assert running[0].energy == pytest.approx(monitor.check_rollout(EnergyReadout.of_arrays(first)).energy)
 
 
 def test_the_policy_responds_to_a_registered_score(registered, record_dirs, tmp_path):
@@ -127,7 +130,7 @@ def test_the_policy_responds_to_a_registered_score(registered, record_dirs, tmp_
     response = EnergyOODResponse(tiny_config(ood_response="raise"), calibration.with_k(0.0))
     actions = torch.zeros(2, 3, 2)
     in_distribution = torch.full((2,), calibration.score.mean)
-    _, decision = response(actions, in_distribution, {})
+    _, decision = response(actions, EnergyReadout(None, in_distribution), {})
     assert not decision.is_ood
     with pytest.raises(EnergyOODError, match=PooledEnergyZ.name):
-        response(actions, in_distribution + 10 * calibration.score.std, {})
+        response(actions, EnergyReadout(None, in_distribution + 10 * calibration.score.std), {})

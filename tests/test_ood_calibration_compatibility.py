@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lerobot_policy_ebvla.runtime import SCORES, EnergyOODMonitor, OODCalibration
+from lerobot_policy_ebvla.runtime import SCORES, EnergyOODMonitor, EnergyReadout, OODCalibration
 
 FIXTURES = sorted((Path(__file__).parent / "fixtures").glob("ood_calibration_v*/*"))
 
@@ -22,11 +22,11 @@ def test_a_saved_calibration_loads_and_scores_chunks_as_it_did(folder):
     energies, index, features = (np.array(v) for v in expected["probe"].values())
     calibration = OODCalibration.load(folder)
     assert calibration.score.name == folder.name
-    np.testing.assert_allclose(calibration.chunk_score(energies, index, features), expected["chunk_scores"])
-    assert calibration.chunk_score(energies[0], 0, features[0]) == pytest.approx(
-        expected["first_chunk_score"]
-    )
-    components = calibration.chunk_components(energies, index, features)
+    probe = EnergyReadout.of_arrays(energies, index, features)
+    np.testing.assert_allclose(calibration.chunk_score(probe), expected["chunk_scores"])
+    first = calibration.chunk_score(EnergyReadout.of_arrays(energies[0], 0, features[0]))
+    assert first == pytest.approx([expected["first_chunk_score"]])
+    components = calibration.chunk_components(probe)
     np.testing.assert_allclose(components, expected["chunk_components"])
     assert calibration.score_rollout(components) == pytest.approx(expected["rollout_score"])
     assert calibration.threshold == pytest.approx(expected["threshold"])
@@ -42,10 +42,9 @@ def test_a_saved_calibration_saved_again_loads_the_same(folder, tmp_path):
     probe = json.loads((folder / "expected.json").read_text())["probe"]
     energies, index, features = (np.array(v) for v in probe.values())
     monitor = EnergyOODMonitor(again)
-    decision = monitor.check_rollout(energies, features)
-    assert decision.energy == pytest.approx(
-        EnergyOODMonitor(calibration).check_rollout(energies, features).energy
-    )
+    rollout = EnergyReadout.of_arrays(energies, context_features=features)
+    decision = monitor.check_rollout(rollout)
+    assert decision.energy == pytest.approx(EnergyOODMonitor(calibration).check_rollout(rollout).energy)
 
 
 def test_there_is_a_fixture_of_every_score_of_v0_1_0():

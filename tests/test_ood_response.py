@@ -14,8 +14,14 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 from lerobot_policy_ebvla import EBVLAPolicy, make_ebvla_pre_post_processors
-from lerobot_policy_ebvla.runtime import EnergyOODError, EnergyOODResponse, OODCalibration, PhaseStatistics
-from lerobot_policy_ebvla.runtime.scores import PhaseEnergy
+from lerobot_policy_ebvla.runtime import (
+    EnergyOODError,
+    EnergyOODResponse,
+    EnergyReadout,
+    OODCalibration,
+    PhaseStatistics,
+)
+from lerobot_policy_ebvla.runtime.scores import ContextPhaseEnergy
 from tests.conftest import tiny_batch, tiny_config
 
 BELOW_ALL_ENERGIES = OODCalibration(mu_v=-1e6, sigma_v=0.0)
@@ -236,7 +242,7 @@ def test_non_finite_energy_is_held_whatever_the_threshold():
     config = tiny_config(ood_response="hold", hold_action="zero_delta")
     response = EnergyOODResponse(config, ABOVE_ALL_ENERGIES, hold_action=_zeros())
     actions = torch.ones(2, 3, 2)
-    held, decision = response(actions, torch.tensor([1.0, math.inf]), {})
+    held, decision = response(actions, EnergyReadout(None, torch.tensor([1.0, math.inf])), {})
     assert decision.held.tolist() == [False, True]
     assert torch.equal(held[0], actions[0]) and torch.equal(held[1], torch.zeros(3, 2))
 
@@ -273,15 +279,16 @@ def test_energy_records_count_the_held_chunks(metaworld_env, checkpoints, checkp
 
 
 def test_a_phase_calibration_compares_each_chunk_with_the_vanilla_energy_at_its_index():
-    # Vanilla energies fall from 0 at the first chunk to -10 at the second: -5 is normal early, not late.
-    phase = PhaseEnergy(PhaseStatistics((0.0, -10.0), (1.0, 1.0)))
+    # Vanilla E_c falls from 0 at the first chunk to -10 at the second: -5 is normal early, not late.
+    phase = ContextPhaseEnergy(PhaseStatistics((0.0, -10.0), (1.0, 1.0)))
     calibration = OODCalibration(mu_v=0.0, sigma_v=1.0, k=1.0, score=phase)
     response = EnergyOODResponse(tiny_config(ood_response="raise"), calibration)
-    actions, energy = torch.zeros(1, 3, 2), torch.tensor([-5.0])
-    _, decision = response(actions, energy, {}, chunk_index=0)
+    actions, energy = torch.zeros(1, 3, 2), torch.tensor([0.0])
+    chunk = EnergyReadout(None, energy, context_energy=torch.tensor([-5.0]), chunk_index=0)
+    _, decision = response(actions, chunk, {})
     assert not decision.flagged.any()
-    with pytest.raises(EnergyOODError, match="phase_energy 5"):
-        response(actions, energy, {}, chunk_index=1)
+    with pytest.raises(EnergyOODError, match="context_phase_energy 5"):
+        response(actions, dataclasses.replace(chunk, chunk_index=1), {})
 
 
 def test_the_policy_counts_its_chunks_per_episode():
@@ -289,7 +296,8 @@ def test_the_policy_counts_its_chunks_per_episode():
     policy = EBVLAPolicy(tiny_config())
     batch = tiny_batch(policy.config, with_action=False)
     policy.predict_action_chunk(batch)
+    first = policy.last_energy
     policy.predict_action_chunk(batch)
-    assert policy.chunk_index == 2
+    assert (first.chunk_index, policy.last_energy.chunk_index, policy.chunk_index) == (0, 1, 2)
     policy.reset()
     assert policy.chunk_index == 0

@@ -17,6 +17,7 @@ from lerobot_policy_ebvla.monitoring.ood_report import (
     write_ood_report,
 )
 from lerobot_policy_ebvla.runtime import SCORES, EnergyOODMonitor, OODCalibration, VanillaRollouts
+from lerobot_policy_ebvla.runtime.readout import EnergyReadout
 from lerobot_policy_ebvla.runtime.scores import (
     ChunkInputs,
     ContextEnergy,
@@ -37,6 +38,11 @@ from .conftest import write_calibration_vanilla_and_ood, write_records
 N_CHUNKS, DIM = 6, 4
 
 
+def chunk_inputs(*arrays) -> ChunkInputs:
+    """Recorded chunks as the scores read them (`EnergyReadout.of_arrays`'s arguments)."""
+    return ChunkInputs.of(EnergyReadout.of_arrays(*arrays))
+
+
 def vanilla(n=12, seed=0) -> VanillaRollouts:
     """Vanilla rollouts whose final energy falls with the task's phase (5, 4.8, ...), whose contexts are
     standard normal and whose joint energy's context term E_c is near 0."""
@@ -46,7 +52,7 @@ def vanilla(n=12, seed=0) -> VanillaRollouts:
     features = [rng.normal(0, 1, (N_CHUNKS, DIM)) for _ in range(n)]
     context_energies = [rng.normal(0, 0.1, N_CHUNKS) for _ in range(n)]
     series = zip(energies, features, context_energies, strict=True)
-    return VanillaRollouts([ChunkInputs.of(e, np.arange(N_CHUNKS), c, ec) for e, c, ec in series])
+    return VanillaRollouts([chunk_inputs(e, np.arange(N_CHUNKS), c, ec) for e, c, ec in series])
 
 
 def calibrated(score_class, rollouts: VanillaRollouts) -> OODCalibration:
@@ -61,7 +67,9 @@ def calibrated(score_class, rollouts: VanillaRollouts) -> OODCalibration:
 def rollout_score(calibration: OODCalibration, energies, features=None, context_energy=None) -> float:
     features = np.zeros((len(energies), DIM)) if features is None else features
     context_energy = np.zeros(len(energies)) if context_energy is None else context_energy
-    components = calibration.chunk_components(energies, np.arange(len(energies)), features, context_energy)
+    components = calibration.chunk_components(
+        EnergyReadout.of_arrays(energies, None, features, context_energy)
+    )
     return calibration.score_rollout(components)
 
 
@@ -93,8 +101,8 @@ def test_the_two_sided_phase_energy_is_the_magnitude_of_the_phase_energy():
     rollouts = vanilla()
     one, two = PhaseEnergy.fit(rollouts), PhaseEnergyTwoSided.fit(rollouts)
     energies = np.array([4.0, 5.5, 3.0])
-    z = one.components(ChunkInputs.of(energies, np.arange(3)))
-    assert two.components(ChunkInputs.of(energies, np.arange(3))) == pytest.approx(z)
+    z = one.components(chunk_inputs(energies, np.arange(3)))
+    assert two.components(chunk_inputs(energies, np.arange(3))) == pytest.approx(z)
     assert score_rollout(two, z, "mean") == pytest.approx(abs(z.mean()))
 
 
@@ -111,7 +119,7 @@ def test_the_phase_energy_deviation_flags_a_rollout_on_both_sides_that_the_aggre
     both_sides = np.array(phase.mean[:N_CHUNKS]) + z_t * np.array(phase.std[:N_CHUNKS])
     assert rollout_score(aggregate, both_sides) < aggregate.threshold
     assert rollout_score(deviation, both_sides) > deviation.threshold
-    chunks = ChunkInputs.of(both_sides, np.arange(N_CHUNKS))
+    chunks = chunk_inputs(both_sides, np.arange(N_CHUNKS))
     assert deviation.score.components(chunks)[:, 0] == pytest.approx(np.abs(z_t))
 
 
@@ -143,7 +151,9 @@ def test_a_two_sided_calibration_is_saved_and_loaded_back_and_monitors_the_same(
     energies, context_energy = np.full(N_CHUNKS, 3.0), np.full(N_CHUNKS, -2.0)
     features = np.ones((N_CHUNKS, DIM))
     expected = rollout_score(calibration, energies, features, context_energy)
-    decision = EnergyOODMonitor(loaded).check_rollout(energies, features, context_energy)
+    decision = EnergyOODMonitor(loaded).check_rollout(
+        EnergyReadout.of_arrays(energies, None, features, context_energy)
+    )
     assert decision.energy == pytest.approx(expected) and decision.is_ood
 
 
@@ -275,7 +285,7 @@ def rising_context_energy_rollouts() -> tuple[np.ndarray, VanillaRollouts]:
     rising = 0.5 * np.arange(N_CHUNKS)
     return rising, VanillaRollouts(
         [
-            ChunkInputs.of(
+            chunk_inputs(
                 np.zeros(N_CHUNKS), np.arange(N_CHUNKS), None, rising + rng.normal(0, 0.05, N_CHUNKS)
             )
             for _ in range(12)
@@ -291,7 +301,7 @@ def test_the_two_sided_context_energy_compares_each_chunk_with_vanilla_at_its_in
     np.testing.assert_allclose(calibration.score.phase.mean[:N_CHUNKS], rising, atol=0.05)
     energies = np.zeros(N_CHUNKS)
     flat = np.full(N_CHUNKS, rising.mean())
-    first_three = ChunkInputs.of(energies[:3], np.arange(3), None, flat[:3])
+    first_three = chunk_inputs(energies[:3], np.arange(3), None, flat[:3])
     assert calibration.score_rollout(calibration.score.components(first_three)) > calibration.threshold
     assert rollout_score(calibration, energies, context_energy=rising) < calibration.threshold
 
@@ -309,7 +319,7 @@ def test_the_one_sided_context_phase_energy_is_the_signed_z_the_two_sided_form_t
     for offset in (-1.0, 1.0):
         shifted = rising + offset
         z = one.score_rollout(
-            one.score.components(ChunkInputs.of(energies, np.arange(N_CHUNKS), None, shifted))
+            one.score.components(chunk_inputs(energies, np.arange(N_CHUNKS), None, shifted))
         )
         assert np.sign(z) == offset
         assert rollout_score(two, energies, context_energy=shifted) == pytest.approx(abs(z))
@@ -327,7 +337,7 @@ def test_the_head_energy_score_reads_the_final_energy_without_the_context_term(t
     phase = 5.0 - 0.2 * np.arange(N_CHUNKS)
     rollouts = VanillaRollouts(
         [
-            ChunkInputs.of(phase + c + rng.normal(0, 0.1, N_CHUNKS), np.arange(N_CHUNKS), None, c)
+            chunk_inputs(phase + c + rng.normal(0, 0.1, N_CHUNKS), np.arange(N_CHUNKS), None, c)
             for c in (rng.normal(0, 0.1, N_CHUNKS) for _ in range(12))
         ]
     )
@@ -352,9 +362,11 @@ def test_the_head_energy_score_reads_the_final_energy_without_the_context_term(t
 def test_a_context_energy_score_without_the_context_energy_says_where_it_comes_from(score_class):
     calibration = calibrated(score_class, vanilla())
     with pytest.raises(ValueError, match=f"{score_class.name} score needs each chunk's context energy E_c"):
-        calibration.chunk_score(1.0, 0)
+        calibration.chunk_score(EnergyReadout.of_arrays(1.0, 0))
     with pytest.raises(ValueError, match="`context_energy` has 2 row"):
-        calibration.chunk_score(np.ones(3), 0, context_energy=np.zeros(2))
-    bare = VanillaRollouts([ChunkInputs.of(r.final_energy, r.chunk_index) for r in vanilla().rollouts])
+        calibration.chunk_score(EnergyReadout.of_arrays(np.ones(3), 0, context_energy=np.zeros(2)))
+    bare = VanillaRollouts(
+        [EnergyReadout.of_arrays(r.final_energy, r.chunk_index) for r in vanilla().rollouts]
+    )
     with pytest.raises(ValueError, match="energy_ood_margin_on"):
         score_class.fit(bare)

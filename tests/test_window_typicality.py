@@ -7,6 +7,7 @@ import pytest
 
 from lerobot_policy_ebvla.monitoring.window_report import WindowRates, window_indices
 from lerobot_policy_ebvla.runtime import OODCalibration, PhaseStatistics
+from lerobot_policy_ebvla.runtime.readout import EnergyReadout
 from lerobot_policy_ebvla.runtime.scores import (
     ContextEnergyTwoSided,
     FinalEnergy,
@@ -117,7 +118,7 @@ def test_the_monitor_decides_once_it_has_a_window_and_then_on_the_last_rollouts(
 
 def test_the_monitor_scores_a_rollout_as_the_calibration_does():
     monitor = WindowTypicalityMonitor(calibration_with_reference(), window=1)
-    decision = monitor.add_rollout(np.array([4.0, 5.0, 6.0]))  # the final energy's mean
+    decision = monitor.add_rollout(EnergyReadout.of_arrays([4.0, 5.0, 6.0]))  # the final energy's mean
     assert decision.rollout_values == ((5.0,),)
 
 

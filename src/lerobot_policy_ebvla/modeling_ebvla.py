@@ -13,7 +13,6 @@ import os
 import tempfile
 from collections import OrderedDict, deque
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 import draccus
@@ -41,6 +40,7 @@ from .mcmc import (
     sample_initial_actions,
 )
 from .rtc_ebvla import rtc_prefix
+from .runtime.readout import EnergyReadout
 from .runtime.response import EnergyOODResponse, respond_to_energy
 from .runtime.threshold import OODDecision
 from .training_signal import (
@@ -54,28 +54,6 @@ from .training_signal import (
 logger = logging.getLogger(__name__)
 
 ACTION_IS_PAD = "action_is_pad"
-
-
-@dataclass
-class EnergyReadout:
-    """The energies of one refined chunk per batch element.
-
-    Attributes:
-        initial_energy: E(a^(0), C), (B,): the energy of the initial noise, read at the first MCMC step.
-        final_energy: E(a^(K_inf), C), (B,): the confidence score of the returned chunk; +inf where the
-            refinement hit a non-finite energy or gradient.
-        chains: (B,) how many MCMC chains were refined for each observation: `num_restarts`, or with
-            `restart_energy_threshold` 1, and `num_restarts` where the first chunk's energy was above it.
-        context_energy: E_c(C), (B,), the joint energy's context term, already inside `final_energy`; None
-            without a joint energy (it has one with `energy_ood_margin_on` "context", "context_backbone" or
-            "observation"). Recorded apart because its rise under a shift can be small beside the spread of
-            the head's part (docs/energy_study.md, section 8.8).
-    """
-
-    initial_energy: Tensor
-    final_energy: Tensor
-    chains: Tensor | None = None
-    context_energy: Tensor | None = None
 
 
 # hook(policy, batch, readout, decision), called after each refined chunk the policy returns.
@@ -203,9 +181,9 @@ class EBVLAPolicy(PreTrainedPolicy):
 
         The chunk's energies are kept in `self.last_energy` and the OOD response to them (`runtime/response.py`:
         continue, hold or raise `EnergyOODError`) in `self.last_ood_decision`; held chunks are returned
-        replaced by the hold action. Each call counts as the episode's next chunk (`self.chunk_index`). A
-        context-distance calibration scores the chunk's pooled context (`context_features`), taken from the
-        backbone pass that encodes the chunk's context: the backbone still runs once per chunk.
+        replaced by the hold action. Each call counts as the episode's next chunk: the readout's `chunk_index`.
+        When the calibration's score reads the pooled context, the readout holds it (`context_features`), taken
+        from the backbone pass that encodes the chunk's context: the backbone still runs once per chunk.
 
         Args:
             batch: A pre-processed observation batch.
@@ -230,17 +208,11 @@ class EBVLAPolicy(PreTrainedPolicy):
                 refine_batch, generator=generator, prefix=prefix, return_context_features=needs_features
             )
         actions, readout, features = generated if needs_features else (*generated, None)
+        readout = dataclasses.replace(readout, chunk_index=self.chunk_index, context_features=features)
         self.last_energy = readout
-        chunk_index, self.chunk_index = self.chunk_index, self.chunk_index + 1
+        self.chunk_index += 1
         actions, self.last_ood_decision = respond_to_energy(
-            self.ood_response,
-            self.config,
-            actions,
-            readout.final_energy,
-            batch,
-            chunk_index,
-            features,
-            readout.context_energy,
+            self.ood_response, self.config, actions, readout, batch
         )
         for hook in list(self._chunk_hooks.values()):
             hook(self, batch, readout, self.last_ood_decision)

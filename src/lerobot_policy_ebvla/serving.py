@@ -19,8 +19,8 @@ from lerobot.async_inference.helpers import TimedAction, TimedObservation
 from lerobot.async_inference.policy_server import PolicyServer
 from lerobot.transport import services_pb2_grpc  # type: ignore
 
-from .modeling_ebvla import EnergyReadout
 from .runtime import EnergyOODError, OODDecision
+from .runtime.readout import EnergyReadout
 
 POLICY_TYPE = "ebvla"
 # How many served chunks `served_chunks` keeps, so that a server running for days keeps bounded memory.

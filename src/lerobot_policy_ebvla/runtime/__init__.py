@@ -1,5 +1,7 @@
 """What ships with a checkpoint and acts on the energy at run time; the policy imports it, analysis builds on it.
 
+- `readout`: `EnergyReadout`, what the policy reports about each chunk (its energies, its index in the episode,
+  its pooled context when needed): the one input of the scores, the calibration, the monitors and the response.
 - `threshold`: the one decision rule, "flag when score > T", with T = mu + k sigma (Eq. 5) or the conformal
   quantile of a stated false-alarm rate, and `OODDecision`, its verdict on a batch of scores.
 - `statistics`: what the chunk scores measure against, fitted on vanilla rollouts (`PhaseStatistics`,
@@ -26,6 +28,7 @@ Nothing here imports the analysis (`monitoring/`), matplotlib or a simulator.
 from .calibration import OOD_CALIBRATION_FILENAME, OODCalibration
 from .failure_alarm import FAILURE_ALARM_FILENAME, EnergyFailureMonitor, FailureAlarm, FailureDecision
 from .monitor import EnergyOODMonitor
+from .readout import EnergyReadout
 from .response import EnergyOODError, EnergyOODResponse, HoldAction, respond_to_energy
 from .scores import SCORES, ChunkInputs, ChunkScore, VanillaRollouts, rollout_score
 from .statistics import PhaseStatistics
@@ -44,6 +47,7 @@ __all__ = [
     "EnergyOODError",
     "EnergyOODMonitor",
     "EnergyOODResponse",
+    "EnergyReadout",
     "HoldAction",
     "MeanStd",
     "OODCalibration",

@@ -23,9 +23,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from torch import Tensor
 
 from .checkpoint_files import CheckpointJSON
+from .readout import EnergyReadout
 from .scores import (
     SCORE_AGGREGATIONS,
     SCORES,
@@ -36,14 +36,10 @@ from .scores import (
     score_rollout,
 )
 from .statistics import float64
-from .threshold import ArrayLike, MeanStd, as_array, conformal_threshold, mean_std_threshold
+from .threshold import ArrayLike, MeanStd, conformal_threshold, mean_std_threshold
 
 OOD_CALIBRATION_FILENAME = "ood_calibration.json"
 THRESHOLD_RULES = ("mean_std", "conformal")
-
-
-def _ndim(values: ArrayLike | float | None) -> int:
-    return values.ndim if isinstance(values, Tensor) else np.ndim(values)
 
 
 def _to_json_number(value: Any) -> Any:
@@ -168,53 +164,27 @@ class OODCalibration(CheckpointJSON):
         """Whether `chunk_score` needs each chunk's pooled context (`EBVLAPolicy.context_features`)."""
         return "context_features" in self.score.reads
 
-    def chunk_components(
-        self,
-        final_energy: ArrayLike | float,
-        chunk_index: ArrayLike | int | None = None,
-        context_features: ArrayLike | None = None,
-        context_energy: ArrayLike | float | None = None,
-    ) -> np.ndarray:
+    def chunk_components(self, readout: EnergyReadout) -> np.ndarray:
         """What a rollout's score is aggregated from, one row per chunk: (B, n), the score's n components
-        (the chunk score itself for most scores; the final energy and the context distance for
-        "energy_and_context"), each aggregated over the rollout before they are combined (`score_rollout`).
-
-        Arguments and errors as in `chunk_score`.
-        """
-        chunks = ChunkInputs.of(final_energy, chunk_index, context_features, context_energy)
-        chunks.require(self.score.reads, self.score.name)
-        return self.score.components(chunks)
-
-    def chunk_score(
-        self,
-        final_energy: ArrayLike | float,
-        chunk_index: ArrayLike | int | None = None,
-        context_features: ArrayLike | None = None,
-        context_energy: ArrayLike | float | None = None,
-    ) -> float | np.ndarray:
-        """The calibrated score of a chunk, the score of a rollout of that one chunk: what `threshold` applies to.
+        (the chunk score itself for most scores), each aggregated over the rollout before they are combined
+        (`score_rollout`).
 
         Args:
-            final_energy: One final energy, or one per environment ((B,) array or tensor).
-            chunk_index: The chunk's index in its episode: an int, or one per environment. Needed by a score
-                that reads it (the phase energy).
-            context_features: The chunk's pooled context, (D,), or one per environment, (B, D). Needed by a
-                score that reads it (the context scores).
-            context_energy: The joint energy's context term E_c(C), one or one per environment
-                (`EnergyReadout.context_energy`). Needed by the context-energy scores.
-
-        Returns:
-            A float when `final_energy` is one chunk's, else an array with one score per chunk.
+            readout: The policy's `EnergyReadout` of B chunks (`EBVLAPolicy.last_energy`), or recorded chunks
+                as one (`EnergyReadout.of_arrays`): its chunk index, and its pooled context or E_c(C) where the
+                score reads them.
 
         Raises:
             ValueError: An input the score reads is missing, or an input is not one row per final energy.
         """
-        components = self.chunk_components(final_energy, chunk_index, context_features, context_energy)
-        scores = self.score.combine(components)
-        one_chunk = _ndim(final_energy) == 0 and np.ndim(chunk_index) == 0
-        if context_features is not None and self.needs_context_features:
-            one_chunk = _ndim(context_features) == 1
-        return float(scores[0]) if one_chunk else scores
+        chunks = ChunkInputs.of(readout)
+        chunks.require(self.score.reads, self.score.name)
+        return self.score.components(chunks)
+
+    def chunk_score(self, readout: EnergyReadout) -> np.ndarray:
+        """(B,) the calibrated score of each chunk of `readout`, the score of a rollout of that one chunk: what
+        `threshold` applies to. Arguments and errors as in `chunk_components`."""
+        return self.score.combine(self.chunk_components(readout))
 
     def score_rollout(self, components: ArrayLike) -> float:
         """The rollout score the threshold applies to, from its chunks' `chunk_components` in chunk order:
@@ -225,17 +195,6 @@ class OODCalibration(CheckpointJSON):
             ValueError: `components` is not (N >= 1, n) with the score's n columns.
         """
         return score_rollout(self.score, components, self.aggregation)
-
-    def rollout_components(
-        self,
-        chunk_energies: ArrayLike,
-        context_features: ArrayLike | None = None,
-        context_energies: ArrayLike | None = None,
-    ) -> np.ndarray:
-        """A finished rollout's `chunk_components`, from its chunks' final energies (chunks 0, 1, ...) and the
-        chunks' pooled contexts ((N, D)) or E_c(C) ((N,)) where the score reads them."""
-        energies = as_array(chunk_energies)
-        return self.chunk_components(energies, np.arange(energies.size), context_features, context_energies)
 
     def window_values(self, components: ArrayLike) -> np.ndarray:
         """(m,) what the window test compares of a rollout, from its chunks' `chunk_components` in chunk order:

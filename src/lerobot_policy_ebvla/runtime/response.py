@@ -39,6 +39,7 @@ from lerobot.utils.constants import OBS_STATE, POLICY_PREPROCESSOR_DEFAULT_NAME
 from torch import Tensor
 
 from .calibration import OOD_CALIBRATION_FILENAME, OODCalibration
+from .readout import EnergyReadout
 from .threshold import OODDecision
 
 if TYPE_CHECKING:  # annotations only: run-time code reads the config's fields and imports nothing above it
@@ -175,23 +176,14 @@ class EnergyOODResponse:
             )
 
     def __call__(
-        self,
-        actions: Tensor,
-        final_energy: Tensor,
-        batch: dict[str, Tensor],
-        chunk_index: int = 0,
-        context_features: Tensor | None = None,
-        context_energy: Tensor | None = None,
+        self, actions: Tensor, readout: EnergyReadout, batch: dict[str, Tensor]
     ) -> tuple[Tensor, OODDecision]:
-        """Checks each chunk (B, H, action_dim) against T and continues, holds or raises.
+        """Checks each chunk (B, H, action_dim) of `readout` against T and continues, holds or raises.
 
-        `chunk_index` is the chunk's index in its episode, for a score that reads it; `context_features`,
-        (B, D), the pooled context of each chunk's observation, and `context_energy`, (B,) E_c(C) of a joint
-        energy, for a score that reads them. Returns the chunks to execute (held ones replaced) and the decision.
+        Returns the chunks to execute (held ones replaced) and the decision.
         """
         response, threshold = self.config.ood_response, self.threshold
-        energies = final_energy.detach().float().cpu().reshape(-1)
-        scores = self.calibration.chunk_score(energies, chunk_index, context_features, context_energy)
+        scores = self.calibration.chunk_score(readout)
         decision = OODDecision.of(torch.as_tensor(scores, dtype=torch.float32), threshold, response)
         flagged, held = decision.flagged, decision.held
         if not flagged.any():
@@ -223,16 +215,11 @@ def respond_to_energy(
     response: EnergyOODResponse | None,
     config: "EBVLAConfig",
     actions: Tensor,
-    final_energy: Tensor,
+    readout: EnergyReadout,
     batch: dict[str, Tensor],
-    chunk_index: int = 0,
-    context_features: Tensor | None = None,
-    context_energy: Tensor | None = None,
 ) -> tuple[Tensor, OODDecision | None]:
-    """The policy's entry point: applies `response`, or checks that none is needed without a calibration.
-
-    `context_features` is the chunks' pooled context, (B, D), when `response.needs_context_features`;
-    `context_energy` the joint energy's E_c(C), (B,), when the policy has one.
+    """The policy's entry point: applies `response` to the chunks of `readout`, or checks that none is needed
+    without a calibration. The readout holds the pooled context when `response.needs_context_features`.
 
     Raises:
         ValueError: `config.ood_response` is "hold" or "raise" and the policy has no calibrated response.
@@ -245,4 +232,4 @@ def respond_to_energy(
                 "(or call `policy.configure_ood_response(<checkpoint>)`)."
             )
         return actions, None
-    return response(actions, final_energy, batch, chunk_index, context_features, context_energy)
+    return response(actions, readout, batch)

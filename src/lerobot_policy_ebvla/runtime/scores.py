@@ -67,8 +67,10 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Protocol, Self
 
 import numpy as np
+from torch import Tensor
 
 from .checkpoint_files import SideFile
+from .readout import EnergyReadout
 from .statistics import (
     DEFAULT_KNN_K,
     MIN_SIGMA,
@@ -123,14 +125,13 @@ def rollout_score(chunk_energies: ArrayLike, aggregation: str = "mean") -> float
 
 # Where each input a score may read comes from: what a missing one's error tells the user to give.
 INPUT_SOURCES = {
-    "chunk_index": "the chunk's index in its episode (`chunk_index`)",
     "context_features": (
-        "each chunk's pooled context (`context_features`, (B, D), from `EBVLAPolicy.context_features`; in "
-        "records, `ebvla-eval --record_context_features=true`)"
+        "each chunk's pooled context (`EnergyReadout.context_features`, (B, D), which the policy fills when its "
+        "calibration's score reads it; in records, `ebvla-eval --record_context_features=true`)"
     ),
     "context_energy": (
-        "each chunk's context energy E_c(C) (`context_energy`, (B,), `EnergyReadout.context_energy`), which only "
-        "a policy trained with a joint energy (`energy_ood_margin_on`) reports"
+        "each chunk's context energy E_c(C) (`EnergyReadout.context_energy`, (B,)), which only a policy trained "
+        "with a joint energy (`energy_ood_margin_on`) reports"
     ),
 }
 # The head's energy is the final energy less E_c (`ChunkInputs.head_energy`): missing exactly where E_c is.
@@ -139,45 +140,38 @@ INPUT_SOURCES["head_energy"] = INPUT_SOURCES["context_energy"]
 
 @dataclass(frozen=True)
 class ChunkInputs:
-    """What the policy reports about B chunks: every score's input. Build it with `of`.
+    """An `EnergyReadout` of B chunks as the scores read it, in float64 arrays. Build it with `of`.
 
     Args:
         final_energy: E(a^(K_inf), C) of each chunk, (B,).
-        chunk_index: Each chunk's 0-based index t in its episode, (B,); None when not known.
+        chunk_index: Each chunk's 0-based index t in its episode, (B,).
         context_features: Each chunk's pooled last-block context c, (B, D); None when not computed.
         context_energy: E_c(C) of each chunk's observation, the joint energy's context term, (B,); None for a
             policy without one.
     """
 
     final_energy: np.ndarray
-    chunk_index: np.ndarray | None = None
+    chunk_index: np.ndarray
     context_features: np.ndarray | None = None
     context_energy: np.ndarray | None = None
 
     @classmethod
-    def of(
-        cls,
-        final_energy: ArrayLike | float,
-        chunk_index: ArrayLike | int | None = None,
-        context_features: ArrayLike | None = None,
-        context_energy: ArrayLike | float | None = None,
-    ) -> "ChunkInputs":
-        """The inputs of B chunks from scalars, arrays or tensors: one chunk index may stand for all B, and one
-        (D,) context for one chunk.
+    def of(cls, readout: EnergyReadout) -> "ChunkInputs":
+        """The arrays of a readout: its one chunk index stands for all B chunks.
 
         Raises:
             ValueError: An input's rows are not one per final energy.
         """
-        energies = as_array(final_energy)
+        energies = as_array(readout.final_energy)
         n = energies.size
-        index = None
-        if chunk_index is not None:
-            index = np.asarray(chunk_index)
-            index = np.full(n, int(index)) if index.ndim == 0 else index.reshape(-1)
-        features = None if context_features is None else np.atleast_2d(float64(context_features))
-        context = None if context_energy is None else as_array(context_energy)
+        index = readout.chunk_index
+        index = index.detach().cpu().numpy() if isinstance(index, Tensor) else np.asarray(index)
+        index = np.full(n, int(index)) if index.ndim == 0 else index.reshape(-1)
+        features = readout.context_features
+        features = None if features is None else np.atleast_2d(float64(features))
+        context = None if readout.context_energy is None else as_array(readout.context_energy)
         for name, rows in (
-            ("chunk_index", None if index is None else index.size),
+            ("chunk_index", index.size),
             ("context_features", None if features is None else features.shape[0]),
             ("context_energy", None if context is None else context.size),
         ):
@@ -214,18 +208,22 @@ class ChunkInputs:
 
 @dataclass(frozen=True)
 class VanillaRollouts:
-    """What a score is fitted on: the chunks of vanilla calibration rollouts, one `ChunkInputs` per rollout
-    (its N_r chunks in order).
+    """What a score is fitted on: the chunks of vanilla calibration rollouts, one readout per rollout (its N_r
+    chunks in order, `EnergyReadout.of_arrays`), kept as `ChunkInputs`.
 
     Args:
-        rollouts: Each rollout's chunk inputs, in chunk order.
+        rollouts: Each rollout's readout, in chunk order.
         aggregation: How the calibration aggregates a rollout's chunks (`rollout_score`).
         knn_k: Which nearest vanilla context the context k-NN distance measures to.
     """
 
-    rollouts: Sequence[ChunkInputs]
+    rollouts: Sequence[EnergyReadout | ChunkInputs]
     aggregation: str = "mean"
     knn_k: int = DEFAULT_KNN_K
+
+    def __post_init__(self):
+        chunks = [r if isinstance(r, ChunkInputs) else ChunkInputs.of(r) for r in self.rollouts]
+        object.__setattr__(self, "rollouts", chunks)
 
     def __len__(self) -> int:
         return len(self.rollouts)
