@@ -23,12 +23,11 @@ from lerobot_policy_ebvla.runtime import EnergyOODError
 from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
 from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
 from lerobot_policy_ebvla.runtime.readout import EnergyReadout
-from lerobot_policy_ebvla.runtime.scores import CONTEXT_FILE, NEIGHBOURS_FILE, SCORES, ContextKNN
+from lerobot_policy_ebvla.runtime.scores import NEIGHBOURS_FILE, SCORES, ContextKNN
 from lerobot_policy_ebvla.runtime.statistics import ContextNeighbours
 from lerobot_policy_ebvla.scripts import ood_report
 
 from .conftest import context_rollouts, tiny_batch, tiny_config, write_records
-from .test_context_distance import context_calibration
 
 D = 4
 K = 3
@@ -142,7 +141,7 @@ def test_a_context_knn_calibration_round_trips_through_json_and_safetensors(tmp_
         40,
         K,
     )
-    assert not (tmp_path / CONTEXT_FILE.filename).exists()
+    assert not (tmp_path / "ood_calibration_context.safetensors").exists()
     loaded = OODCalibration.load(tmp_path)
     assert loaded == calibration and loaded.score.name == "context_knn" and loaded.score.neighbours.k == K
     assert loaded.score.neighbours.features.dtype == np.float32
@@ -169,11 +168,8 @@ def test_a_neighbours_entry_that_misstates_k_is_refused(tmp_path):
         OODCalibration.load(tmp_path)
 
 
-# What both context scores save beside the JSON: the context statistics, the context neighbours.
+# What the context k-NN saves beside the JSON: the context neighbours.
 SIDE_FILES = [
-    pytest.param(
-        context_calibration, CONTEXT_FILE.filename, CONTEXT_FILE.field, "context", id="context_distance"
-    ),
     pytest.param(
         knn_calibration, NEIGHBOURS_FILE.filename, NEIGHBOURS_FILE.field, "neighbours", id="context_knn"
     ),

@@ -12,8 +12,12 @@ import numpy as np
 import pytest
 
 from lerobot_policy_ebvla.runtime import SCORES, EnergyOODMonitor, EnergyReadout, OODCalibration
+from lerobot_policy_ebvla.runtime.calibration import UnregisteredScoreError
+from lerobot_policy_ebvla.runtime.scores import PACKAGE_SCORES
 
-FIXTURES = sorted((Path(__file__).parent / "fixtures").glob("ood_calibration_v*/*"))
+ALL_FIXTURES = sorted((Path(__file__).parent / "fixtures").glob("ood_calibration_v*/*"))
+# The fixtures of the package's scores; the research scores' are loaded by the research tests.
+FIXTURES = [folder for folder in ALL_FIXTURES if folder.name in PACKAGE_SCORES]
 
 
 @pytest.mark.parametrize("folder", FIXTURES, ids=[f"{f.parent.name}/{f.name}" for f in FIXTURES])
@@ -48,6 +52,18 @@ def test_a_saved_calibration_saved_again_loads_the_same(folder, tmp_path):
 
 
 def test_there_is_a_fixture_of_every_score_of_v0_1_0():
-    names = {f.name for f in FIXTURES if f.parent.name == "ood_calibration_v0.1.0"}
+    names = {f.name for f in ALL_FIXTURES if f.parent.name == "ood_calibration_v0.1.0"}
     assert names == {"final_energy", "phase_energy", "context_distance", "energy_and_context", "context_knn"}
-    assert names <= set(SCORES)
+    assert {f.name for f in FIXTURES} == names & set(PACKAGE_SCORES) == {"final_energy", "context_knn"}
+
+
+@pytest.mark.parametrize("name", ["phase_energy", "context_distance", "energy_and_context"])
+def test_a_saved_calibration_of_a_research_score_says_how_to_register_it(name, monkeypatch):
+    monkeypatch.delitem(
+        SCORES, name, raising=False
+    )  # as in a process that did not import the research scores
+    folder = Path(__file__).parent / "fixtures" / "ood_calibration_v0.1.0" / name
+    with pytest.raises(
+        UnregisteredScoreError, match=rf"score '{name}', which is not registered.*research_scores"
+    ):
+        OODCalibration.load(folder)

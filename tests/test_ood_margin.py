@@ -7,7 +7,6 @@ import torch
 from lerobot_policy_ebvla import EBVLAPolicy
 from lerobot_policy_ebvla.modeling_ebvla import pooled_context
 from lerobot_policy_ebvla.runtime import EnergyOODResponse, OODCalibration, PhaseStatistics
-from lerobot_policy_ebvla.runtime.scores import ContextEnergyTwoSided
 from lerobot_policy_ebvla.training_signal import (
     CORRUPTIONS,
     channel_gain,
@@ -22,6 +21,9 @@ from lerobot_policy_ebvla.training_signal import (
 )
 
 from .conftest import load_benchmark, tiny_batch, tiny_config
+
+research_scores = load_benchmark("research_scores")
+ContextEnergyTwoSided = research_scores.ContextEnergyTwoSided
 
 
 def test_margin_term_is_off_by_default_and_adds_nothing():

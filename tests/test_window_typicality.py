@@ -8,13 +8,7 @@ import pytest
 from lerobot_policy_ebvla.monitoring.window_report import WindowRates, window_indices
 from lerobot_policy_ebvla.runtime import OODCalibration, PhaseStatistics
 from lerobot_policy_ebvla.runtime.readout import EnergyReadout
-from lerobot_policy_ebvla.runtime.scores import (
-    ContextEnergyTwoSided,
-    FinalEnergy,
-    FinalEnergyTwoSided,
-    PhaseEnergyDeviation,
-    PhaseEnergyTwoSided,
-)
+from lerobot_policy_ebvla.runtime.scores import FinalEnergy
 from lerobot_policy_ebvla.runtime.window import (
     HIGH_SCORES,
     SHIFTED,
@@ -22,6 +16,13 @@ from lerobot_policy_ebvla.runtime.window import (
     WindowTypicalityMonitor,
     WindowTypicalityTest,
 )
+from tests.conftest import load_benchmark
+
+research_scores = load_benchmark("research_scores")
+ContextEnergyTwoSided = research_scores.ContextEnergyTwoSided
+FinalEnergyTwoSided = research_scores.FinalEnergyTwoSided
+PhaseEnergyDeviation = research_scores.PhaseEnergyDeviation
+PhaseEnergyTwoSided = research_scores.PhaseEnergyTwoSided
 
 
 def test_the_window_test_alarms_on_vanilla_windows_at_most_at_its_false_alarm_rate():

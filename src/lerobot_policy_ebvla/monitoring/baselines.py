@@ -50,11 +50,8 @@ from ..runtime.scores import (
     SCORES,
     ChunkInputs,
     ChunkScore,
-    ContextDistance,
     ContextKNN,
-    EnergyAndContext,
     FinalEnergy,
-    PhaseEnergy,
     VanillaRollouts,
 )
 from ..runtime.statistics import (
@@ -68,21 +65,21 @@ from .records import Episode
 
 SCORE_NAMES = (
     FinalEnergy.name,
-    PhaseEnergy.name,
+    "phase_energy",
     "initial_energy",
     "normalized_energy",
     "restart_spread",
-    ContextDistance.name,
+    "context_distance",
     ContextKNN.name,
 )
-FEATURE_SCORES = (ContextDistance.name, ContextKNN.name)
+FEATURE_SCORES = ("context_distance", ContextKNN.name)
 # Rollout scores combining the final energy's and the context distance's, standardized on the calibration
 # rollouts: their max (the run-time "energy_and_context") and their sum.
-COMBINED_SCORES = (EnergyAndContext.name, "energy_and_context_sum")
+COMBINED_SCORES = ("energy_and_context", "energy_and_context_sum")
 # The scores they combine, in `CombinedStatistics` order.
-COMBINED_FROM = (FinalEnergy.name, ContextDistance.name)
+COMBINED_FROM = (FinalEnergy.name, "context_distance")
 # Scores fitted on the calibration rollouts (`ScoreReference`), besides the registered ones.
-REFERENCE_SCORES = (PhaseEnergy.name, *FEATURE_SCORES)
+REFERENCE_SCORES = ("phase_energy", *FEATURE_SCORES)
 
 
 @dataclass

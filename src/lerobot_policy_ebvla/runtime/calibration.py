@@ -27,6 +27,7 @@ import numpy as np
 from .checkpoint_files import CheckpointJSON
 from .readout import EnergyReadout
 from .scores import (
+    PACKAGE_SCORES,
     SCORE_AGGREGATIONS,
     SCORES,
     ChunkInputs,
@@ -40,6 +41,11 @@ from .threshold import ArrayLike, MeanStd, conformal_threshold, mean_std_thresho
 
 OOD_CALIBRATION_FILENAME = "ood_calibration.json"
 THRESHOLD_RULES = ("mean_std", "conformal")
+
+
+class UnregisteredScoreError(LookupError):
+    """A saved calibration names a score that no imported module registered (not wrapped by `load`: the file is
+    valid, the score's module is missing)."""
 
 
 def _to_json_number(value: Any) -> Any:
@@ -238,7 +244,12 @@ class OODCalibration(CheckpointJSON):
             payload["conformal_threshold"] = math.inf
         name = payload.pop("score", FinalEnergy.name)
         if name not in SCORES:
-            raise ValueError(f"`score` must be one of {tuple(SCORES)}, got {name!r}")
+            raise UnregisteredScoreError(
+                f"{path} is a calibration of the score {name!r}, which is not registered: the package ships "
+                f"{PACKAGE_SCORES}. A research score is registered by importing its module (the research "
+                "benchmarks' `research_scores.py`) or with `lerobot_policy_ebvla.runtime.scores.register_score(cls)` "
+                "before loading."
+            )
         score_class = SCORES[name]
         own = {*score_class.json_fields, *(s.field for s in score_class.side_files)}
         statistics = {f.name for f in dataclasses.fields(cls)}

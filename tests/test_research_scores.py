@@ -6,6 +6,7 @@ energy is confidently wrong there. The two-sided forms flag a rollout on either 
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,20 +21,22 @@ from lerobot_policy_ebvla.runtime import SCORES, EnergyOODMonitor, OODCalibratio
 from lerobot_policy_ebvla.runtime.readout import EnergyReadout
 from lerobot_policy_ebvla.runtime.scores import (
     ChunkInputs,
-    ContextEnergy,
-    ContextEnergyTwoSided,
     ContextPhaseEnergy,
-    EnergyTwoSidedAndContextKNN,
     FinalEnergy,
-    FinalEnergyTwoSided,
     HeadEnergyTwoSided,
-    PhaseEnergy,
-    PhaseEnergyDeviation,
-    PhaseEnergyTwoSided,
     score_rollout,
 )
 
-from .conftest import write_calibration_vanilla_and_ood, write_records
+from .conftest import load_benchmark, write_calibration_vanilla_and_ood, write_records
+
+research_scores = load_benchmark("research_scores")
+ContextEnergy = research_scores.ContextEnergy
+ContextEnergyTwoSided = research_scores.ContextEnergyTwoSided
+EnergyTwoSidedAndContextKNN = research_scores.EnergyTwoSidedAndContextKNN
+FinalEnergyTwoSided = research_scores.FinalEnergyTwoSided
+PhaseEnergy = research_scores.PhaseEnergy
+PhaseEnergyDeviation = research_scores.PhaseEnergyDeviation
+PhaseEnergyTwoSided = research_scores.PhaseEnergyTwoSided
 
 N_CHUNKS, DIM = 6, 4
 
@@ -370,3 +373,28 @@ def test_a_context_energy_score_without_the_context_energy_says_where_it_comes_f
     )
     with pytest.raises(ValueError, match="energy_ood_margin_on"):
         score_class.fit(bare)
+
+
+RESEARCH_FIXTURES = [
+    folder
+    for folder in sorted((Path(__file__).parent / "fixtures").glob("ood_calibration_v*/*"))
+    if folder.name in research_scores.RESEARCH_NAMES
+]
+
+
+@pytest.mark.parametrize(
+    "folder", RESEARCH_FIXTURES, ids=[f"{f.parent.name}/{f.name}" for f in RESEARCH_FIXTURES]
+)
+def test_a_saved_calibration_of_a_research_score_loads_once_registered(folder):
+    expected = json.loads((folder / "expected.json").read_text())
+    energies, index, features = (np.array(v) for v in expected["probe"].values())
+    calibration = OODCalibration.load(folder)
+    assert calibration.score.name == folder.name
+    np.testing.assert_allclose(
+        calibration.chunk_score(EnergyReadout.of_arrays(energies, index, features)), expected["chunk_scores"]
+    )
+    assert calibration.threshold == pytest.approx(expected["threshold"])
+
+
+def test_the_research_scores_of_the_v0_1_0_fixtures_are_registered():
+    assert {f.name for f in RESEARCH_FIXTURES} == {"phase_energy", "context_distance", "energy_and_context"}

@@ -24,10 +24,13 @@ from lerobot_policy_ebvla.runtime import EnergyOODError
 from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
 from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
 from lerobot_policy_ebvla.runtime.readout import EnergyReadout
-from lerobot_policy_ebvla.runtime.scores import CONTEXT_FILE, EnergyAndContext
 from lerobot_policy_ebvla.runtime.statistics import CombinedStatistics, ContextStatistics
 
-from .conftest import context_rollouts, tiny_batch, tiny_config, write_records
+from .conftest import context_rollouts, load_benchmark, tiny_batch, tiny_config, write_records
+
+research_scores = load_benchmark("research_scores")
+CONTEXT_FILE = research_scores.CONTEXT_FILE
+EnergyAndContext = research_scores.EnergyAndContext
 
 D = 4
 # mu = (1, 2), sigma = (0.5, 4): z_E = (E - 1) / 0.5, z_d = (d - 2) / 4.

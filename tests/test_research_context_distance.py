@@ -17,10 +17,13 @@ from lerobot_policy_ebvla.runtime import EnergyOODError
 from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
 from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
 from lerobot_policy_ebvla.runtime.readout import EnergyReadout
-from lerobot_policy_ebvla.runtime.scores import CONTEXT_FILE, ContextDistance
 from lerobot_policy_ebvla.runtime.statistics import ContextStatistics, ledoit_wolf_covariance
 
-from .conftest import tiny_batch, tiny_config
+from .conftest import load_benchmark, tiny_batch, tiny_config
+
+research_scores = load_benchmark("research_scores")
+CONTEXT_FILE = research_scores.CONTEXT_FILE
+ContextDistance = research_scores.ContextDistance
 
 D = 4
 

@@ -21,8 +21,12 @@ from lerobot_policy_ebvla.monitoring.scores import chunk_scores, episode_scores
 from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
 from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
 from lerobot_policy_ebvla.runtime.readout import EnergyReadout
-from lerobot_policy_ebvla.runtime.scores import FinalEnergy, PhaseEnergy
+from lerobot_policy_ebvla.runtime.scores import FinalEnergy
 from lerobot_policy_ebvla.runtime.statistics import PhaseStatistics
+from tests.conftest import load_benchmark
+
+research_scores = load_benchmark("research_scores")
+PhaseEnergy = research_scores.PhaseEnergy
 
 VANILLA = [[0.0, 2.0, 10.0], [2.0, 4.0]]
 POOLED_SIGMA = float(np.std([0.0, 2.0, 10.0, 2.0, 4.0]))
@@ -110,7 +114,7 @@ def test_a_phase_calibration_needs_its_statistics(tmp_path):
 
 def test_a_calibration_of_an_unknown_score_is_rejected(tmp_path):
     write_calibration(tmp_path, score="knn")
-    with pytest.raises(ValueError, match="score"):
+    with pytest.raises(LookupError, match="score 'knn', which is not registered"):
         OODCalibration.load(tmp_path)
 
 
