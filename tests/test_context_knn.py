@@ -321,7 +321,7 @@ def test_the_policy_scores_each_chunk_by_the_knn_distance_of_its_observation(tmp
     neighbours = ContextNeighbours.fit(torch.cat([policy.context_features(b) for b in contexts]), k=K)
     # A threshold below every distance: every chunk is flagged and raises with its highest distance.
     OODCalibration(mu_v=-1.0, sigma_v=0.0, score=ContextKNN(neighbours)).save(tmp_path)
-    policy.configure_ood_response(tmp_path, ood_response="raise")
+    policy.configure_ood_response(tmp_path, response="raise")
     batch = tiny_batch(policy.config, batch_size=2, seed=7, with_action=False)
     with pytest.raises(EnergyOODError, match="context_knn") as raised:
         policy.predict_action_chunk(batch)

@@ -223,7 +223,7 @@ def test_the_policy_responds_to_the_larger_z_of_each_chunks_energy_and_context(t
     statistics = ContextStatistics.fit(torch.cat([policy.context_features(b) for b in contexts]))
     # A threshold below every score: every chunk is flagged and raises with its highest score.
     combined_calibration(mu_v=-1e6, sigma_v=0.0, context=statistics).save(tmp_path)
-    policy.configure_ood_response(tmp_path, ood_response="raise")
+    policy.configure_ood_response(tmp_path, response="raise")
     batch = tiny_batch(policy.config, batch_size=2, seed=7, with_action=False)
     with pytest.raises(EnergyOODError, match="energy_and_context") as raised:
         policy.predict_action_chunk(batch)

@@ -1,4 +1,5 @@
-"""Two-sided scores: a shift that lowers the energy below vanilla's is flagged, and the report's safe default.
+"""The research scores (`benchmarks/research_scores.py`): two-sided scores flag a shift that lowers the energy
+below vanilla's; and the report saves the checkpoint's own monitor score.
 
 A shift can make the final energy fall below vanilla's (issue 32: dim light, another colour), so the one-sided
 energy is confidently wrong there. The two-sided forms flag a rollout on either side of the vanilla band.
@@ -12,8 +13,6 @@ import numpy as np
 import pytest
 
 from lerobot_policy_ebvla.monitoring.ood_report import (
-    DEFAULT_ENERGY_SCORE,
-    DEFAULT_SCORE,
     OODReportConfig,
     write_ood_report,
 )
@@ -192,21 +191,12 @@ def test_the_report_sets_each_two_sided_score_beside_its_one_sided_form(record_d
     assert row["final_energy_two_sided"].split(" | ")[1].startswith("1.000")
 
 
-def test_without_a_score_the_report_saves_the_safe_default(record_dirs, tmp_path):
+def test_without_a_score_or_a_checkpoint_config_the_report_saves_the_final_energy(record_dirs, tmp_path):
     text, calibration = report(record_dirs, tmp_path)
-    assert calibration.score.name == DEFAULT_SCORE == "context_knn"
-    assert f"Without `--score`, `--calibrate_to` saves `{DEFAULT_SCORE}`" in text
-
-
-def test_without_context_features_the_default_is_the_best_energy_only_score(record_dirs, tmp_path):
-    from lerobot_policy_ebvla.monitoring.records import read_energy_records
-
-    bare = []
-    for i, folder in enumerate(record_dirs):
-        records = [dataclasses.replace(r, context_feature=None) for r in read_energy_records(folder)]
-        bare.append(write_records(tmp_path / f"bare{i}", records))
-    _, calibration = report(bare, tmp_path / "out")
-    assert calibration.score.name == DEFAULT_ENERGY_SCORE == "phase_energy_two_sided"
+    assert calibration.score.name == "final_energy"
+    assert (
+        "Without `--score`, `--calibrate_to` saves the checkpoint's `monitor.score`: `final_energy`" in text
+    )
 
 
 def with_context_energy(record_dirs, root) -> list:
@@ -222,34 +212,22 @@ def with_context_energy(record_dirs, root) -> list:
     return folders
 
 
-OWN_ENCODER = {"energy_ood_margin_on": "observation", "energy_ood_margin_weight": 0.01}
-
-
 @pytest.mark.parametrize(
-    ("fields", "context_energy", "expected"),
-    [
-        (OWN_ENCODER, True, "context_energy_two_sided"),
-        ({**OWN_ENCODER, "energy_ood_gradient_penalty": 0.1}, True, "context_phase_energy"),
-        ({**OWN_ENCODER, "energy_ood_gradient_penalty": 0.1}, False, "final_energy"),
-        (OWN_ENCODER, False, "final_energy"),
-        ({"energy_ood_margin_on": "observation", "energy_ood_margin_weight": 0.0}, False, "context_knn"),
-        ({"energy_ood_margin_on": "context_backbone", "energy_ood_margin_weight": 1.0}, True, "context_knn"),
-    ],
+    ("monitor_score", "context_energy"), [("context_knn", False), ("context_phase_energy", True)]
 )
-def test_a_checkpoint_with_the_joint_energy_on_its_own_encoder_defaults_to_its_two_sided_context_energy(
-    record_dirs, tmp_path, fields, context_energy, expected
+def test_without_a_score_the_report_saves_the_checkpoints_monitor_score(
+    record_dirs, tmp_path, monitor_score, context_energy
 ):
-    """... one-sided where E_c was trained flat at the data (every shift raises it), or to its final energy when
-    the records hold no E_c; other checkpoints keep the context k-NN."""
+    """The score was decided when the policy was trained (`config.monitor.score`); the records change nothing."""
     checkpoint = tmp_path / "pretrained_model"
     checkpoint.mkdir()
-    (checkpoint / "config.json").write_text(json.dumps({"type": "ebvla", **fields}))
+    (checkpoint / "config.json").write_text(
+        json.dumps({"type": "ebvla", "monitor": {"score": monitor_score}})
+    )
     folders = with_context_energy(record_dirs, tmp_path / "records") if context_energy else record_dirs
     text, calibration = report(folders, tmp_path)
-    assert calibration.score.name == expected
-    assert f"Without `--score`, `--calibrate_to` saves `{expected}`" in text
-    if fields.get("energy_ood_margin_weight") and fields["energy_ood_margin_on"] == "observation":
-        assert ("hold no `context_energy`" in text) == (not context_energy)
+    assert calibration.score.name == monitor_score
+    assert f"saves the checkpoint's `monitor.score`: `{monitor_score}`" in text
 
 
 def test_a_context_energy_score_on_records_without_it_is_refused_by_name(record_dirs, tmp_path):

@@ -95,7 +95,7 @@ class EBVLAPolicy(PreTrainedPolicy):
     ) -> "EBVLAPolicy":
         """Loads a saved policy; every weight comes from the checkpoint, so no backbone is downloaded.
 
-        The OOD response (`config.ood_response`) takes its threshold from the checkpoint's
+        The OOD response (`config.monitor.response`) takes its threshold from the checkpoint's
         `ood_calibration.json`, if there is one.
         """
         if config is None:
@@ -114,19 +114,20 @@ class EBVLAPolicy(PreTrainedPolicy):
     def configure_ood_response(self, pretrained_name_or_path: str | Path, **overrides) -> None:
         """(Re)builds the OOD response from a checkpoint's calibration, after setting config fields.
 
-        The config is the one source of truth: `ood_response`, `hold_action` and `ood_threshold_k` given here
-        replace the config's (validated as at construction), then the response is rebuilt to match.
+        The config is the one source of truth: the `monitor` fields given here (`response`, `hold_action`,
+        `threshold_k`) replace the config's (validated as at construction), then the response is rebuilt to match.
 
         Args:
             pretrained_name_or_path: The checkpoint whose `ood_calibration.json` (and, to hold, whose
                 pre-processor's normalizer) the response uses.
-            overrides: Any of `ood_response`, `hold_action`, `ood_threshold_k`.
+            overrides: Any of `MonitorConfig`'s `response`, `hold_action`, `threshold_k`.
         """
-        allowed = {"ood_response", "hold_action", "ood_threshold_k"}
+        allowed = {"response", "hold_action", "threshold_k"}
         if unknown := set(overrides) - allowed:
-            raise ValueError(f"Only {sorted(allowed)} can be changed here; got {sorted(unknown)}.")
+            raise ValueError(f"Only `monitor.` {sorted(allowed)} can be changed here; got {sorted(unknown)}.")
         if overrides:
-            config = dataclasses.replace(self.config, **overrides)  # runs __post_init__'s checks
+            monitor = dataclasses.replace(self.config.monitor, **overrides)  # runs its __post_init__'s checks
+            config = dataclasses.replace(self.config, monitor=monitor)
             config.validate_features()
             self.config = self.model.config = config
         self.ood_response = EnergyOODResponse.from_pretrained(self.config, pretrained_name_or_path)

@@ -19,7 +19,7 @@
   (a batch typicality test: it also flags rollouts that are all *more* typical than vanilla's).
 - `history`: the per-environment history both monitors keep.
 - `checkpoint_files`: the one way a calibration is saved beside a checkpoint and loaded back (local or Hub).
-- `response`: what the policy does with a flagged chunk (`EBVLAConfig.ood_response`: continue, hold, or raise
+- `response`: what the policy does with a flagged chunk (`EBVLAConfig.monitor.response`: continue, hold, or raise
   `EnergyOODError`).
 
 Nothing here imports the analysis (`monitoring/`), matplotlib or a simulator.

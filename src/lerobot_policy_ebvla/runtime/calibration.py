@@ -12,7 +12,7 @@ or, with `rule="conformal"`, when E exceeds the conformal threshold of a stated 
 
 `OODCalibration` holds these statistics and the score object they are of, and lives next to a checkpoint as
 `ood_calibration.json` (with the score's side files); `EnergyOODMonitor` (`monitor.py`) and the policy's
-`ood_response` (`response.py`) apply it at run time. Evaluating a calibration (Table III) is analysis and lives
+`monitor.response` (`response.py`) apply it at run time. Evaluating a calibration (Table III) is analysis and lives
 in `monitoring/ood.py`.
 """
 
@@ -33,6 +33,7 @@ from .scores import (
     ChunkInputs,
     ChunkScore,
     FinalEnergy,
+    VanillaRollouts,
     rollout_aggregates,
     score_rollout,
 )
@@ -163,6 +164,42 @@ class OODCalibration(CheckpointJSON):
             rule=rule,
             score=FinalEnergy() if score is None else score,
             window_reference=window_reference,
+        )
+
+    @classmethod
+    def calibrate(
+        cls,
+        score: str,
+        vanilla: VanillaRollouts,
+        *,
+        k: float = 1.0,
+        false_alarm_rate: float | None = None,
+        rule: str = "mean_std",
+    ) -> "OODCalibration":
+        """The calibration of the score named `score` (a checkpoint's `config.monitor.score`) on vanilla rollouts.
+
+        The score is fitted on every vanilla rollout; mu_v and sigma_v are those of the vanilla rollouts' scores,
+        each rollout scored against the score fitted without it (leave-one-out), as a new rollout would be.
+
+        Raises:
+            ValueError: The score is not registered, or a rollout lacks an input the score reads.
+        """
+        if score not in SCORES:
+            raise ValueError(f"`score` must be one of {tuple(SCORES)}, got {score!r}.")
+        score_class = SCORES[score]
+        for rollout in vanilla.rollouts:
+            rollout.require(score_class.reads, score)
+        rollout_scores = []
+        for i, rollout in enumerate(vanilla.rollouts):
+            fitted = score_class.fit(vanilla.without(i) if len(vanilla) > 1 else vanilla)
+            rollout_scores.append(score_rollout(fitted, fitted.components(rollout), vanilla.aggregation))
+        return cls.fit(
+            rollout_scores,
+            k=k,
+            aggregation=vanilla.aggregation,
+            false_alarm_rate=false_alarm_rate,
+            rule=rule,
+            score=score_class.fit(vanilla),
         )
 
     @property
