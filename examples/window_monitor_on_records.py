@@ -16,6 +16,7 @@ trained with `energy_ood_margin_on`) to do the same.
 """
 
 import dataclasses
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,6 +30,11 @@ RECORDS = (
     Path(__file__).resolve().parents[1]
     / "benchmarks/results/metaworld_sweep_margin_full/seed12000/observation"
 )
+
+# The window test reads a research score (`context_energy_two_sided`): its module, beside the research benchmarks,
+# registers it in the package's `SCORES`.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import research_scores  # noqa: E402, F401
 
 
 @dataclass
