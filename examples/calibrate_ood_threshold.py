@@ -1,9 +1,11 @@
 """Calibrate the OOD threshold of a checkpoint from vanilla rollouts, and save it beside the checkpoint.
 
-The paper's Eq. 5: roll the policy out in the scene it was trained for, score each rollout by the mean final
-energy of its chunks, and set T = mu_v + k * sigma_v over those scores. `OODCalibration.save` writes
-`ood_calibration.json` into the checkpoint folder, where `EnergyOODMonitor.from_pretrained` and the policy's
-own OOD response (`--policy.ood_response=hold|raise`, examples/rollout_with_ood_response.py) find it.
+The paper's Eq. 5: roll the policy out in the scene it was trained for, score each rollout by the mean of its
+chunks' scores, and set T = mu_v + k * sigma_v over those scores. The score is the checkpoint's own,
+`policy.config.monitor.score` (decided when it was trained: "final_energy" by default, "context_phase_energy" for
+the light preset), the one `ebvla-ood-report --calibrate_to` saves. `OODCalibration.save` writes
+`ood_calibration.json` into the checkpoint folder, where `EnergyOODMonitor.from_pretrained` and the policy's own
+OOD response (`--policy.monitor.response=hold|raise`, examples/rollout_with_ood_response.py) find it.
 
     MUJOCO_GL=egl python examples/calibrate_ood_threshold.py \\
         --checkpoint=outputs/example_metaworld/train/checkpoints/last/pretrained_model --episodes=20
@@ -23,7 +25,9 @@ from lerobot.scripts.lerobot_eval import eval_policy_all
 
 from lerobot_policy_ebvla import EBVLAPolicy, EnergyOODMonitor, OODCalibration
 from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
-from lerobot_policy_ebvla.monitoring import EnergyRecorder, episode_scores, group_by_episode
+from lerobot_policy_ebvla.monitoring import EnergyRecorder, group_by_episode
+from lerobot_policy_ebvla.monitoring.baselines import episode_readout, vanilla_rollouts
+from lerobot_policy_ebvla.runtime.scores import SCORES
 
 
 @dataclass
@@ -52,9 +56,12 @@ def main(cfg: CalibrateConfig) -> None:
     env_cfg = MetaworldEBVLAEnv(task=cfg.task, fast_render=True, max_episode_steps=cfg.max_episode_steps)
     env_preprocessor, env_postprocessor = make_env_pre_post_processors(env_cfg, policy.config)
 
-    # Vanilla rollouts with LeRobot's evaluation loop; the recorder keeps every chunk's final energy.
+    # Vanilla rollouts with LeRobot's evaluation loop; the recorder keeps every chunk's energies (and its pooled
+    # context, for a score that reads it).
+    score = policy.config.monitor.score
     envs = make_env(env_cfg, n_envs=1)
-    with EnergyRecorder(policy) as recorder, torch.no_grad():
+    features = "context_features" in SCORES[score].reads
+    with EnergyRecorder(policy, record_context_features=features) as recorder, torch.no_grad():
         watched = {g: {i: recorder.watch(env, g, i) for i, env in tasks.items()} for g, tasks in envs.items()}
         info = eval_policy_all(
             watched,
@@ -69,27 +76,26 @@ def main(cfg: CalibrateConfig) -> None:
     close_envs(envs)
     records = recorder.records(info, cfg.episodes)
 
-    # One score per rollout (the mean final energy of its chunks), then Eq. 5.
+    # The checkpoint's score fitted on the rollouts, one score per rollout (the mean of its chunks'), then Eq. 5.
     episodes = group_by_episode(records)
-    scores = episode_scores(episodes, "final_energy", aggregation="mean")
-    calibration = OODCalibration.fit(
-        scores, k=cfg.k, aggregation="mean", false_alarm_rate=cfg.false_alarm_rate
+    calibration = OODCalibration.calibrate(
+        score, vanilla_rollouts(episodes), k=cfg.k, false_alarm_rate=cfg.false_alarm_rate
     )
     path = calibration.save(cfg.checkpoint, overwrite=cfg.overwrite)
     print(
-        f"\nmu_v = {calibration.mu_v:.3f}, sigma_v = {calibration.sigma_v:.3f} over {calibration.n_rollouts} "
+        f"\n{score}: mu_v = {calibration.mu_v:.3f}, sigma_v = {calibration.sigma_v:.3f} over {calibration.n_rollouts} "
         f"vanilla rollouts: T = {calibration.threshold:.3f} (k = {cfg.k}); conformal threshold at "
         f"{cfg.false_alarm_rate:.0%} false alarms: {calibration.conformal_threshold:.3f}"
     )
     print(f"Saved {path}")
 
-    # What a control loop does with it: the monitor reads the file back from the checkpoint folder.
+    # What a control loop does with it: the monitor reads the file back from the checkpoint folder and takes the
+    # policy's readout of each chunk (`monitor.update(policy.last_energy)`); here, each recorded rollout at once.
     monitor = EnergyOODMonitor.from_pretrained(cfg.checkpoint)
-    for key, score in zip(episodes, scores, strict=True):
-        decision = monitor.check_rollout([score])
-        print(
-            f"rollout {key.episode_index}: score {score:.3f} -> {'OOD' if decision.is_ood else 'in distribution'}"
-        )
+    for key, episode in episodes.items():
+        decision = monitor.check_rollout(episode_readout(episode))
+        verdict = "OOD" if decision.is_ood else "in distribution"
+        print(f"rollout {key.episode_index}: score {decision.energy:.3f} -> {verdict}")
 
 
 if __name__ == "__main__":

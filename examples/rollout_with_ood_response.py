@@ -1,11 +1,12 @@
 """A rollout in which the policy acts on its own energy: it holds (or stops) when a chunk looks OOD.
 
 With `ood_calibration.json` in the checkpoint (examples/calibrate_ood_threshold.py), every refined chunk's
-final energy is compared to the calibrated T; `ood_response` says what happens to a chunk above it:
+score (the checkpoint's `monitor.score`) is compared to the calibrated T; `monitor.response` says what happens
+to a chunk above it:
 "continue" (execute it, log a warning), "hold" (execute `hold_action` instead: "zero_delta" for
 end-effector delta actions such as MetaWorld's and LIBERO's, "current_state" for absolute joint targets) or
-"raise" (`EnergyOODError`). These are `EBVLAConfig` fields, so `lerobot-eval`, `lerobot-rollout` and the
-policy server take them as `--policy.ood_response=hold --policy.hold_action=zero_delta`; here they are set
+"raise" (`EnergyOODError`). These are `EBVLAConfig.monitor` fields, so `lerobot-eval` and `lerobot-rollout` take
+them as `--policy.monitor.response=hold --policy.monitor.hold_action=zero_delta`; here they are set
 in Python and the episodes run in LeRobot's own `rollout`, in the vanilla scene and under a perturbation.
 
     MUJOCO_GL=egl python examples/rollout_with_ood_response.py \\
@@ -43,11 +44,11 @@ class RolloutConfig:
     # Episodes end after this many env steps.
     max_episode_steps: int = 100
     # What the policy does with a chunk above T: "continue", "hold" or "raise".
-    ood_response: str = "hold"
+    response: str = "hold"
     # The hold action (MetaWorld's actions are end-effector deltas).
     hold_action: str = "zero_delta"
     # k of T = mu_v + k * sigma_v; None keeps the calibration's.
-    ood_threshold_k: float | None = None
+    threshold_k: float | None = None
 
 
 def run_episodes(cfg: RolloutConfig, policy, perturbation: str, severity: int) -> None:
@@ -87,7 +88,7 @@ def run_episodes(cfg: RolloutConfig, policy, perturbation: str, severity: int) -
                     seeds=[seed],
                 )
                 outcome = f"success={bool(data['success'][0].any())}"
-            except EnergyOODError as error:  # ood_response="raise": the robot would stop here
+            except EnergyOODError as error:  # response "raise": the robot would stop here
                 decisions.append(error.decision)  # raised before the policy could leave it
                 outcome = f"stopped: energy {error.energy:.3f} > T = {error.threshold:.3f}"
             held = sum(bool(d.held.any()) for d in decisions if d is not None)
@@ -102,16 +103,14 @@ def run_episodes(cfg: RolloutConfig, policy, perturbation: str, severity: int) -
 
 
 def main(cfg: RolloutConfig) -> None:
-    # `--policy.<field>` overrides, as lerobot-eval applies them to the saved config.
+    # `--policy.monitor.<field>` overrides, as lerobot-eval applies them to the saved config.
     config = PreTrainedConfig.from_pretrained(cfg.checkpoint)
-    config = dataclasses.replace(
-        config,
-        ood_response=cfg.ood_response,
-        hold_action=cfg.hold_action,
-        ood_threshold_k=cfg.ood_threshold_k,
+    monitor = dataclasses.replace(
+        config.monitor, response=cfg.response, hold_action=cfg.hold_action, threshold_k=cfg.threshold_k
     )
+    config = dataclasses.replace(config, monitor=monitor)
     policy = EBVLAPolicy.from_pretrained(cfg.checkpoint, config=config)
-    print(f"OOD threshold T = {policy.ood_response.threshold:.3f}, response {cfg.ood_response!r}")
+    print(f"OOD threshold T = {policy.ood_response.threshold:.3f}, response {cfg.response!r}")
     with torch.no_grad():
         run_episodes(cfg, policy, "none", 0)
         run_episodes(cfg, policy, cfg.perturbation, cfg.perturbation_severity)

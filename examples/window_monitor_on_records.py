@@ -16,19 +16,24 @@ trained with `energy_ood_margin_on`) to do the same.
 """
 
 import dataclasses
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import draccus
-import numpy as np
 
 from lerobot_policy_ebvla.monitoring.records import load_episodes
 from lerobot_policy_ebvla.monitoring.window_report import score_sets
-from lerobot_policy_ebvla.runtime import WindowTypicalityMonitor
+from lerobot_policy_ebvla.runtime import EnergyReadout, WindowTypicalityMonitor
 
 RECORDS = (
     Path(__file__).resolve().parents[1] / "research/results/metaworld_sweep_margin_full/seed12000/observation"
 )
+
+# The window test reads a research score (`context_energy_two_sided`): its module, beside the research benchmarks,
+# registers it in the package's `SCORES`.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import research_scores  # noqa: E402, F401
 
 
 @dataclass
@@ -59,8 +64,9 @@ def main(cfg: WindowExampleConfig) -> None:
     for chunks in ordered:
         chunks = chunks[: cfg.first_chunks]
         decision = monitor.add_rollout(
-            np.array([c.final_energy for c in chunks]),
-            context_energies=np.array([c.context_energy for c in chunks]),
+            EnergyReadout.of_arrays(
+                [c.final_energy for c in chunks], context_energy=[c.context_energy for c in chunks]
+            )
         )
         episode = chunks[0].episode_index
         if decision is None:

@@ -22,12 +22,12 @@ from lerobot_policy_ebvla.monitoring.scores import episode_chunk_scores, episode
 from lerobot_policy_ebvla.runtime import EnergyOODError
 from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
 from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
-from lerobot_policy_ebvla.runtime.scores import CONTEXT_FILE, NEIGHBOURS_FILE, SCORES, ContextKNN
+from lerobot_policy_ebvla.runtime.readout import EnergyReadout
+from lerobot_policy_ebvla.runtime.scores import NEIGHBOURS_FILE, SCORES, ContextKNN
 from lerobot_policy_ebvla.runtime.statistics import ContextNeighbours
 from lerobot_policy_ebvla.scripts import ood_report
 
 from .conftest import context_rollouts, tiny_batch, tiny_config, write_records
-from .test_context_distance import context_calibration
 
 D = 4
 K = 3
@@ -115,14 +115,16 @@ def test_a_context_knn_calibration_scores_a_chunk_by_its_knn_distance():
     calibration = knn_calibration()
     features = np.array([[0.0, 0.0, 0.0, 0.0], [5.0, 5.0, 5.0, 5.0]])
     np.testing.assert_allclose(
-        calibration.chunk_score(torch.tensor([9.0, 9.0]), context_features=torch.from_numpy(features)),
+        calibration.chunk_score(
+            EnergyReadout.of_arrays(torch.tensor([9.0, 9.0]), 0, torch.from_numpy(features))
+        ),
         calibration.score.neighbours.distance(features),
     )
 
 
 def test_a_context_knn_calibration_needs_the_context_features():
     with pytest.raises(ValueError, match="context_knn score needs each chunk's pooled context"):
-        knn_calibration().chunk_score(1.0, chunk_index=0)
+        knn_calibration().chunk_score(EnergyReadout.of_arrays(1.0, 0))
 
 
 def test_a_context_knn_calibration_needs_its_neighbours():
@@ -139,7 +141,7 @@ def test_a_context_knn_calibration_round_trips_through_json_and_safetensors(tmp_
         40,
         K,
     )
-    assert not (tmp_path / CONTEXT_FILE.filename).exists()
+    assert not (tmp_path / "ood_calibration_context.safetensors").exists()
     loaded = OODCalibration.load(tmp_path)
     assert loaded == calibration and loaded.score.name == "context_knn" and loaded.score.neighbours.k == K
     assert loaded.score.neighbours.features.dtype == np.float32
@@ -166,11 +168,8 @@ def test_a_neighbours_entry_that_misstates_k_is_refused(tmp_path):
         OODCalibration.load(tmp_path)
 
 
-# What both context scores save beside the JSON: the context statistics, the context neighbours.
+# What the context k-NN saves beside the JSON: the context neighbours.
 SIDE_FILES = [
-    pytest.param(
-        context_calibration, CONTEXT_FILE.filename, CONTEXT_FILE.field, "context", id="context_distance"
-    ),
     pytest.param(
         knn_calibration, NEIGHBOURS_FILE.filename, NEIGHBOURS_FILE.field, "neighbours", id="context_knn"
     ),
@@ -235,14 +234,16 @@ def calibrated_monitor() -> EnergyOODMonitor:
 def test_the_monitor_passes_an_in_distribution_context_and_flags_a_shifted_one():
     monitor = calibrated_monitor()
     centre = monitor.calibration.score.neighbours.mean
-    assert monitor.check(0.0, context_features=centre).in_distribution
-    assert monitor.check(0.0, context_features=centre + 4.0).is_ood
+    assert monitor.check(EnergyReadout.of_arrays(0.0, 0, centre))[0].in_distribution
+    assert monitor.check(EnergyReadout.of_arrays(0.0, 0, centre + 4.0))[0].is_ood
 
 
 def test_the_monitor_scores_each_environments_chunk_by_its_knn_distance():
     monitor = calibrated_monitor()
     features = np.array([[0.0, 0.0, 0.0, 0.0], [5.0, 5.0, 5.0, 5.0]])
-    decisions = monitor.update(torch.tensor([9.0, 9.0]), context_features=features)
+    decisions = monitor.update(
+        EnergyReadout(None, torch.tensor([9.0, 9.0]), context_features=torch.from_numpy(features))
+    )
     expected = monitor.calibration.score.neighbours.distance(features)
     assert [d.energy for d in decisions] == pytest.approx(expected.tolist())
     assert [d.is_ood for d in decisions] == [False, True]
@@ -298,7 +299,8 @@ def test_ood_report_saves_a_context_knn_calibration_of_the_reports_knn_score(rec
     held_out = episode_chunk_scores(vanilla, "context_knn", reference)
     for key, episode in vanilla.items():
         energies = [r.final_energy for r in episode]
-        decision = monitor.check_rollout(energies, np.stack([r.context_feature for r in episode]))
+        features = np.stack([r.context_feature for r in episode])
+        decision = monitor.check_rollout(EnergyReadout.of_arrays(energies, context_features=features))
         assert decision.energy == pytest.approx(held_out[key].mean(), rel=1e-12)
 
 
@@ -319,7 +321,7 @@ def test_the_policy_scores_each_chunk_by_the_knn_distance_of_its_observation(tmp
     neighbours = ContextNeighbours.fit(torch.cat([policy.context_features(b) for b in contexts]), k=K)
     # A threshold below every distance: every chunk is flagged and raises with its highest distance.
     OODCalibration(mu_v=-1.0, sigma_v=0.0, score=ContextKNN(neighbours)).save(tmp_path)
-    policy.configure_ood_response(tmp_path, ood_response="raise")
+    policy.configure_ood_response(tmp_path, response="raise")
     batch = tiny_batch(policy.config, batch_size=2, seed=7, with_action=False)
     with pytest.raises(EnergyOODError, match="context_knn") as raised:
         policy.predict_action_chunk(batch)

@@ -113,7 +113,7 @@ def run_rollout_example(checkpoint, response):
     run_example(
         "rollout_with_ood_response.py",
         f"--checkpoint={checkpoint}",
-        f"--ood_response={response}",
+        f"--response={response}",
         "--episodes=1",
         f"--max_episode_steps={EPISODE_STEPS}",
     )

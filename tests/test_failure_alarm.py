@@ -2,7 +2,6 @@
 
 import json
 import math
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -10,6 +9,7 @@ import torch
 
 from lerobot_policy_ebvla.monitoring.failure import FailurePredictionResult, episode_slopes, failure_alarm
 from lerobot_policy_ebvla.monitoring.records import EnergyRecord
+from lerobot_policy_ebvla.runtime import EnergyReadout
 from lerobot_policy_ebvla.runtime.failure_alarm import (
     FAILURE_ALARM_FILENAME,
     EnergyFailureMonitor,
@@ -18,6 +18,11 @@ from lerobot_policy_ebvla.runtime.failure_alarm import (
 
 # T = 0.5 + 1.0 * 0.5 = 1.0 at step 3 over a window of 2.
 ALARM = FailureAlarm(metric="final", step=3, window=2, k=1.0, mu_ref=0.5, sigma_ref=0.5, n_reference=2)
+
+
+def readout(final_energy, chunk_index, **kwargs) -> EnergyReadout:
+    """The policy's readout of one chunk per environment."""
+    return EnergyReadout(None, torch.tensor(final_energy), chunk_index=chunk_index, **kwargs)
 
 
 def episode(final, success, index=0):
@@ -119,7 +124,7 @@ def test_a_missing_alarm_says_how_to_make_one(tmp_path):
 def test_the_monitor_decides_once_at_the_step_and_keeps_the_decision():
     monitor = EnergyFailureMonitor(ALARM)
     # Two environments: the first's energy rises by 2 a step (slope 2 > T = 1), the second's stays flat.
-    answers = [monitor.update(torch.tensor([2.0 * s, 0.0])) for s in range(5)]
+    answers = [monitor.update(readout([2.0 * s, 0.0], s)) for s in range(5)]
     assert [[d.alarm for d in a] for a in answers] == [
         [None, None],
         [None, None],
@@ -135,28 +140,31 @@ def test_the_monitor_decides_once_at_the_step_and_keeps_the_decision():
 def test_the_monitor_reads_the_energy_of_its_metric_from_a_readout():
     start = EnergyFailureMonitor(FailureAlarm("start", 2, 2, 0.0, 0.0, 1.0, 2))
     readouts = [
-        SimpleNamespace(initial_energy=torch.tensor([v]), final_energy=torch.tensor([0.0]))
-        for v in (0.0, 3.0)
+        EnergyReadout(torch.tensor([v]), torch.tensor([0.0]), chunk_index=i) for i, v in enumerate((0, 3))
     ]
     assert [start.update(r)[0].alarm for r in readouts] == [None, True]
 
 
 def test_the_monitor_reads_the_context_energy_for_a_context_slope_and_names_it_when_missing():
     context = EnergyFailureMonitor(FailureAlarm("context", 2, 2, 0.0, 0.0, 1.0, 2))
-    readouts = [
-        SimpleNamespace(final_energy=torch.tensor([0.0]), context_energy=torch.tensor([v]))
-        for v in (0.0, 3.0)
-    ]
+    readouts = [readout([0.0], i, context_energy=torch.tensor([v])) for i, v in enumerate((0.0, 3.0))]
     assert [context.update(r)[0].alarm for r in readouts] == [None, True]
     context.reset()
     with pytest.raises(ValueError, match="slope of `context_energy`, which this readout does not have"):
-        context.update(SimpleNamespace(final_energy=torch.tensor([0.0]), context_energy=None))
+        context.update(readout([0.0], 0))
 
 
 def test_the_monitor_refuses_a_changed_number_of_environments_and_forgets_on_reset():
     monitor = EnergyFailureMonitor(ALARM)
-    monitor.update(torch.zeros(2))
+    monitor.update(readout([0.0, 0.0], 0))
     with pytest.raises(ValueError, match="Expected 2 energies"):
-        monitor.update(torch.zeros(3))
+        monitor.update(readout([0.0, 0.0, 0.0], 1))
     monitor.reset()
-    assert monitor.update(1.0)[0].alarm is None
+    assert monitor.update(readout([1.0], 0))[0].alarm is None
+
+
+def test_the_monitor_counts_a_readout_it_has_seen_once():
+    monitor = EnergyFailureMonitor(ALARM)
+    first = readout([0.0], 0)
+    assert [monitor.update(first)[0].step, monitor.update(first)[0].step] == [1, 1]
+    assert monitor.update(readout([0.0], 1))[0].step == 2

@@ -19,6 +19,7 @@ from lerobot_policy_ebvla.monitoring.scores import episode_scores
 from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
 from lerobot_policy_ebvla.runtime.failure_alarm import FAILURE_ALARM_FILENAME, FailureAlarm
 from lerobot_policy_ebvla.scripts import failure_report, landscape, ood_report
+from research.tests.conftest import load_benchmark
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -99,8 +100,8 @@ def test_ood_report_prints_the_held_out_tables_with_intervals_and_baselines(reco
     assert whole_episode.count("| Multiplier |") == 3  # all perturbations, and each severity
     # Every baseline sits beside the final energy in the AUROC table and in every Table III.
     assert (
-        "| Condition | Episodes | final_energy | final_energy_two_sided | phase_energy | phase_energy_two_sided "
-        "| initial_energy | restart_spread | context_distance | context_knn |" in out
+        "| Condition | Episodes | final_energy | phase_energy | initial_energy | restart_spread | context_distance "
+        "| context_knn |" in out
     )
     assert whole_episode.count("Bal. Acc. context_knn") == 3
     assert whole_episode.count("conf. α=5.0%") == 3
@@ -173,9 +174,7 @@ def test_ood_report_without_baseline_data_reports_the_energies_only(tmp_path, ca
     ood_report.main(ood_args(calibration, vanilla, ood, tmp_path / "out"))
     out = capsys.readouterr().out
     assert (
-        "| Condition | Episodes | final_energy | final_energy_two_sided | phase_energy | phase_energy_two_sided "
-        "| initial_energy | phase_energy_deviation |\n"
-        in out
+        "| Condition | Episodes | final_energy | phase_energy | initial_energy |\n" in out
         and "knn" not in out
     )
 
@@ -287,6 +286,7 @@ def test_ood_report_leaves_the_first_chunk_table_iii_out_when_asked(record_dirs,
 
 
 def test_ood_report_saves_a_phase_energy_calibration_when_asked(record_dirs, tmp_path):
+    load_benchmark("research_scores")  # a research score, registered by its module
     checkpoint = tmp_path / "pretrained_model"
     checkpoint.mkdir()
     ood_report.main(
@@ -309,6 +309,7 @@ def calibrated(record_dirs, tmp_path, score: str) -> OODCalibration:
 
 
 def test_ood_report_saves_the_held_out_vanilla_rollouts_as_the_window_tests_reference(record_dirs, tmp_path):
+    load_benchmark("research_scores")  # a research score, registered by its module
     saved = np.array(calibrated(record_dirs, tmp_path, "phase_energy_two_sided").window_reference)
     calibration_set, vanilla = load_episodes([record_dirs[0]]), load_episodes([record_dirs[1]])
     reference = fit_score_reference(calibration_set, features=False)
@@ -336,6 +337,7 @@ def test_ood_report_saves_no_window_reference_from_in_sample_vanilla(record_dirs
 
 
 def test_ood_report_saves_a_context_distance_calibration_when_asked(record_dirs, tmp_path):
+    load_benchmark("research_scores")  # a research score, registered by its module
     calibration = calibrated(record_dirs, tmp_path, "context_distance")
     episodes = load_episodes([record_dirs[0]])
     reference = fit_score_reference(episodes)
@@ -348,6 +350,7 @@ def test_ood_report_saves_a_context_distance_calibration_when_asked(record_dirs,
 
 
 def test_ood_report_refuses_a_context_distance_calibration_without_context_features(tmp_path):
+    load_benchmark("research_scores")  # a research score, registered by its module
     dirs = (
         write(tmp_path, "vanilla_a", rollouts(6, 5.0, seed=10)),
         write(tmp_path, "vanilla_b", rollouts(6, 5.0, seed=11)),

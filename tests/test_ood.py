@@ -30,6 +30,7 @@ from lerobot_policy_ebvla.monitoring.records import EnergyRecord, group_by_episo
 from lerobot_policy_ebvla.monitoring.scores import episode_scores
 from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
 from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
+from lerobot_policy_ebvla.runtime.readout import EnergyReadout
 from lerobot_policy_ebvla.runtime.scores import rollout_score
 from lerobot_policy_ebvla.runtime.threshold import conformal_threshold, exceeds
 
@@ -177,8 +178,8 @@ def test_fit_on_a_single_rollout_gives_sigma_zero():
 
 def test_fit_on_equal_energies_flags_only_higher_scores():
     monitor = EnergyOODMonitor(OODCalibration.fit([2.0, 2.0, 2.0]))
-    assert monitor.check(2.0).in_distribution
-    assert monitor.check(2.0001).is_ood
+    assert monitor.check(EnergyReadout.of_arrays(2.0))[0].in_distribution
+    assert monitor.check(EnergyReadout.of_arrays(2.0001))[0].is_ood
 
 
 def test_fit_leaves_out_non_finite_scores_with_a_warning():
@@ -265,45 +266,57 @@ def test_monitor_from_pretrained_can_override_k(tmp_path):
     assert EnergyOODMonitor.from_pretrained(tmp_path, k=0.0).threshold == 2.5
 
 
-def test_monitor_check_of_a_float_returns_one_decision():
-    decision = EnergyOODMonitor(OODCalibration(mu_v=2.0, sigma_v=1.0, k=1.0)).check(3.5)
+def test_monitor_check_of_one_chunk_returns_one_decision():
+    (decision,) = EnergyOODMonitor(OODCalibration(mu_v=2.0, sigma_v=1.0, k=1.0)).check(
+        EnergyReadout.of_arrays(3.5)
+    )
     assert decision.is_ood and decision.energy == 3.5 and decision.threshold == 3.0
-
-
-def test_monitor_check_of_a_zero_dim_tensor_returns_one_decision():
-    decision = EnergyOODMonitor(OODCalibration(mu_v=2.0, sigma_v=1.0, k=1.0)).check(torch.tensor(1.0))
-    assert decision.in_distribution and decision.energy == 1.0
 
 
 def test_monitor_check_of_a_batch_returns_one_decision_per_sample():
     monitor = EnergyOODMonitor(OODCalibration(mu_v=2.0, sigma_v=1.0, k=1.0))
-    decisions = monitor.check(torch.tensor([1.0, 3.0, 3.5]))
+    decisions = monitor.check(EnergyReadout(None, torch.tensor([1.0, 3.0, 3.5])))
     assert [d.in_distribution for d in decisions] == [True, True, False]
 
 
 def test_monitor_flags_non_finite_energies():
     monitor = EnergyOODMonitor(OODCalibration(mu_v=2.0, sigma_v=1.0))
-    assert all(d.is_ood for d in monitor.check(torch.tensor([math.inf, math.nan])))
+    assert all(d.is_ood for d in monitor.check(EnergyReadout(None, torch.tensor([math.inf, math.nan]))))
 
 
 def test_monitor_update_checks_each_environments_running_rollout_score():
     monitor = EnergyOODMonitor(OODCalibration(mu_v=2.0, sigma_v=1.0, k=1.0, aggregation="mean"))
-    monitor.update(torch.tensor([2.0, 4.0]))
-    decisions = monitor.update(torch.tensor([3.0, 4.0]))
+    monitor.update(EnergyReadout(None, torch.tensor([2.0, 4.0]), chunk_index=0))
+    decisions = monitor.update(EnergyReadout(None, torch.tensor([3.0, 4.0]), chunk_index=1))
     assert [d.energy for d in decisions] == [2.5, 4.0]
     assert [d.in_distribution for d in decisions] == [True, False]
 
 
+def test_monitor_update_counts_a_readout_it_has_seen_once():
+    monitor = EnergyOODMonitor(OODCalibration(mu_v=2.0, sigma_v=1.0, k=1.0))
+    readout = EnergyReadout(None, torch.tensor([2.0]))
+    first = monitor.update(readout)
+    assert monitor.update(readout) is first
+    assert monitor.update(EnergyReadout(None, torch.tensor([4.0]), chunk_index=1))[0].energy == 3.0
+
+
+def test_monitor_update_refuses_a_readout_of_another_episode():
+    monitor = EnergyOODMonitor(OODCalibration(mu_v=2.0, sigma_v=1.0, k=1.0))
+    monitor.update(EnergyReadout(None, torch.tensor([2.0])))
+    with pytest.raises(ValueError, match=r"chunk 0 .* seen 1 chunks: call `monitor.reset\(\)`"):
+        monitor.update(EnergyReadout(None, torch.tensor([2.0])))
+
+
 def test_monitor_reset_forgets_past_energies():
     monitor = EnergyOODMonitor(OODCalibration(mu_v=2.0, sigma_v=1.0, k=1.0))
-    monitor.update(10.0)
+    monitor.update(EnergyReadout(None, torch.tensor([10.0])))
     monitor.reset()
-    assert monitor.update(1.0)[0].energy == 1.0
+    assert monitor.update(EnergyReadout(None, torch.tensor([1.0])))[0].energy == 1.0
 
 
 def test_monitor_check_rollout_uses_the_calibration_aggregation():
     monitor = EnergyOODMonitor(OODCalibration(mu_v=2.0, sigma_v=1.0, k=1.0, aggregation="max"))
-    assert monitor.check_rollout([1.0, 5.0, 1.0]).energy == 5.0
+    assert monitor.check_rollout(EnergyReadout.of_arrays([1.0, 5.0, 1.0])).energy == 5.0
 
 
 def test_detection_table_at_one_sigma_matches_hand_computation():

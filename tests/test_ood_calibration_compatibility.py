@@ -11,9 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lerobot_policy_ebvla.runtime import SCORES, EnergyOODMonitor, OODCalibration
+from lerobot_policy_ebvla.runtime import SCORES, EnergyOODMonitor, EnergyReadout, OODCalibration
+from lerobot_policy_ebvla.runtime.calibration import UnregisteredScoreError
+from lerobot_policy_ebvla.runtime.scores import PACKAGE_SCORES
 
-FIXTURES = sorted((Path(__file__).parent / "fixtures").glob("ood_calibration_v*/*"))
+ALL_FIXTURES = sorted((Path(__file__).parent / "fixtures").glob("ood_calibration_v*/*"))
+# The fixtures of the package's scores; the research scores' are loaded by the research tests.
+FIXTURES = [folder for folder in ALL_FIXTURES if folder.name in PACKAGE_SCORES]
 
 
 @pytest.mark.parametrize("folder", FIXTURES, ids=[f"{f.parent.name}/{f.name}" for f in FIXTURES])
@@ -22,11 +26,11 @@ def test_a_saved_calibration_loads_and_scores_chunks_as_it_did(folder):
     energies, index, features = (np.array(v) for v in expected["probe"].values())
     calibration = OODCalibration.load(folder)
     assert calibration.score.name == folder.name
-    np.testing.assert_allclose(calibration.chunk_score(energies, index, features), expected["chunk_scores"])
-    assert calibration.chunk_score(energies[0], 0, features[0]) == pytest.approx(
-        expected["first_chunk_score"]
-    )
-    components = calibration.chunk_components(energies, index, features)
+    probe = EnergyReadout.of_arrays(energies, index, features)
+    np.testing.assert_allclose(calibration.chunk_score(probe), expected["chunk_scores"])
+    first = calibration.chunk_score(EnergyReadout.of_arrays(energies[0], 0, features[0]))
+    assert first == pytest.approx([expected["first_chunk_score"]])
+    components = calibration.chunk_components(probe)
     np.testing.assert_allclose(components, expected["chunk_components"])
     assert calibration.score_rollout(components) == pytest.approx(expected["rollout_score"])
     assert calibration.threshold == pytest.approx(expected["threshold"])
@@ -42,13 +46,24 @@ def test_a_saved_calibration_saved_again_loads_the_same(folder, tmp_path):
     probe = json.loads((folder / "expected.json").read_text())["probe"]
     energies, index, features = (np.array(v) for v in probe.values())
     monitor = EnergyOODMonitor(again)
-    decision = monitor.check_rollout(energies, features)
-    assert decision.energy == pytest.approx(
-        EnergyOODMonitor(calibration).check_rollout(energies, features).energy
-    )
+    rollout = EnergyReadout.of_arrays(energies, context_features=features)
+    decision = monitor.check_rollout(rollout)
+    assert decision.energy == pytest.approx(EnergyOODMonitor(calibration).check_rollout(rollout).energy)
 
 
 def test_there_is_a_fixture_of_every_score_of_v0_1_0():
-    names = {f.name for f in FIXTURES if f.parent.name == "ood_calibration_v0.1.0"}
+    names = {f.name for f in ALL_FIXTURES if f.parent.name == "ood_calibration_v0.1.0"}
     assert names == {"final_energy", "phase_energy", "context_distance", "energy_and_context", "context_knn"}
-    assert names <= set(SCORES)
+    assert {f.name for f in FIXTURES} == names & set(PACKAGE_SCORES) == {"final_energy", "context_knn"}
+
+
+@pytest.mark.parametrize("name", ["phase_energy", "context_distance", "energy_and_context"])
+def test_a_saved_calibration_of_a_research_score_says_how_to_register_it(name, monkeypatch):
+    monkeypatch.delitem(
+        SCORES, name, raising=False
+    )  # as in a process that did not import the research scores
+    folder = Path(__file__).parent / "fixtures" / "ood_calibration_v0.1.0" / name
+    with pytest.raises(
+        UnregisteredScoreError, match=rf"score '{name}', which is not registered.*research_scores"
+    ):
+        OODCalibration.load(folder)

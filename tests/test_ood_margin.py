@@ -7,7 +7,7 @@ import torch
 from lerobot_policy_ebvla import EBVLAPolicy
 from lerobot_policy_ebvla.modeling_ebvla import pooled_context
 from lerobot_policy_ebvla.runtime import EnergyOODResponse, OODCalibration, PhaseStatistics
-from lerobot_policy_ebvla.runtime.scores import ContextEnergyTwoSided
+from lerobot_policy_ebvla.runtime.scores import ContextPhaseEnergy
 from lerobot_policy_ebvla.training_signal import (
     CORRUPTIONS,
     channel_gain,
@@ -457,18 +457,18 @@ def test_adaptive_restarts_keep_the_observations_context_energy():
     torch.testing.assert_close(readout.final_energy, head + context, rtol=1e-4, atol=1e-4)
 
 
-def test_the_policy_monitors_its_context_energy_on_either_side_of_the_vanilla_band():
-    """A context-energy calibration reads the readout's E_c: a chunk whose E_c lies far *under* the band is
-    flagged by the two-sided score."""
+def test_the_policy_monitors_its_context_energy_against_the_vanilla_band_at_its_chunk_index():
+    """A context-energy calibration reads the readout's E_c: a chunk whose E_c lies far above the vanilla band at
+    its chunk index is flagged, with z = (E_c - mu_v[0]) / sigma_v[0]."""
     torch.manual_seed(0)
     policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on="observation")).eval()
     batch = tiny_batch(policy.config, batch_size=2, with_action=False)
     context = policy.model.context_energy_of(batch, None).detach().double().numpy()
-    # The vanilla band at chunk index 0 sits one unit above this batch's E_c, 0.1 wide.
-    band = PhaseStatistics(mean=(float(context.mean()) + 1.0,), std=(0.1,))
-    calibration = OODCalibration(mu_v=0.0, sigma_v=1.0, score=ContextEnergyTwoSided(band))
+    # The vanilla band at chunk index 0 sits one unit below this batch's E_c, 0.1 wide.
+    band = PhaseStatistics(mean=(float(context.mean()) - 1.0,), std=(0.1,))
+    calibration = OODCalibration(mu_v=0.0, sigma_v=1.0, score=ContextPhaseEnergy(band))
     policy.ood_response = EnergyOODResponse(policy.config, calibration)
     policy.predict_action_chunk(batch)
     decision = policy.last_ood_decision
-    np.testing.assert_allclose(decision.scores.numpy(), np.abs(context - band.mean[0]) / 0.1, rtol=1e-4)
+    np.testing.assert_allclose(decision.scores.numpy(), (context - band.mean[0]) / 0.1, rtol=1e-4)
     assert decision.flagged.all()

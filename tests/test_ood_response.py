@@ -14,8 +14,15 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 from lerobot_policy_ebvla import EBVLAPolicy, make_ebvla_pre_post_processors
-from lerobot_policy_ebvla.runtime import EnergyOODError, EnergyOODResponse, OODCalibration, PhaseStatistics
-from lerobot_policy_ebvla.runtime.scores import PhaseEnergy
+from lerobot_policy_ebvla.configuration_ebvla import MonitorConfig
+from lerobot_policy_ebvla.runtime import (
+    EnergyOODError,
+    EnergyOODResponse,
+    EnergyReadout,
+    OODCalibration,
+    PhaseStatistics,
+)
+from lerobot_policy_ebvla.runtime.scores import ContextPhaseEnergy
 from tests.conftest import tiny_batch, tiny_config
 
 BELOW_ALL_ENERGIES = OODCalibration(mu_v=-1e6, sigma_v=0.0)
@@ -44,13 +51,13 @@ def save_checkpoint(path, config, calibration: OODCalibration | None, action_dim
     return path
 
 
-def load(path, **overrides):
-    """Loads policy and processors as lerobot-eval does, with `--policy.<field>` overrides."""
+def load(path, **monitor):
+    """Loads policy and processors as lerobot-eval does, with `--policy.monitor.<field>` overrides."""
     from lerobot.configs import PreTrainedConfig
     from lerobot.policies import make_pre_post_processors
 
     config = PreTrainedConfig.from_pretrained(path)
-    config = dataclasses.replace(config, **overrides)
+    config = dataclasses.replace(config, monitor=dataclasses.replace(config.monitor, **monitor))
     policy = EBVLAPolicy.from_pretrained(path, config=config)
     preprocessor, postprocessor = make_pre_post_processors(policy.config, pretrained_path=str(path))
     return policy, preprocessor, postprocessor
@@ -127,7 +134,7 @@ def run_rollout(metaworld_env, path, **overrides):
 
 def test_hold_sends_zero_deltas_to_metaworld_and_counts_each_held_chunk(metaworld_env, checkpoints):
     actions, decisions = run_rollout(
-        metaworld_env, checkpoints["below"], ood_response="hold", hold_action="zero_delta"
+        metaworld_env, checkpoints["below"], response="hold", hold_action="zero_delta"
     )
     assert actions.shape == (EPISODE_STEPS, 4)
     torch.testing.assert_close(actions, torch.zeros_like(actions), atol=1e-5, rtol=0)
@@ -138,7 +145,7 @@ def test_hold_sends_zero_deltas_to_metaworld_and_counts_each_held_chunk(metaworl
 
 def test_hold_leaves_chunks_below_the_threshold_untouched(metaworld_env, checkpoints):
     held, decisions = run_rollout(
-        metaworld_env, checkpoints["above"], ood_response="hold", hold_action="zero_delta"
+        metaworld_env, checkpoints["above"], response="hold", hold_action="zero_delta"
     )
     plain, _ = run_rollout(metaworld_env, checkpoints["uncalibrated"])
     assert not any(d.flagged.any() or d.held.any() for d in decisions)
@@ -147,7 +154,7 @@ def test_hold_leaves_chunks_below_the_threshold_untouched(metaworld_env, checkpo
 
 
 def test_continue_flags_chunks_but_executes_them_unchanged(metaworld_env, checkpoints):
-    flagged, decisions = run_rollout(metaworld_env, checkpoints["below"], ood_response="continue")
+    flagged, decisions = run_rollout(metaworld_env, checkpoints["below"], response="continue")
     plain, plain_decisions = run_rollout(metaworld_env, checkpoints["uncalibrated"])
     torch.testing.assert_close(flagged, plain)
     assert all(d.flagged.all() and not d.held.any() for d in decisions)
@@ -156,7 +163,7 @@ def test_continue_flags_chunks_but_executes_them_unchanged(metaworld_env, checkp
 
 def test_raise_stops_the_metaworld_rollout_with_the_energy_and_threshold(metaworld_env, checkpoints):
     with pytest.raises(EnergyOODError, match="above the OOD threshold") as error:
-        run_rollout(metaworld_env, checkpoints["below"], ood_response="raise")
+        run_rollout(metaworld_env, checkpoints["below"], response="raise")
     assert error.value.threshold == BELOW_ALL_ENERGIES.threshold
     assert error.value.energy > error.value.threshold
     assert error.value.decision.flagged.all() and not error.value.decision.held.any()
@@ -174,7 +181,7 @@ def test_current_state_hold_sends_the_observed_state_after_unnormalization(tmp_p
         output_features={"action": PolicyFeature(FeatureType.ACTION, (3,))},
     )
     save_checkpoint(tmp_path, config, BELOW_ALL_ENERGIES, action_dim=3, state_dim=3)
-    policy, preprocessor, postprocessor = load(tmp_path, ood_response="hold", hold_action="current_state")
+    policy, preprocessor, postprocessor = load(tmp_path, response="hold", hold_action="current_state")
     raw_state = torch.tensor([[0.7, -1.2, 3.0], [0.0, 0.5, -0.4]])
     observation = {k: v for k, v in tiny_batch(config, with_action=False).items() if k != OBS_STATE}
     batch = preprocessor({**observation, OBS_STATE: raw_state})
@@ -186,14 +193,15 @@ def test_current_state_hold_sends_the_observed_state_after_unnormalization(tmp_p
 
 def test_current_state_hold_rejects_state_and_action_of_different_sizes():
     with pytest.raises(ValueError, match="hold_action='current_state'.*same size"):
-        EBVLAPolicy(tiny_config(ood_response="hold", hold_action="current_state"))  # state 4, action 3
+        EBVLAPolicy(
+            tiny_config(monitor=MonitorConfig(response="hold", hold_action="current_state"))
+        )  # state 4, action 3
 
 
 def test_current_state_hold_rejects_differently_named_state_and_action():
     config = tiny_config(
         output_features={"action": PolicyFeature(FeatureType.ACTION, (4,))},
-        ood_response="hold",
-        hold_action="current_state",
+        monitor=MonitorConfig(response="hold", hold_action="current_state"),
     )
     config.set_dataset_feature_metadata(
         {OBS_STATE: {"names": ["x", "y", "z", "gripper"]}, ACTION: {"names": ["dx", "dy", "dz", "gripper"]}}
@@ -203,40 +211,42 @@ def test_current_state_hold_rejects_differently_named_state_and_action():
 
 
 def test_hold_without_an_explicit_hold_action_is_rejected():
-    with pytest.raises(ValueError, match="`hold_action`.*zero_delta.*current_state"):
-        tiny_config(ood_response="hold")
+    with pytest.raises(ValueError, match="`monitor.hold_action`.*zero_delta.*current_state"):
+        tiny_config(monitor=MonitorConfig(response="hold"))
 
 
 def test_unknown_responses_are_rejected():
-    with pytest.raises(ValueError, match="`ood_response`"):
-        tiny_config(ood_response="stop")
-    with pytest.raises(ValueError, match="`hold_action`"):
-        tiny_config(ood_response="hold", hold_action="home")
-    with pytest.raises(ValueError, match="`ood_threshold_k`"):
-        tiny_config(ood_threshold_k=-1.0)
+    with pytest.raises(ValueError, match="`monitor.response`"):
+        tiny_config(monitor=MonitorConfig(response="stop"))
+    with pytest.raises(ValueError, match="`monitor.hold_action`"):
+        tiny_config(monitor=MonitorConfig(response="hold", hold_action="home"))
+    with pytest.raises(ValueError, match="`monitor.threshold_k`"):
+        tiny_config(monitor=MonitorConfig(threshold_k=-1.0))
 
 
 def test_threshold_multiplier_of_the_config_replaces_the_calibrations(tmp_path):
     save_checkpoint(tmp_path, tiny_config(), OODCalibration(mu_v=2.0, sigma_v=0.5, k=1.0), 3, 4)
     assert load(tmp_path)[0].ood_response.threshold == 2.5
-    assert load(tmp_path, ood_threshold_k=3.0)[0].ood_response.threshold == 3.5
+    assert load(tmp_path, threshold_k=3.0)[0].ood_response.threshold == 3.5
 
 
 def test_raise_and_hold_need_a_calibration(tmp_path):
     save_checkpoint(tmp_path, tiny_config(), None, 3, 4)
     with pytest.raises(FileNotFoundError, match="ood_calibration.json"):
-        load(tmp_path, ood_response="raise")
+        load(tmp_path, response="raise")
     torch.manual_seed(0)
-    policy = EBVLAPolicy(tiny_config(ood_response="raise"))  # built in memory: no calibration
+    policy = EBVLAPolicy(
+        tiny_config(monitor=MonitorConfig(response="raise"))
+    )  # built in memory: no calibration
     with pytest.raises(ValueError, match="needs the threshold of an OOD calibration"):
         policy.predict_action_chunk(tiny_batch(policy.config, with_action=False))
 
 
 def test_non_finite_energy_is_held_whatever_the_threshold():
-    config = tiny_config(ood_response="hold", hold_action="zero_delta")
+    config = tiny_config(monitor=MonitorConfig(response="hold", hold_action="zero_delta"))
     response = EnergyOODResponse(config, ABOVE_ALL_ENERGIES, hold_action=_zeros())
     actions = torch.ones(2, 3, 2)
-    held, decision = response(actions, torch.tensor([1.0, math.inf]), {})
+    held, decision = response(actions, EnergyReadout(None, torch.tensor([1.0, math.inf])), {})
     assert decision.held.tolist() == [False, True]
     assert torch.equal(held[0], actions[0]) and torch.equal(held[1], torch.zeros(3, 2))
 
@@ -261,7 +271,7 @@ def test_energy_records_count_the_held_chunks(metaworld_env, checkpoints, checkp
 
     env, (env_preprocessor, env_postprocessor) = metaworld_env
     policy, preprocessor, postprocessor = load(
-        checkpoints[checkpoint], ood_response="hold", hold_action="zero_delta"
+        checkpoints[checkpoint], response="hold", hold_action="zero_delta"
     )
     torch.manual_seed(0)
     with EnergyRecorder(policy) as recorder:
@@ -273,15 +283,16 @@ def test_energy_records_count_the_held_chunks(metaworld_env, checkpoints, checkp
 
 
 def test_a_phase_calibration_compares_each_chunk_with_the_vanilla_energy_at_its_index():
-    # Vanilla energies fall from 0 at the first chunk to -10 at the second: -5 is normal early, not late.
-    phase = PhaseEnergy(PhaseStatistics((0.0, -10.0), (1.0, 1.0)))
+    # Vanilla E_c falls from 0 at the first chunk to -10 at the second: -5 is normal early, not late.
+    phase = ContextPhaseEnergy(PhaseStatistics((0.0, -10.0), (1.0, 1.0)))
     calibration = OODCalibration(mu_v=0.0, sigma_v=1.0, k=1.0, score=phase)
-    response = EnergyOODResponse(tiny_config(ood_response="raise"), calibration)
-    actions, energy = torch.zeros(1, 3, 2), torch.tensor([-5.0])
-    _, decision = response(actions, energy, {}, chunk_index=0)
+    response = EnergyOODResponse(tiny_config(monitor=MonitorConfig(response="raise")), calibration)
+    actions, energy = torch.zeros(1, 3, 2), torch.tensor([0.0])
+    chunk = EnergyReadout(None, energy, context_energy=torch.tensor([-5.0]), chunk_index=0)
+    _, decision = response(actions, chunk, {})
     assert not decision.flagged.any()
-    with pytest.raises(EnergyOODError, match="phase_energy 5"):
-        response(actions, energy, {}, chunk_index=1)
+    with pytest.raises(EnergyOODError, match="context_phase_energy 5"):
+        response(actions, dataclasses.replace(chunk, chunk_index=1), {})
 
 
 def test_the_policy_counts_its_chunks_per_episode():
@@ -289,7 +300,8 @@ def test_the_policy_counts_its_chunks_per_episode():
     policy = EBVLAPolicy(tiny_config())
     batch = tiny_batch(policy.config, with_action=False)
     policy.predict_action_chunk(batch)
+    first = policy.last_energy
     policy.predict_action_chunk(batch)
-    assert policy.chunk_index == 2
+    assert (first.chunk_index, policy.last_energy.chunk_index, policy.chunk_index) == (0, 1, 2)
     policy.reset()
     assert policy.chunk_index == 0

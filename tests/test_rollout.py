@@ -154,7 +154,7 @@ def test_lerobot_rollout_drives_a_robot_with_an_ebvla_checkpoint(monkeypatch, tm
 
 def test_lerobot_rollout_holds_the_current_joint_positions_when_out_of_distribution(monkeypatch, tmp_path):
     robot, policy = run_lerobot_rollout(
-        monkeypatch, tmp_path, "--policy.ood_response=hold", "--policy.hold_action=current_state"
+        monkeypatch, tmp_path, "--policy.monitor.response=hold", "--policy.monitor.hold_action=current_state"
     )
     assert policy.last_ood_decision.held.all()
     assert len(robot.sent_actions) >= 4

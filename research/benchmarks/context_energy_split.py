@@ -31,6 +31,7 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+import research_scores  # noqa: F401  (registers the research scores in the package's SCORES)
 from energy_margin_report import cell, emit
 
 from lerobot_policy_ebvla.monitoring.records import group_by_episode, read_energy_records, records_file_in

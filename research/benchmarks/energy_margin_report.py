@@ -28,12 +28,13 @@ from pathlib import Path
 
 import numpy as np
 from best_of_n_closed_loop import paired_against, success_cell
+from research_scores import PhaseEnergyDeviation
 
-from lerobot_policy_ebvla.monitoring.baselines import chunk_inputs
+from lerobot_policy_ebvla.monitoring.baselines import episode_readout
 from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_interval
 from lerobot_policy_ebvla.monitoring.records import group_by_episode, read_energy_records, records_file_in
 from lerobot_policy_ebvla.runtime.calibration import OODCalibration
-from lerobot_policy_ebvla.runtime.scores import PhaseEnergyDeviation, VanillaRollouts, score_rollout
+from lerobot_policy_ebvla.runtime.scores import ChunkInputs, VanillaRollouts, score_rollout
 from lerobot_policy_ebvla.runtime.threshold import exceeds
 
 
@@ -47,7 +48,7 @@ def energies(episode: list) -> np.ndarray:
 
 
 def fit_deviation(calibration: list[list]) -> PhaseEnergyDeviation:
-    return PhaseEnergyDeviation.fit(VanillaRollouts([chunk_inputs(ep) for ep in calibration]))
+    return PhaseEnergyDeviation.fit(VanillaRollouts([episode_readout(ep) for ep in calibration]))
 
 
 def mean_energies(eps: list[list], chunks: int | None) -> np.ndarray:
@@ -58,7 +59,8 @@ def mean_energies(eps: list[list], chunks: int | None) -> np.ndarray:
 def scores(eps: list[list], chunks: int, deviation: PhaseEnergyDeviation) -> tuple[np.ndarray, np.ndarray]:
     """Each episode's raw final energy and `phase_energy_deviation`, both the mean over its first chunks."""
     two_sided = [
-        score_rollout(deviation, deviation.components(chunk_inputs(ep[:chunks])), "mean") for ep in eps
+        score_rollout(deviation, deviation.components(ChunkInputs.of(episode_readout(ep[:chunks]))), "mean")
+        for ep in eps
     ]
     return mean_energies(eps, chunks), np.array(two_sided)
 

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import research_scores  # noqa: F401  (registers the research scores in the package's SCORES)
 from scipy import stats
 from window_typicality import conditions_in, episodes_in
 

@@ -14,6 +14,8 @@ import argparse
 import tempfile
 from pathlib import Path
 
+import research_scores  # noqa: F401  (registers the research scores in the package's SCORES)
+
 from lerobot_policy_ebvla.monitoring.ood_report import OODReportConfig, write_ood_report
 
 NOT_CONDITIONS = ("calibration", "vanilla", "vanilla_extra")

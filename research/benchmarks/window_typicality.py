@@ -20,6 +20,7 @@ Every score is over each episode's first `--first_chunks` chunks (3: what a moni
 import argparse
 from pathlib import Path
 
+import research_scores  # noqa: F401  (registers the research scores in the package's SCORES)
 from score_summaries import NOT_CONDITIONS
 
 from lerobot_policy_ebvla.monitoring.records import load_episodes

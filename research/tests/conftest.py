@@ -12,12 +12,23 @@ RESULTS = ROOT / "research" / "results"
 
 def load_benchmark(name: str):
     """The module of `research/benchmarks/<name>.py`, loaded with that folder on `sys.path` while it runs, so that
-    its imports of sibling scripts resolve as when it runs from there."""
+    its imports of sibling scripts resolve as when it runs from there.
+
+    Loaded once, under its bare name in `sys.modules`, as a sibling script's `import <name>` finds it: a module
+    that registers scores (`research_scores`) must not define its classes twice."""
+    loaded = sys.modules.get(name)
+    if loaded is not None and Path(getattr(loaded, "__file__", "")).parent == BENCHMARKS:
+        return loaded
     sys.path.insert(0, str(BENCHMARKS))
     try:
         spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
         module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
+        sys.modules[name] = module
+        try:
+            spec.loader.exec_module(module)
+        except BaseException:
+            del sys.modules[name]
+            raise
     finally:
         sys.path.remove(str(BENCHMARKS))
     return module

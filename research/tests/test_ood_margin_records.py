@@ -1170,11 +1170,12 @@ def first_chunk_z(
 ) -> tuple[list, np.ndarray]:
     """Each rollout's z_t over its first chunks (the signed components of a phase score, before a two-sided score
     takes a magnitude), against the run's calibration rollouts at each chunk index, and whether it failed."""
-    from lerobot_policy_ebvla.monitoring.baselines import chunk_inputs, vanilla_rollouts
+    from lerobot_policy_ebvla.monitoring.baselines import episode_readout, vanilla_rollouts
+    from lerobot_policy_ebvla.runtime.scores import ChunkInputs
 
     score = score_class.fit(vanilla_rollouts(load_episodes([str(run / "calibration")])))
     episodes = load_episodes([str(run / folder) for folder in folders]).values()
-    z = [score.components(chunk_inputs(e[:first_chunks]))[:, 0] for e in episodes]
+    z = [score.components(ChunkInputs.of(episode_readout(e[:first_chunks])))[:, 0] for e in episodes]
     return z, np.array([not e[0].success for e in episodes])
 
 

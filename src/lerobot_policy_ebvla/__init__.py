@@ -10,7 +10,7 @@ import importlib.metadata
 import warnings
 
 from .configuration_ebvla import EBVLAConfig
-from .modeling_ebvla import EBVLAPolicy, EnergyReadout
+from .modeling_ebvla import EBVLAPolicy
 from .presets import LIGHT_POLICY, light_policy_config
 from .processor_ebvla import make_ebvla_pre_post_processors
 from .runtime import (
@@ -18,6 +18,7 @@ from .runtime import (
     EnergyOODError,
     EnergyOODMonitor,
     EnergyOODResponse,
+    EnergyReadout,
     OODCalibration,
     OODDecision,
 )

@@ -36,6 +36,64 @@ OOD_MARGIN_CHUNKS = ("expert", "refined")
 OOD_MARGIN_TARGETS = ("head", "context", "context_backbone", "observation")
 
 
+# The scores a checkpoint can be monitored with (`runtime.scores.PACKAGE_SCORES`; the config imports no numpy),
+# and those that read a joint energy's context term E_c.
+MONITOR_SCORES = ("final_energy", "context_phase_energy", "head_energy_two_sided", "context_knn")
+CONTEXT_ENERGY_SCORES = ("context_phase_energy", "head_energy_two_sided")
+
+
+@dataclass
+class MonitorConfig:
+    """How a checkpoint is monitored at run time: the score it is calibrated on, and what the policy does with
+    a chunk that score flags (beyond the paper).
+
+    Args:
+        score: The chunk score `ebvla-ood-report --calibrate_to` calibrates and saves with the checkpoint (one
+            of `runtime.scores.SCORES`'s package scores): "final_energy" (the paper's, the default),
+            "context_phase_energy" (a joint energy's context term E_c against the vanilla E_c at each chunk
+            index: the light preset's, which trains E_c on its own encoder and flat at the data),
+            "head_energy_two_sided" (the failure score: |z| of E - E_c at each chunk index) or "context_knn"
+            (the pooled context's distance to its nearest vanilla context, the feature baseline). The two E_c
+            scores need the joint energy on its own encoder (`energy_ood_margin_on="observation"` with
+            `energy_ood_margin_weight` > 0).
+        response: What the policy does with a refined chunk whose score exceeds the OOD threshold T of the
+            checkpoint's `ood_calibration.json` (see `runtime/response.py`): "continue" executes it and logs a
+            warning (the default; without a calibration nothing is checked), "hold" executes `hold_action`
+            instead, "raise" raises `EnergyOODError`.
+        hold_action: The action a held chunk repeats, required with `response="hold"` because it depends on
+            the action space: "zero_delta" (raw action 0) for end-effector delta actions (LIBERO, MetaWorld),
+            "current_state" (the observed `observation.state`) for absolute joint targets (SO-100); the latter
+            needs state and action of the same size and, when known, the same names.
+        threshold_k: Multiplier k of T = mu_v + k * sigma_v (Eq. 5); None uses the calibration's own k.
+    """
+
+    score: str = "final_energy"
+    response: str = "continue"
+    hold_action: str | None = None
+    threshold_k: float | None = None
+
+    def __post_init__(self):
+        if self.score not in MONITOR_SCORES:
+            raise ValueError(f"`monitor.score` must be one of {MONITOR_SCORES}. Got {self.score!r}.")
+        if self.response not in OOD_RESPONSES:
+            raise ValueError(f"`monitor.response` must be one of {OOD_RESPONSES}. Got {self.response!r}.")
+        if self.hold_action is not None and self.hold_action not in HOLD_ACTIONS:
+            raise ValueError(
+                f"`monitor.hold_action` must be one of {HOLD_ACTIONS} or None. Got {self.hold_action!r}."
+            )
+        if self.response == "hold" and self.hold_action is None:
+            raise ValueError(
+                "`monitor.response='hold'` needs an explicit `monitor.hold_action`, as holding depends on the "
+                "action space: 'zero_delta' (a zero raw action) for end-effector delta actions such as LIBERO's "
+                "and MetaWorld's, 'current_state' (the observed `observation.state`) for absolute joint targets "
+                "such as SO-100's."
+            )
+        if self.threshold_k is not None and not 0 <= self.threshold_k < float("inf"):
+            raise ValueError(
+                f"`monitor.threshold_k` must be finite and >= 0, or None. Got {self.threshold_k}."
+            )
+
+
 @PreTrainedConfig.register_subclass("ebvla")
 @dataclass
 class EBVLAConfig(PreTrainedConfig):
@@ -237,17 +295,9 @@ class EBVLAConfig(PreTrainedConfig):
             towards it with LeRobot's `prefix_attention_schedule` weights w_t and guidance weight
             lambda = `max_guidance_weight` (each MCMC step closes a fraction min(1, alpha lambda w_t) of the
             gap). None (the default) or `enabled=False` refines every chunk from scratch.
-        ood_response: What the policy does with a refined chunk whose score (the calibration's, one of the
-            registry `runtime.scores.SCORES`: `context_knn` as `ebvla-ood-report --calibrate_to` saves it
-            without `--score`, `final_energy` for the paper's) exceeds the OOD
-            threshold T of the checkpoint's `ood_calibration.json` (see `runtime/response.py`): "continue"
-            executes it and logs a warning (the default; without a calibration nothing is checked), "hold"
-            executes `hold_action` instead, "raise" raises `EnergyOODError`.
-        hold_action: The action a held chunk repeats, required with `ood_response="hold"` because it depends
-            on the action space: "zero_delta" (raw action 0) for end-effector delta actions (LIBERO,
-            MetaWorld), "current_state" (the observed `observation.state`) for absolute joint targets
-            (SO-100); the latter needs state and action of the same size and, when known, the same names.
-        ood_threshold_k: Multiplier k of T = mu_v + k * sigma_v (Eq. 5); None uses the calibration's own k.
+        monitor: How the checkpoint is monitored (`MonitorConfig`): the score `ebvla-ood-report --calibrate_to`
+            saves (`--policy.monitor.score=...`, "final_energy" by default) and the policy's response to a chunk
+            it flags (`monitor.response`, `monitor.hold_action`, `monitor.threshold_k`).
         action_feature_names: Names of the action dimensions, filled from the dataset by LeRobot's
             `make_policy`; `lerobot-rollout` maps actions to robot motors with them.
         state_feature_names: Names of the `observation.state` dimensions, filled from the dataset.
@@ -372,9 +422,7 @@ class EBVLAConfig(PreTrainedConfig):
     rtc_config: RTCConfig | None = None
 
     # Deployment.
-    ood_response: str = "continue"
-    hold_action: str | None = None
-    ood_threshold_k: float | None = None
+    monitor: MonitorConfig = field(default_factory=MonitorConfig)
     action_feature_names: list[str] | None = None
     state_feature_names: list[str] | None = None
 
@@ -543,21 +591,13 @@ class EBVLAConfig(PreTrainedConfig):
             )
 
     def _validate_deployment(self) -> None:
-        _check_one_of(self, "ood_response", OOD_RESPONSES)
-        if self.hold_action is not None and self.hold_action not in HOLD_ACTIONS:
+        if isinstance(self.monitor, dict):  # a nested config given as a mapping (a preset, a test)
+            self.monitor = MonitorConfig(**self.monitor)
+        if self.monitor.score in CONTEXT_ENERGY_SCORES and not self.context_energy_on_own_encoder:
             raise ValueError(
-                f"`hold_action` must be one of {HOLD_ACTIONS} or None. Got {self.hold_action!r}."
-            )
-        if self.ood_response == "hold" and self.hold_action is None:
-            raise ValueError(
-                "`ood_response='hold'` needs an explicit `hold_action`, as holding depends on the action space: "
-                "'zero_delta' (a zero raw action) for end-effector delta actions such as LIBERO's and "
-                "MetaWorld's, 'current_state' (the observed `observation.state`) for absolute joint targets "
-                "such as SO-100's."
-            )
-        if self.ood_threshold_k is not None and not 0 <= self.ood_threshold_k < float("inf"):
-            raise ValueError(
-                f"`ood_threshold_k` must be finite and >= 0, or None. Got {self.ood_threshold_k}."
+                f"`monitor.score={self.monitor.score!r}` reads the joint energy's context term E_c on its own "
+                "encoder, which this policy does not train: set `energy_ood_margin_on='observation'` with "
+                "`energy_ood_margin_weight` > 0, or monitor with 'final_energy' or 'context_knn'."
             )
 
     def _map_deprecated_compile_fields(self) -> None:
@@ -625,7 +665,7 @@ class EBVLAConfig(PreTrainedConfig):
                 self.crop_shape or self.resize_shape or next(iter(self.image_features.values())).shape[1:]
             )
             self.validate_light_backbone_image(height, width)
-        if self.ood_response == "hold" and self.hold_action == "current_state":
+        if self.monitor.response == "hold" and self.monitor.hold_action == "current_state":
             self._validate_current_state_hold()
         if self.backbone == "resnet" and len({f.shape for f in self.image_features.values()}) > 1:
             raise ValueError(
@@ -649,14 +689,14 @@ class EBVLAConfig(PreTrainedConfig):
         """Holding the current state sends `observation.state` as the action: both must mean the same."""
         if self.state_dim != self.action_dim:
             raise ValueError(
-                "`hold_action='current_state'` sends `observation.state` as the action, so both must have the "
+                "`monitor.hold_action='current_state'` sends `observation.state` as the action, so both must have the "
                 f"same size. Got state {self.state_dim} and action {self.action_dim}: use 'zero_delta' for "
                 "delta actions."
             )
         names = (self.state_feature_names, self.action_feature_names)
         if None not in names and list(names[0]) != list(names[1]):
             raise ValueError(
-                "`hold_action='current_state'` needs `state_feature_names` and `action_feature_names` to match, "
+                "`monitor.hold_action='current_state'` needs `state_feature_names` and `action_feature_names` to match, "
                 f"dimension by dimension. Got {names[0]} and {names[1]}."
             )
 

@@ -13,7 +13,6 @@ import os
 import tempfile
 from collections import OrderedDict, deque
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 import draccus
@@ -41,6 +40,7 @@ from .mcmc import (
     sample_initial_actions,
 )
 from .rtc_ebvla import rtc_prefix
+from .runtime.readout import EnergyReadout
 from .runtime.response import EnergyOODResponse, respond_to_energy
 from .runtime.threshold import OODDecision
 from .training_signal import (
@@ -54,28 +54,6 @@ from .training_signal import (
 logger = logging.getLogger(__name__)
 
 ACTION_IS_PAD = "action_is_pad"
-
-
-@dataclass
-class EnergyReadout:
-    """The energies of one refined chunk per batch element.
-
-    Attributes:
-        initial_energy: E(a^(0), C), (B,): the energy of the initial noise, read at the first MCMC step.
-        final_energy: E(a^(K_inf), C), (B,): the confidence score of the returned chunk; +inf where the
-            refinement hit a non-finite energy or gradient.
-        chains: (B,) how many MCMC chains were refined for each observation: `num_restarts`, or with
-            `restart_energy_threshold` 1, and `num_restarts` where the first chunk's energy was above it.
-        context_energy: E_c(C), (B,), the joint energy's context term, already inside `final_energy`; None
-            without a joint energy (it has one with `energy_ood_margin_on` "context", "context_backbone" or
-            "observation"). Recorded apart because its rise under a shift can be small beside the spread of
-            the head's part (research/docs/energy_study.md, section 8.8).
-    """
-
-    initial_energy: Tensor
-    final_energy: Tensor
-    chains: Tensor | None = None
-    context_energy: Tensor | None = None
 
 
 # hook(policy, batch, readout, decision), called after each refined chunk the policy returns.
@@ -117,7 +95,7 @@ class EBVLAPolicy(PreTrainedPolicy):
     ) -> "EBVLAPolicy":
         """Loads a saved policy; every weight comes from the checkpoint, so no backbone is downloaded.
 
-        The OOD response (`config.ood_response`) takes its threshold from the checkpoint's
+        The OOD response (`config.monitor.response`) takes its threshold from the checkpoint's
         `ood_calibration.json`, if there is one.
         """
         if config is None:
@@ -136,19 +114,20 @@ class EBVLAPolicy(PreTrainedPolicy):
     def configure_ood_response(self, pretrained_name_or_path: str | Path, **overrides) -> None:
         """(Re)builds the OOD response from a checkpoint's calibration, after setting config fields.
 
-        The config is the one source of truth: `ood_response`, `hold_action` and `ood_threshold_k` given here
-        replace the config's (validated as at construction), then the response is rebuilt to match.
+        The config is the one source of truth: the `monitor` fields given here (`response`, `hold_action`,
+        `threshold_k`) replace the config's (validated as at construction), then the response is rebuilt to match.
 
         Args:
             pretrained_name_or_path: The checkpoint whose `ood_calibration.json` (and, to hold, whose
                 pre-processor's normalizer) the response uses.
-            overrides: Any of `ood_response`, `hold_action`, `ood_threshold_k`.
+            overrides: Any of `MonitorConfig`'s `response`, `hold_action`, `threshold_k`.
         """
-        allowed = {"ood_response", "hold_action", "ood_threshold_k"}
+        allowed = {"response", "hold_action", "threshold_k"}
         if unknown := set(overrides) - allowed:
-            raise ValueError(f"Only {sorted(allowed)} can be changed here; got {sorted(unknown)}.")
+            raise ValueError(f"Only `monitor.` {sorted(allowed)} can be changed here; got {sorted(unknown)}.")
         if overrides:
-            config = dataclasses.replace(self.config, **overrides)  # runs __post_init__'s checks
+            monitor = dataclasses.replace(self.config.monitor, **overrides)  # runs its __post_init__'s checks
+            config = dataclasses.replace(self.config, monitor=monitor)
             config.validate_features()
             self.config = self.model.config = config
         self.ood_response = EnergyOODResponse.from_pretrained(self.config, pretrained_name_or_path)
@@ -203,9 +182,9 @@ class EBVLAPolicy(PreTrainedPolicy):
 
         The chunk's energies are kept in `self.last_energy` and the OOD response to them (`runtime/response.py`:
         continue, hold or raise `EnergyOODError`) in `self.last_ood_decision`; held chunks are returned
-        replaced by the hold action. Each call counts as the episode's next chunk (`self.chunk_index`). A
-        context-distance calibration scores the chunk's pooled context (`context_features`), taken from the
-        backbone pass that encodes the chunk's context: the backbone still runs once per chunk.
+        replaced by the hold action. Each call counts as the episode's next chunk: the readout's `chunk_index`.
+        When the calibration's score reads the pooled context, the readout holds it (`context_features`), taken
+        from the backbone pass that encodes the chunk's context: the backbone still runs once per chunk.
 
         Args:
             batch: A pre-processed observation batch.
@@ -230,17 +209,11 @@ class EBVLAPolicy(PreTrainedPolicy):
                 refine_batch, generator=generator, prefix=prefix, return_context_features=needs_features
             )
         actions, readout, features = generated if needs_features else (*generated, None)
+        readout = dataclasses.replace(readout, chunk_index=self.chunk_index, context_features=features)
         self.last_energy = readout
-        chunk_index, self.chunk_index = self.chunk_index, self.chunk_index + 1
+        self.chunk_index += 1
         actions, self.last_ood_decision = respond_to_energy(
-            self.ood_response,
-            self.config,
-            actions,
-            readout.final_energy,
-            batch,
-            chunk_index,
-            features,
-            readout.context_energy,
+            self.ood_response, self.config, actions, readout, batch
         )
         for hook in list(self._chunk_hooks.values()):
             hook(self, batch, readout, self.last_ood_decision)

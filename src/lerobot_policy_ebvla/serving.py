@@ -19,8 +19,8 @@ from lerobot.async_inference.helpers import TimedAction, TimedObservation
 from lerobot.async_inference.policy_server import PolicyServer
 from lerobot.transport import services_pb2_grpc  # type: ignore
 
-from .modeling_ebvla import EnergyReadout
 from .runtime import EnergyOODError, OODDecision
+from .runtime.readout import EnergyReadout
 
 POLICY_TYPE = "ebvla"
 # How many served chunks `served_chunks` keeps, so that a server running for days keeps bounded memory.
@@ -38,9 +38,9 @@ class EBVLAPolicyServerConfig(PolicyServerConfig):
     """LeRobot's `PolicyServerConfig`, plus overrides of the served policy's OOD response.
 
     Args:
-        ood_response: Overrides `EBVLAConfig.ood_response` of the checkpoint ("continue", "hold", "raise").
-        hold_action: Overrides `EBVLAConfig.hold_action` ("zero_delta", "current_state").
-        ood_threshold_k: Overrides `EBVLAConfig.ood_threshold_k`, the multiplier k of T = mu_v + k sigma_v.
+        ood_response: Overrides the checkpoint's `monitor.response` ("continue", "hold", "raise").
+        hold_action: Overrides its `monitor.hold_action` ("zero_delta", "current_state").
+        ood_threshold_k: Overrides its `monitor.threshold_k`, the multiplier k of T = mu_v + k sigma_v.
     """
 
     ood_response: str | None = field(default=None, metadata={"help": "continue, hold or raise"})
@@ -48,8 +48,11 @@ class EBVLAPolicyServerConfig(PolicyServerConfig):
     ood_threshold_k: float | None = field(default=None, metadata={"help": "k of T = mu_v + k sigma_v"})
 
     def policy_overrides(self) -> dict:
-        names = ("ood_response", "hold_action", "ood_threshold_k")
-        return {name: getattr(self, name) for name in names if getattr(self, name) is not None}
+        # This server's flag -> the `MonitorConfig` field it overrides.
+        names = {"ood_response": "response", "hold_action": "hold_action", "ood_threshold_k": "threshold_k"}
+        return {
+            field: getattr(self, flag) for flag, field in names.items() if getattr(self, flag) is not None
+        }
 
 
 @dataclass(frozen=True)

@@ -45,15 +45,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..runtime.readout import EnergyReadout
 from ..runtime.scores import (
     SCORES,
     ChunkInputs,
     ChunkScore,
-    ContextDistance,
     ContextKNN,
-    EnergyAndContext,
     FinalEnergy,
-    PhaseEnergy,
     VanillaRollouts,
 )
 from ..runtime.statistics import (
@@ -67,21 +65,21 @@ from .records import Episode
 
 SCORE_NAMES = (
     FinalEnergy.name,
-    PhaseEnergy.name,
+    "phase_energy",
     "initial_energy",
     "normalized_energy",
     "restart_spread",
-    ContextDistance.name,
+    "context_distance",
     ContextKNN.name,
 )
-FEATURE_SCORES = (ContextDistance.name, ContextKNN.name)
+FEATURE_SCORES = ("context_distance", ContextKNN.name)
 # Rollout scores combining the final energy's and the context distance's, standardized on the calibration
 # rollouts: their max (the run-time "energy_and_context") and their sum.
-COMBINED_SCORES = (EnergyAndContext.name, "energy_and_context_sum")
+COMBINED_SCORES = ("energy_and_context", "energy_and_context_sum")
 # The scores they combine, in `CombinedStatistics` order.
-COMBINED_FROM = (FinalEnergy.name, ContextDistance.name)
+COMBINED_FROM = (FinalEnergy.name, "context_distance")
 # Scores fitted on the calibration rollouts (`ScoreReference`), besides the registered ones.
-REFERENCE_SCORES = (PhaseEnergy.name, *FEATURE_SCORES)
+REFERENCE_SCORES = ("phase_energy", *FEATURE_SCORES)
 
 
 @dataclass
@@ -166,13 +164,13 @@ def every_chunk_has(episodes: Sequence[Episode], field: str) -> bool:
     return bool(records) and all(getattr(r, field) is not None for r in records)
 
 
-def chunk_inputs(episode: Episode) -> ChunkInputs:
-    """An episode's chunks as a run-time score reads them: each optional input when every chunk recorded it."""
+def episode_readout(episode: Episode) -> EnergyReadout:
+    """An episode's chunks as the policy's readout of them: each optional input when every chunk recorded it."""
     features, context_energy = (
         [getattr(r, field) for r in episode] if every_chunk_has([episode], field) else None
         for field in ("context_feature", "context_energy")
     )
-    return ChunkInputs.of(
+    return EnergyReadout.of_arrays(
         np.array([r.final_energy for r in episode], dtype=np.float64),
         np.array([r.chunk_index for r in episode]),
         None if features is None else np.stack(features),
@@ -191,8 +189,8 @@ def recorded_inputs(episodes: Sequence[Episode]) -> set[str]:
 def vanilla_rollouts(
     episodes: Mapping[Hashable, Episode], aggregation: str = "mean", knn_k: int = DEFAULT_KNN_K
 ) -> VanillaRollouts:
-    """The calibration episodes as a run-time score is fitted on them (`chunk_inputs`)."""
-    return VanillaRollouts([chunk_inputs(episode) for episode in episodes.values()], aggregation, knn_k)
+    """The calibration episodes as a run-time score is fitted on them (`episode_readout`)."""
+    return VanillaRollouts([episode_readout(episode) for episode in episodes.values()], aggregation, knn_k)
 
 
 class RegisteredScoreModel:
@@ -222,7 +220,7 @@ class RegisteredScoreModel:
     def components(self, episode: Episode, episode_id: Hashable = None) -> tuple[ChunkScore, np.ndarray]:
         """The fitted score of the episode and its chunks' components, (N, n_components), in chunk order."""
         fitted = self.fitted_for(episode_id)
-        return fitted, fitted.components(chunk_inputs(episode))
+        return fitted, fitted.components(ChunkInputs.of(episode_readout(episode)))
 
 
 @dataclass

@@ -18,13 +18,12 @@ With context features, the scores include the combinations of the final energy a
 import dataclasses
 import json
 import logging
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..configuration_ebvla import EBVLAConfig, context_energy_on_own_encoder
+from ..configuration_ebvla import MonitorConfig
 from ..runtime.calibration import OOD_CALIBRATION_FILENAME, THRESHOLD_RULES, OODCalibration
 from ..runtime.scores import INPUT_SOURCES, SCORE_AGGREGATIONS, SCORES
 from ..runtime.statistics import DEFAULT_KNN_K
@@ -39,27 +38,25 @@ from .baselines import (
     vanilla_rollouts,
 )
 from .metrics import (
-    BinaryRates,
-    auroc,
-    markdown_table,
     percent,
-    roc_curve,
 )
 from .ood import (
     TABLE_III_MULTIPLIERS,
-    format_balanced_accuracy_table,
-    format_table_iii,
-    ood_detection_table,
 )
-from .plots import plot_roc, plot_score_histograms
+from .ood_sections import (
+    auroc_table,
+    calibration_table,
+    conformal_note,
+    figures,
+    first_chunks_section,
+    outcome_section,
+    success_table,
+    table_iii_sections,
+)
 from .protocol import check_held_out
 from .records import load_episodes, resolve_record_files
 from .score_summary import (
     ALL_CONDITIONS,
-    auroc_interval,
-    chunks_label,
-    success_rate,
-    successes,
     summary_section,
 )
 from .scores import (
@@ -72,58 +69,15 @@ from .window_report import window_values_of
 
 logger = logging.getLogger(__name__)
 
-# The score `--calibrate_to` saves without `--score`: the best held out on the MetaWorld sweep of every
-# perturbation (research/results/metaworld_two_sided_scores/summary.md): the highest pooled AUROC over the
-# first 3 chunks among the scores no condition is confidently inverted for (its bootstrap 95% interval wholly
-# below 0.5). It reads the pooled context; records without it get the best energy-only score by the same rule.
-DEFAULT_SCORE = "context_knn"
-DEFAULT_ENERGY_SCORE = "phase_energy_two_sided"
-# ... unless the checkpoint's joint energy has its own encoder (`energy_ood_margin_on="observation"`): its context
-# term E_c, two-sided against the vanilla E_c at each chunk index, pools 0.91-0.99 over the first 3 chunks on the
-# sweeps of eight training seeds, above the final energy's 0.87-0.95 on every one, with 0-2% alarms on held-out
-# vanilla (the final energy 5-25%). Neither is never wrong: each is confidently inverted on one seed's sweep, and
-# on fresh rollouts E_c under three mild shifts that cost no success (research/results/metaworld_sweep_margin_full/
-# summary.md, "The run-time context-energy score" to "Fresh rollouts of the default's near misses"). Records
-# without E_c (a recorder before 2026-11-26) keep the final energy, which beats the context k-NN there (0.91-0.95
-# against 0.77-0.92 on five seeds).
-DEFAULT_JOINT_ENERGY_SCORE = "context_energy_two_sided"
-JOINT_ENERGY_WITHOUT_CONTEXT_ENERGY = "final_energy"
-# ... and where E_c was trained flat at the data (`energy_ood_gradient_penalty` > 0), every shift of the sweep
-# raises it in every scene, and its one-sided form at each chunk index is the matched test: on four training
-# seeds (two of them trained after the rule was written) it sees every success-cutting shift and is confidently
-# inverted nowhere, where the two-sided form is on one (summary.md, "E_c flat at the data").
-DEFAULT_FLAT_CONTEXT_ENERGY_SCORE = "context_phase_energy"
 
-
-def checkpoint_fields(checkpoint: Path | None) -> dict:
-    """The fields of a pretrained_model folder's config.json; empty without one."""
+def checkpoint_monitor_score(checkpoint: Path | None) -> str:
+    """The score a pretrained_model folder is monitored with: its config's `monitor.score` (`MonitorConfig`'s
+    default for a config without one, or without a folder)."""
     config = None if checkpoint is None else Path(checkpoint) / "config.json"
     if config is None or not config.is_file():
-        return {}
-    return json.loads(config.read_text())
-
-
-def _on_own_encoder(fields: dict) -> bool:
-    return context_energy_on_own_encoder(
-        fields.get("energy_ood_margin_on", EBVLAConfig.energy_ood_margin_on),
-        fields.get("energy_ood_margin_weight", EBVLAConfig.energy_ood_margin_weight),
-    )
-
-
-def joint_energy_on_own_encoder(checkpoint: Path | None) -> bool:
-    """Whether the pretrained_model folder's policy was trained with the joint energy on its own encoder."""
-    return _on_own_encoder(checkpoint_fields(checkpoint))
-
-
-def default_score(cfg: "OODReportConfig", inputs: set[str]) -> str:
-    """The score `--calibrate_to` saves without `--score`, given the `ChunkInputs` every record has."""
-    fields = checkpoint_fields(cfg.calibrate_to)
-    if _on_own_encoder(fields):
-        if "context_energy" not in inputs:
-            return JOINT_ENERGY_WITHOUT_CONTEXT_ENERGY
-        penalty = fields.get("energy_ood_gradient_penalty", 0.0)
-        return DEFAULT_FLAT_CONTEXT_ENERGY_SCORE if penalty > 0 else DEFAULT_JOINT_ENERGY_SCORE
-    return DEFAULT_SCORE if "context_features" in inputs else DEFAULT_ENERGY_SCORE
+        return MonitorConfig.score
+    monitor = json.loads(config.read_text()).get("monitor") or {}
+    return monitor.get("score", MonitorConfig.score)
 
 
 @dataclass
@@ -174,23 +128,8 @@ class OODReportConfig:
     summary_first_chunks: int = 3
     # Write ood_calibration.json (`score`, fitted on `calibration`) into this pretrained_model folder.
     calibrate_to: Path | None = None
-    # The chunk score the saved calibration is of, a name of `runtime.scores.SCORES` and a row of the report.
-    # None (default): context_knn, the best held out on the MetaWorld sweep (pooled first-3-chunk AUROC 0.842,
-    # no condition confidently inverted; the final energy 0.585, confidently inverted under dim light), or
-    # phase_energy_two_sided when the records have no context features, context_energy_two_sided when the
-    # checkpoint's joint energy has its own encoder (`energy_ood_margin_on="observation"`; final_energy for records
-    # without `context_energy`), context_phase_energy when its E_c was also trained flat at the data
-    # (`energy_ood_gradient_penalty` > 0). final_energy is the paper's score;
-    # phase_energy the final energy against the calibration rollouts' at the same chunk index;
-    # final_energy_two_sided and phase_energy_two_sided their |z|, high on either side of the vanilla band;
-    # context_distance the chunk's pooled context against the calibration contexts (Mahalanobis);
-    # energy_and_context the larger of the final energy and the context distance, each standardized on the
-    # calibration rollouts; context_knn the chunk's standardized pooled context against its knn_k-th nearest
-    # calibration context (saves every calibration context beside the JSON); energy_two_sided_and_context_knn
-    # the larger of the two-sided phase energy and the context k-NN distance, standardized; context_energy the
-    # joint energy's context term E_c, context_phase_energy its z against the calibration rollouts' E_c at the same
-    # chunk index and context_energy_two_sided that z's magnitude. The context scores need records with context
-    # features, the context-energy scores records of a joint-energy policy.
+    # The chunk score the saved calibration is of (a name of `runtime.scores.SCORES`, and a row of the report).
+    # None: the checkpoint's own, its config's `monitor.score`, decided when the policy was trained.
     score: str | None = None
     # k saved in the calibration.
     k: float = 1.0
@@ -292,7 +231,7 @@ def write_ood_report(cfg: OODReportConfig) -> str:
     can_combine = all(name in chunk_names for name in COMBINED_FROM)
     registered = [n for n in registered_scores() if set(SCORES[n].reads) <= inputs]
     names = _beside_one_sided([*chunk_names, *(COMBINED_SCORES if can_combine else ()), *registered])
-    saved_score = cfg.score or default_score(cfg, inputs)
+    saved_score = cfg.score or checkpoint_monitor_score(cfg.calibrate_to)
     if saved_score not in names:
         missing = [name for name in SCORES[saved_score].reads if name not in inputs]
         raise ValueError(
@@ -376,15 +315,15 @@ def write_ood_report(cfg: OODReportConfig) -> str:
         + "); an AUROC of the final energy needs no threshold. A calibration rollout's own reference scores "
         "are computed leave-one-episode-out.",
         "## Calibration\n\n"
-        + _calibration_table(fits, negatives, cfg)
-        + _conformal_note(fits, cfg)
+        + calibration_table(fits, negatives, cfg)
+        + conformal_note(fits, cfg)
         + _saved_score_note(cfg, saved_score),
         "## Energy vs success drop (final energy)\n\n"
-        + _success_table(vanilla, conditions, fits, negatives, positives, cfg),
+        + success_table(vanilla, conditions, fits, negatives, positives, cfg),
         "## AUROC [bootstrap 95% interval] by score\n\n"
-        + _auroc_table(conditions, names, negatives, positives, cfg),
-        _first_chunks_section(scored, vanilla, conditions, names, cfg),
-        _outcome_section(scored, vanilla, ood, names, cfg),
+        + auroc_table(conditions, names, negatives, positives, cfg),
+        first_chunks_section(scored, vanilla, conditions, names, cfg),
+        outcome_section(scored, vanilla, ood, names, cfg),
         summary_section(
             scored,
             {None: fits, cfg.summary_first_chunks: {n: fit(n, cfg.summary_first_chunks) for n in names}},
@@ -394,7 +333,7 @@ def write_ood_report(cfg: OODReportConfig) -> str:
             names,
             cfg,
         ),
-        *_table_iii_sections("Table III", fits, scored[None], vanilla, conditions, names, cfg),
+        *table_iii_sections("Table III", fits, scored[None], vanilla, conditions, names, cfg),
     ]
     if cfg.table_iii_first_chunks:
         k = cfg.table_iii_first_chunks
@@ -404,14 +343,14 @@ def write_ood_report(cfg: OODReportConfig) -> str:
             f"conformal threshold from the calibration rollouts' first {k} chunks."
         )
         first_fits = {name: fit(name, k) for name in names}
-        sections += _table_iii_sections(
+        sections += table_iii_sections(
             f"Table III, first {k} chunks", first_fits, scored[k], vanilla, conditions, names, cfg
         )
     report = "\n\n".join(sections) + "\n"
 
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
     (cfg.output_dir / "ood_report.md").write_text(report, encoding="utf-8")
-    _figures(cfg, fits, scores(calibration_chunks, "final_energy"), negatives, positives, names)
+    figures(cfg, fits, scores(calibration_chunks, "final_energy"), negatives, positives, names)
     if cfg.calibrate_to is not None:
         # The run-time monitor scores chunks against a score fitted on every calibration rollout; mu_v and
         # sigma_v are the report's: the calibration rollouts' scores, leave-one-episode-out where the score
@@ -442,29 +381,7 @@ def _saved_score_note(cfg: OODReportConfig, saved_score: str) -> str:
     """Which score a calibration saved by this report is of, and which table rows it is."""
     default = ""
     if cfg.score is None and cfg.calibrate_to is not None:
-        if saved_score == DEFAULT_SCORE:
-            why = f"`{DEFAULT_SCORE}`, the best held out on the MetaWorld sweep (docs/monitoring.md)."
-        elif saved_score == DEFAULT_JOINT_ENERGY_SCORE:
-            why = (
-                "the checkpoint's joint energy has its own encoder, and its context term, two-sided at each chunk "
-                "index, is the safest score there (docs/monitoring.md)."
-            )
-        elif saved_score == DEFAULT_FLAT_CONTEXT_ENERGY_SCORE:
-            why = (
-                "the checkpoint's context term was trained flat at the data (`energy_ood_gradient_penalty`), so "
-                "every shift raises it, and its one-sided form at each chunk index is the safest score there "
-                "(docs/monitoring.md)."
-            )
-        elif saved_score == JOINT_ENERGY_WITHOUT_CONTEXT_ENERGY and joint_energy_on_own_encoder(
-            cfg.calibrate_to
-        ):
-            why = (
-                "the checkpoint's joint energy has its own encoder, but these records hold no `context_energy` "
-                f"for `{DEFAULT_JOINT_ENERGY_SCORE}` (record them again with this version): the final energy."
-            )
-        else:
-            why = f"these records have no context features, so the best energy-only score, not `{DEFAULT_SCORE}`."
-        default = f"\n\nWithout `--score`, `--calibrate_to` saves `{saved_score}`: " + why
+        default = f"\n\nWithout `--score`, `--calibrate_to` saves the checkpoint's `monitor.score`: `{saved_score}`."
     what = {
         "context_distance": "of every table: the same features, fit and leave-one-episode-out calibration scores.",
         "context_knn": f"of every table (k = {cfg.knn_k}): the same features, standardization and "
@@ -475,248 +392,6 @@ def _saved_score_note(cfg: OODReportConfig, saved_score: str) -> str:
     if saved_score not in what:
         return default
     return default + (
-        f"\n\n`--score={saved_score}`, the score a calibration saved by this report has `ood_response` act on, is "
+        f"\n\n`--score={saved_score}`, the score a calibration saved by this report has `monitor.response` act on, is "
         f"the `{saved_score}` score {what[saved_score]}"
     )
-
-
-def _first_chunks_section(scored, vanilla, conditions, names, cfg) -> str:
-    lengths = [k for k in scored if k is not None and k in cfg.first_chunks]
-    lines = [
-        "## Detection on the first chunks: AUROC [bootstrap 95% interval]\n\n"
-        "Every score over each episode's first k chunks only (an episode shorter than k uses all its "
-        "chunks): what a monitor has seen k chunks into an episode, before a failure that follows the "
-        "condition. "
-        f"Held-out vanilla rollouts (the negatives): {len(vanilla)}, success {successes(vanilla)}."
-    ]
-    headers = ["Score", *(chunks_label(k) for k in lengths), chunks_label(None)]
-    for condition, episodes in conditions.items():
-        rows = [
-            [
-                name,
-                *(
-                    auroc_interval(scored[k].negatives[name], scored[k].positives[condition][name], cfg)
-                    for k in [*lengths, None]
-                ),
-            ]
-            for name in names
-        ]
-        lines.append(
-            f"### {condition}: {len(episodes)} perturbed rollouts, success {successes(episodes)}\n\n"
-            + markdown_table(headers, rows)
-        )
-    return "\n\n".join(lines)
-
-
-REFERENCE_PERTURBED = "reference: perturbed or not"
-REFERENCE_CONDITION_FAILURES = "reference: its condition's failure rate"
-
-
-def _outcome_section(scored, vanilla, ood, names, cfg) -> str:
-    """Every score's AUROC of failed (positives) against successful rollouts, per set that has both."""
-    lengths = [k for k in scored if k is not None and k in cfg.first_chunks]
-    vanilla_failed = np.array([not e[0].success for e in vanilla.values()], dtype=bool)
-    ood_failed = np.array([not e[0].success for e in ood.values()], dtype=bool)
-    # Labels, not scores: what a detector that knew them would reach (see the section's text).
-    ood_failure_rates = condition_failure_rates(ood)
-    vanilla_failure_rate = np.full(len(vanilla), vanilla_failed.mean() if len(vanilla) else 0.0)
-    sets = {
-        "held-out vanilla rollouts": (vanilla_failed, lambda s, name: s.negatives[name], {}),
-        "perturbed rollouts, all conditions": (
-            ood_failed,
-            lambda s, name: s.positives[ALL_CONDITIONS][name],
-            {REFERENCE_CONDITION_FAILURES: ood_failure_rates},
-        ),
-        "held-out vanilla and perturbed rollouts together": (
-            np.concatenate([vanilla_failed, ood_failed]),
-            lambda s, name: np.concatenate([s.negatives[name], s.positives[ALL_CONDITIONS][name]]),
-            {
-                REFERENCE_PERTURBED: np.concatenate([np.zeros(len(vanilla)), np.ones(len(ood))]),
-                REFERENCE_CONDITION_FAILURES: np.concatenate([vanilla_failure_rate, ood_failure_rates]),
-            },
-        ),
-    }
-    lines = [
-        "## Failed vs successful rollouts: AUROC [bootstrap 95% interval]\n\n"
-        "Every score as a failure detector: positives are the failed rollouts, negatives the successful ones "
-        "of the same set, over each episode's first k chunks and the whole episode (a failed episode runs "
-        "longer, so its whole-episode score also sees its late, stalled chunks). Among perturbed rollouts a "
-        "score that flags the perturbations with the most failures ranks failures high even if it knows "
-        "nothing of failure within a condition: the vanilla set alone is the cleaner test. The reference rows "
-        "say how far that goes: they are not scores but the rollouts' own labels, what a detector that knew "
-        f"them would reach. `{REFERENCE_PERTURBED}` is a perfect OOD detector; "
-        f"`{REFERENCE_CONDITION_FAILURES}` ranks each rollout by the share of its set's rollouts that failed "
-        "(vanilla's, or its condition's), the most any score that knows nothing within a condition can reach."
-    ]
-    headers = ["Score", *(chunks_label(k) for k in lengths), chunks_label(None)]
-    for title, (failed, of, references) in sets.items():
-        if failed.all() or not failed.any():
-            lines.append(f"### {title}: {int(failed.sum())} of {failed.size} failed, no AUROC")
-            continue
-        rows = [
-            [
-                name,
-                *(
-                    auroc_interval(of(scored[k], name)[~failed], of(scored[k], name)[failed], cfg)
-                    for k in [*lengths, None]
-                ),
-            ]
-            for name in names
-        ]
-        rows += [
-            [f"_{name}_", *(auroc_interval(labels[~failed], labels[failed], cfg) for _ in [*lengths, None])]
-            for name, labels in references.items()
-        ]
-        lines.append(
-            f"### {title}: {int(failed.sum())} of {failed.size} failed\n\n" + markdown_table(headers, rows)
-        )
-    return "\n\n".join(lines)
-
-
-def condition_failure_rates(ood: dict) -> np.ndarray:
-    """Each perturbed rollout's condition's share of failed rollouts, in `ood`'s order: the failed-vs-successful
-    ranking of a detector that knows every condition's outcome and nothing within a condition."""
-    failed: dict[tuple[str, float], list[bool]] = {}
-    for (_, key), episode in ood.items():
-        failed.setdefault((key.perturbation, key.severity), []).append(not episode[0].success)
-    return np.array([np.mean(failed[(key.perturbation, key.severity)]) for _, key in ood], dtype=float)
-
-
-def _table_iii_sections(title, fits, scored, vanilla, conditions, names, cfg) -> list[str]:
-    """Per condition: the final energy's Table III as the paper prints it, then every score's balanced
-    accuracy at the same rules."""
-    sections = []
-    for condition, episodes in conditions.items():
-        negatives, positives = scored.negatives, scored.positives[condition]
-        rows = {
-            name: ood_detection_table(negatives[name], positives[name], cfg.multipliers, fits[name])
-            for name in names
-        }
-        final = "final_energy"
-        sections.append(
-            f"## {title}: {condition} ({len(vanilla)} vanilla vs {len(episodes)} perturbed rollouts)\n\n"
-            + format_table_iii(
-                rows[final],
-                fits[final],
-                auroc_interval(negatives[final], positives[final], cfg),
-                len(vanilla),
-                len(episodes),
-            )
-            + "\n\nBalanced accuracy of every score at the same rules:\n\n"
-            + format_balanced_accuracy_table(rows)
-        )
-    return sections
-
-
-def _calibration_table(fits: dict, negatives: dict, cfg: OODReportConfig) -> str:
-    rows = []
-    for name, fit in fits.items():
-        t_k = fit.with_k(cfg.k).threshold
-        rows.append(
-            [
-                name,
-                fit.n_rollouts,
-                f"{fit.mu_v:.4g}",
-                f"{fit.sigma_v:.4g}",
-                f"{t_k:.4g}",
-                percent(BinaryRates.from_scores(negatives[name], [], t_k).fpr),
-                f"{fit.conformal_threshold:.4g}",
-                percent(BinaryRates.from_scores(negatives[name], [], fit.conformal_threshold).fpr),
-            ]
-        )
-    headers = [
-        "Score",
-        "Rollouts",
-        "mu",
-        "sigma",
-        f"T (k={cfg.k:g})",
-        "Held-out FPR",
-        f"T conformal (α={percent(cfg.false_alarm_rate)})",
-        "Held-out FPR (conformal)",
-    ]
-    return markdown_table(headers, rows)
-
-
-def _conformal_note(fits: dict, cfg: OODReportConfig) -> str:
-    if np.isfinite(fits["final_energy"].conformal_threshold):
-        return ""
-    needed = math.ceil(1 / cfg.false_alarm_rate - 1 - 1e-9)
-    return (
-        f"\n\nThe conformal threshold is +inf (nothing flagged): alpha = {percent(cfg.false_alarm_rate)} needs "
-        f"at least {needed} calibration rollouts, {fits['final_energy'].n_rollouts} were given."
-    )
-
-
-def _success_table(vanilla, conditions, fits, negatives, positives, cfg) -> str:
-    vanilla_success = success_rate(vanilla)
-    final = fits["final_energy"]
-    held_out = negatives["final_energy"]
-    reference = float(np.mean(held_out))
-    vanilla_fpr = BinaryRates.from_scores(held_out, [], final.conformal_threshold).fpr
-    rows = [
-        ["vanilla (held-out)", len(vanilla), percent(vanilla_success), "", "0", "0", "", percent(vanilla_fpr)]
-    ]
-    for condition, episodes in conditions.items():
-        scores = positives[condition]["final_energy"]
-        shift = float(np.mean(scores)) - reference
-        drop = 100 * (vanilla_success - success_rate(episodes))
-        sigma_units = f"{shift / final.sigma_v:+.2f}" if final.sigma_v > 0 else "n/a"
-        rows.append(
-            [
-                condition,
-                len(episodes),
-                percent(success_rate(episodes)),
-                f"{drop:+.1f} pts",
-                f"{shift:+.4g}",
-                sigma_units,
-                auroc_interval(held_out, scores, cfg),
-                percent(BinaryRates.from_scores(held_out, scores, final.conformal_threshold).tpr),
-            ]
-        )
-    headers = [
-        "Condition",
-        "Episodes",
-        "Success",
-        "Success drop",
-        "Score shift",
-        "Shift / sigma_v",
-        "AUROC [95% CI]",
-        "Flagged at conformal T",
-    ]
-    return markdown_table(headers, rows)
-
-
-def _auroc_table(conditions, names, negatives, positives, cfg) -> str:
-    rows = [
-        [
-            condition,
-            len(episodes),
-            *(auroc_interval(negatives[n], positives[condition][n], cfg) for n in names),
-        ]
-        for condition, episodes in conditions.items()
-    ]
-    return markdown_table(["Condition", "Episodes", *names], rows)
-
-
-def _figures(cfg, fits, calibration_scores, negatives, positives, names) -> None:
-    def curve(negative, positive):
-        fpr, tpr, _ = roc_curve(negative, positive)
-        return fpr, tpr, auroc(negative, positive)
-
-    final = "final_energy"
-    plot_roc(
-        {c: curve(negatives[final], p[final]) for c, p in positives.items()}, cfg.output_dir / "roc_curve.png"
-    )
-    plot_roc(
-        {n: curve(negatives[n], positives[ALL_CONDITIONS][n]) for n in names},
-        cfg.output_dir / "roc_baselines.png",
-    )
-    fit = fits[final]
-    groups = {"calibration": calibration_scores, "vanilla (held-out)": negatives[final]}
-    groups.update({c: p[final] for c, p in positives.items() if c != ALL_CONDITIONS})
-    thresholds = {
-        f"T = mu_v + {cfg.k:g} sigma_v": fit.with_k(cfg.k).threshold,
-        f"T conformal (α={percent(cfg.false_alarm_rate)})": fit.conformal_threshold,
-    }
-    xlabel = f"rollout score ({cfg.aggregation} of chunk final energies)"
-    plot_score_histograms(groups, thresholds, cfg.output_dir / "energy_histogram.png", xlabel)

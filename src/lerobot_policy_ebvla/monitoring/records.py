@@ -86,7 +86,7 @@ class EnergyRecord:
         mcmc_chains: How many MCMC chains were refined for this chunk (`num_restarts`; with adaptive
             restarts 1, or `num_restarts` where the first chain's energy was above the threshold): the
             chunk's compute; None when not recorded.
-        held: Whether the policy's OOD response (`EBVLAConfig.ood_response="hold"`) replaced this chunk by
+        held: Whether the policy's OOD response (`EBVLAConfig.monitor.response="hold"`) replaced this chunk by
             the hold action; None when the policy has no OOD response.
         context_energy: E_c(C), the joint energy's context term, already inside `final_energy` (its head's
             part is the difference); None for a policy without one.

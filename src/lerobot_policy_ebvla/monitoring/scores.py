@@ -15,7 +15,7 @@ from collections.abc import Hashable, Mapping
 
 import numpy as np
 
-from ..runtime.scores import ChunkScore, ContextDistance, EnergyAndContext, rollout_score, score_rollout
+from ..runtime.scores import ChunkScore, rollout_score, score_rollout
 from ..runtime.statistics import CombinedStatistics
 from .baselines import (
     COMBINED_FROM,
@@ -57,7 +57,7 @@ def chunk_scores(
         return reference.phase.score(energies, np.array([r.chunk_index for r in episode]), episode_id)
     if score in FEATURE_SCORES:
         features = np.stack([r.context_feature for r in episode])
-        if score == ContextDistance.name:
+        if score == "context_distance":
             return reference.features.context_distance(features, episode_id)
         return reference.features.context_knn(features, episode_id)
     return np.array([getattr(r, score) for r in episode], dtype=np.float64)
@@ -157,4 +157,4 @@ def combined_rollout_scores(
             )
     statistics = CombinedStatistics.fit(*(calibration_scores[n] for n in COMBINED_FROM))
     z = statistics.z(*(rollout_scores[n] for n in COMBINED_FROM))
-    return z.max(axis=1) if score == EnergyAndContext.name else z.sum(axis=1)
+    return z.max(axis=1) if score == "energy_and_context" else z.sum(axis=1)

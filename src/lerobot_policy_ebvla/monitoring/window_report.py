@@ -19,7 +19,7 @@ from ..runtime.calibration import OODCalibration
 from ..runtime.scores import SCORES
 from ..runtime.window import SHIFTED, TOO_TYPICAL, WindowTypicalityTest
 from .baselines import (
-    chunk_inputs,
+    episode_readout,
     every_chunk_has,
     fit_score_reference,
     registered_scores,
@@ -83,7 +83,7 @@ def window_values_of(
     first k chunks (None: the whole episode), in `episodes` order."""
     return np.stack(
         [
-            calibration.window_values(calibration.score.components(chunk_inputs(episode))[:first_chunks])
+            calibration.window_values(calibration.chunk_components(episode_readout(episode))[:first_chunks])
             for episode in episodes.values()
         ]
     )

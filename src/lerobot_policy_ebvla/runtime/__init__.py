@@ -1,23 +1,25 @@
 """What ships with a checkpoint and acts on the energy at run time; the policy imports it, analysis builds on it.
 
+- `readout`: `EnergyReadout`, what the policy reports about each chunk (its energies, its index in the episode,
+  its pooled context when needed): the one input of the scores, the calibration, the monitors and the response.
 - `threshold`: the one decision rule, "flag when score > T", with T = mu + k sigma (Eq. 5) or the conformal
   quantile of a stated false-alarm rate, and `OODDecision`, its verdict on a batch of scores.
 - `statistics`: what the chunk scores measure against, fitted on vanilla rollouts (`PhaseStatistics`,
   `ContextStatistics`, `ContextNeighbours`, `CombinedStatistics`).
-- `scores`: `ChunkInputs` (what the policy reports about a chunk, every score's input), the `ChunkScore`
-  protocol, one class per OOD score (final energy and phase energy, each also two-sided, context distance,
-  energy and context, context k-NN, two-sided energy and context k-NN, a joint energy's context term, also
-  two-sided), and `SCORES`, the registry that names them.
+- `scores`: `ChunkInputs` (a readout as the scores read it), the `ChunkScore` protocol, the package's four scores
+  (final energy, context phase energy, two-sided head energy, context k-NN), and `SCORES`, the registry that
+  names them, with `register_score`, its hook for research scores.
 - `calibration`: `OODCalibration`, the threshold statistics of one chunk score (`ood_calibration.json` beside
   the weights, the score's statistics in safetensors files beside it).
-- `monitor`: `EnergyOODMonitor`, which applies a calibration to chunks and rollouts as they come.
+- `monitor`: `EnergyOODMonitor`, which applies a calibration to the policy's readouts as they come
+  (`from_pretrained`, `update(policy.last_energy)`, `reset`).
 - `failure_alarm`: `FailureAlarm`, the energy-slope failure predictor as one check at a step chosen on
   calibration (`failure_alarm.json` beside the weights), and `EnergyFailureMonitor`, which feeds it each chunk.
 - `window`: `WindowTypicalityMonitor`, the opt-in two-sided test of the last n rollouts' scores together
   (a batch typicality test: it also flags rollouts that are all *more* typical than vanilla's).
-- `history`: the per-environment history both monitors keep.
+- `history`: the per-environment history both monitors keep, and `ReadoutMonitor`, their one shape.
 - `checkpoint_files`: the one way a calibration is saved beside a checkpoint and loaded back (local or Hub).
-- `response`: what the policy does with a flagged chunk (`EBVLAConfig.ood_response`: continue, hold, or raise
+- `response`: what the policy does with a flagged chunk (`EBVLAConfig.monitor.response`: continue, hold, or raise
   `EnergyOODError`).
 
 Nothing here imports the analysis (`monitoring/`), matplotlib or a simulator.
@@ -26,6 +28,7 @@ Nothing here imports the analysis (`monitoring/`), matplotlib or a simulator.
 from .calibration import OOD_CALIBRATION_FILENAME, OODCalibration
 from .failure_alarm import FAILURE_ALARM_FILENAME, EnergyFailureMonitor, FailureAlarm, FailureDecision
 from .monitor import EnergyOODMonitor
+from .readout import EnergyReadout
 from .response import EnergyOODError, EnergyOODResponse, HoldAction, respond_to_energy
 from .scores import SCORES, ChunkInputs, ChunkScore, VanillaRollouts, rollout_score
 from .statistics import PhaseStatistics
@@ -44,6 +47,7 @@ __all__ = [
     "EnergyOODError",
     "EnergyOODMonitor",
     "EnergyOODResponse",
+    "EnergyReadout",
     "HoldAction",
     "MeanStd",
     "OODCalibration",

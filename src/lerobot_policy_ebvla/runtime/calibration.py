@@ -12,7 +12,7 @@ or, with `rule="conformal"`, when E exceeds the conformal threshold of a stated 
 
 `OODCalibration` holds these statistics and the score object they are of, and lives next to a checkpoint as
 `ood_calibration.json` (with the score's side files); `EnergyOODMonitor` (`monitor.py`) and the policy's
-`ood_response` (`response.py`) apply it at run time. Evaluating a calibration (Table III) is analysis and lives
+`monitor.response` (`response.py`) apply it at run time. Evaluating a calibration (Table III) is analysis and lives
 in `monitoring/ood.py`.
 """
 
@@ -23,27 +23,30 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from torch import Tensor
 
 from .checkpoint_files import CheckpointJSON
+from .readout import EnergyReadout
 from .scores import (
+    PACKAGE_SCORES,
     SCORE_AGGREGATIONS,
     SCORES,
     ChunkInputs,
     ChunkScore,
     FinalEnergy,
+    VanillaRollouts,
     rollout_aggregates,
     score_rollout,
 )
 from .statistics import float64
-from .threshold import ArrayLike, MeanStd, as_array, conformal_threshold, mean_std_threshold
+from .threshold import ArrayLike, MeanStd, conformal_threshold, mean_std_threshold
 
 OOD_CALIBRATION_FILENAME = "ood_calibration.json"
 THRESHOLD_RULES = ("mean_std", "conformal")
 
 
-def _ndim(values: ArrayLike | float | None) -> int:
-    return values.ndim if isinstance(values, Tensor) else np.ndim(values)
+class UnregisteredScoreError(LookupError):
+    """A saved calibration names a score that no imported module registered (not wrapped by `load`: the file is
+    valid, the score's module is missing)."""
 
 
 def _to_json_number(value: Any) -> Any:
@@ -163,58 +166,68 @@ class OODCalibration(CheckpointJSON):
             window_reference=window_reference,
         )
 
+    @classmethod
+    def calibrate(
+        cls,
+        score: str,
+        vanilla: VanillaRollouts,
+        *,
+        k: float = 1.0,
+        false_alarm_rate: float | None = None,
+        rule: str = "mean_std",
+    ) -> "OODCalibration":
+        """The calibration of the score named `score` (a checkpoint's `config.monitor.score`) on vanilla rollouts.
+
+        The score is fitted on every vanilla rollout; mu_v and sigma_v are those of the vanilla rollouts' scores,
+        each rollout scored against the score fitted without it (leave-one-out), as a new rollout would be.
+
+        Raises:
+            ValueError: The score is not registered, or a rollout lacks an input the score reads.
+        """
+        if score not in SCORES:
+            raise ValueError(f"`score` must be one of {tuple(SCORES)}, got {score!r}.")
+        score_class = SCORES[score]
+        for rollout in vanilla.rollouts:
+            rollout.require(score_class.reads, score)
+        rollout_scores = []
+        for i, rollout in enumerate(vanilla.rollouts):
+            fitted = score_class.fit(vanilla.without(i) if len(vanilla) > 1 else vanilla)
+            rollout_scores.append(score_rollout(fitted, fitted.components(rollout), vanilla.aggregation))
+        return cls.fit(
+            rollout_scores,
+            k=k,
+            aggregation=vanilla.aggregation,
+            false_alarm_rate=false_alarm_rate,
+            rule=rule,
+            score=score_class.fit(vanilla),
+        )
+
     @property
     def needs_context_features(self) -> bool:
         """Whether `chunk_score` needs each chunk's pooled context (`EBVLAPolicy.context_features`)."""
         return "context_features" in self.score.reads
 
-    def chunk_components(
-        self,
-        final_energy: ArrayLike | float,
-        chunk_index: ArrayLike | int | None = None,
-        context_features: ArrayLike | None = None,
-        context_energy: ArrayLike | float | None = None,
-    ) -> np.ndarray:
+    def chunk_components(self, readout: EnergyReadout) -> np.ndarray:
         """What a rollout's score is aggregated from, one row per chunk: (B, n), the score's n components
-        (the chunk score itself for most scores; the final energy and the context distance for
-        "energy_and_context"), each aggregated over the rollout before they are combined (`score_rollout`).
-
-        Arguments and errors as in `chunk_score`.
-        """
-        chunks = ChunkInputs.of(final_energy, chunk_index, context_features, context_energy)
-        chunks.require(self.score.reads, self.score.name)
-        return self.score.components(chunks)
-
-    def chunk_score(
-        self,
-        final_energy: ArrayLike | float,
-        chunk_index: ArrayLike | int | None = None,
-        context_features: ArrayLike | None = None,
-        context_energy: ArrayLike | float | None = None,
-    ) -> float | np.ndarray:
-        """The calibrated score of a chunk, the score of a rollout of that one chunk: what `threshold` applies to.
+        (the chunk score itself for most scores), each aggregated over the rollout before they are combined
+        (`score_rollout`).
 
         Args:
-            final_energy: One final energy, or one per environment ((B,) array or tensor).
-            chunk_index: The chunk's index in its episode: an int, or one per environment. Needed by a score
-                that reads it (the phase energy).
-            context_features: The chunk's pooled context, (D,), or one per environment, (B, D). Needed by a
-                score that reads it (the context scores).
-            context_energy: The joint energy's context term E_c(C), one or one per environment
-                (`EnergyReadout.context_energy`). Needed by the context-energy scores.
-
-        Returns:
-            A float when `final_energy` is one chunk's, else an array with one score per chunk.
+            readout: The policy's `EnergyReadout` of B chunks (`EBVLAPolicy.last_energy`), or recorded chunks
+                as one (`EnergyReadout.of_arrays`): its chunk index, and its pooled context or E_c(C) where the
+                score reads them.
 
         Raises:
             ValueError: An input the score reads is missing, or an input is not one row per final energy.
         """
-        components = self.chunk_components(final_energy, chunk_index, context_features, context_energy)
-        scores = self.score.combine(components)
-        one_chunk = _ndim(final_energy) == 0 and np.ndim(chunk_index) == 0
-        if context_features is not None and self.needs_context_features:
-            one_chunk = _ndim(context_features) == 1
-        return float(scores[0]) if one_chunk else scores
+        chunks = ChunkInputs.of(readout)
+        chunks.require(self.score.reads, self.score.name)
+        return self.score.components(chunks)
+
+    def chunk_score(self, readout: EnergyReadout) -> np.ndarray:
+        """(B,) the calibrated score of each chunk of `readout`, the score of a rollout of that one chunk: what
+        `threshold` applies to. Arguments and errors as in `chunk_components`."""
+        return self.score.combine(self.chunk_components(readout))
 
     def score_rollout(self, components: ArrayLike) -> float:
         """The rollout score the threshold applies to, from its chunks' `chunk_components` in chunk order:
@@ -225,17 +238,6 @@ class OODCalibration(CheckpointJSON):
             ValueError: `components` is not (N >= 1, n) with the score's n columns.
         """
         return score_rollout(self.score, components, self.aggregation)
-
-    def rollout_components(
-        self,
-        chunk_energies: ArrayLike,
-        context_features: ArrayLike | None = None,
-        context_energies: ArrayLike | None = None,
-    ) -> np.ndarray:
-        """A finished rollout's `chunk_components`, from its chunks' final energies (chunks 0, 1, ...) and the
-        chunks' pooled contexts ((N, D)) or E_c(C) ((N,)) where the score reads them."""
-        energies = as_array(chunk_energies)
-        return self.chunk_components(energies, np.arange(energies.size), context_features, context_energies)
 
     def window_values(self, components: ArrayLike) -> np.ndarray:
         """(m,) what the window test compares of a rollout, from its chunks' `chunk_components` in chunk order:
@@ -279,7 +281,12 @@ class OODCalibration(CheckpointJSON):
             payload["conformal_threshold"] = math.inf
         name = payload.pop("score", FinalEnergy.name)
         if name not in SCORES:
-            raise ValueError(f"`score` must be one of {tuple(SCORES)}, got {name!r}")
+            raise UnregisteredScoreError(
+                f"{path} is a calibration of the score {name!r}, which is not registered: the package ships "
+                f"{PACKAGE_SCORES}. A research score is registered by importing its module (the research "
+                "benchmarks' `research_scores.py`) or with `lerobot_policy_ebvla.runtime.scores.register_score(cls)` "
+                "before loading."
+            )
         score_class = SCORES[name]
         own = {*score_class.json_fields, *(s.field for s in score_class.side_files)}
         statistics = {f.name for f in dataclasses.fields(cls)}

@@ -13,8 +13,8 @@ max(1, s - w + 1) .. s against their step numbers; a non-finite slope (a diverge
 alarm, as the threshold rule says (`threshold.exceeds`).
 
     monitor = EnergyFailureMonitor.from_pretrained("outputs/train/ebvla/checkpoints/last/pretrained_model")
-    actions, readout = policy.predict_action_chunk(batch, return_energy=True)
-    if any(d.alarm for d in monitor.update(readout)):
+    action = policy.select_action(batch)
+    if any(d.alarm for d in monitor.update(policy.last_energy)):
         ...  # ask for help, slow down, hand over
 
 Nothing here imports the analysis (`monitoring/`).
@@ -27,10 +27,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from torch import Tensor
 
 from .checkpoint_files import CheckpointJSON
-from .history import EnvironmentHistories
+from .history import ReadoutMonitor
+from .readout import EnergyReadout
 from .threshold import ArrayLike, as_array, exceeds, mean_std_threshold
 
 FAILURE_ALARM_FILENAME = "failure_alarm.json"
@@ -142,33 +142,31 @@ class FailureDecision:
     threshold: float
 
 
-class EnergyFailureMonitor:
-    """Feeds each chunk's energies to a `FailureAlarm`, one history per environment; decides at s*."""
+class EnergyFailureMonitor(ReadoutMonitor):
+    """Feeds each chunk's readout to a `FailureAlarm`, one history per environment; decides at s*.
+
+    The same shape as `EnergyOODMonitor`: `from_pretrained(checkpoint)`, `update(policy.last_energy)` after each
+    step (each readout counted once), `reset()` with the policy.
+    """
 
     def __init__(self, alarm: FailureAlarm):
+        super().__init__()  # each environment's energies so far
         self.alarm = alarm
-        self._histories = EnvironmentHistories()  # each environment's energies so far
         self._decisions: list[FailureDecision | None] = []
 
     @classmethod
     def from_pretrained(cls, pretrained_name_or_path: str | Path) -> "EnergyFailureMonitor":
         return cls(FailureAlarm.from_pretrained(pretrained_name_or_path))
 
-    def update(self, energies) -> list[FailureDecision]:
-        """Adds one chunk per environment and answers for each.
-
-        Args:
-            energies: The policy's `EnergyReadout` of the chunk (its final, initial or context energy is read, as
-                the alarm's metric says), or that energy itself: a float or a (B,) tensor or array.
-        """
-        if not isinstance(energies, (float, int, np.ndarray, Tensor, list, tuple)):
-            field = SLOPE_ENERGIES[self.alarm.metric]
-            energies = getattr(energies, field)
-            if energies is None:
-                raise ValueError(
-                    f"The failure alarm checks the slope of `{field}`, which this readout does not have (only a "
-                    "policy trained with a joint energy, `energy_ood_margin_on`, reports `context_energy`)."
-                )
+    def _add(self, readout: EnergyReadout) -> list[FailureDecision]:
+        """Adds the readout's energy (final, initial or context, as the alarm's metric says) per environment."""
+        field = SLOPE_ENERGIES[self.alarm.metric]
+        energies = getattr(readout, field)
+        if energies is None:
+            raise ValueError(
+                f"The failure alarm checks the slope of `{field}`, which this readout does not have (only a "
+                "policy trained with a joint energy, `energy_ood_margin_on`, reports `context_energy`)."
+            )
         values = as_array(energies)
         self._histories.append([float(value) for value in values])
         if not self._decisions:
@@ -189,6 +187,6 @@ class EnergyFailureMonitor:
         return answers
 
     def reset(self) -> None:
-        """Forgets the histories and decisions; call it when the environments reset."""
-        self._histories.reset()
+        """Forgets the histories and decisions; call it when the environments reset (with `policy.reset()`)."""
+        super().reset()
         self._decisions = []

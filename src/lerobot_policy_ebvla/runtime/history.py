@@ -46,3 +46,46 @@ class EnvironmentHistories:
 
     def reset(self) -> None:
         self._histories = []
+
+
+class ReadoutMonitor:
+    """The one shape of the run-time monitors: `from_pretrained(checkpoint)`, then `update(policy.last_energy)`
+    after each step, `reset()` with the policy.
+
+    `update` counts each readout once (a readout it has seen returns its decisions again), so that it may be
+    called after every `select_action` although the policy refines a chunk only every `n_action_steps` steps.
+    A subclass decides on each new chunk (`_add`).
+    """
+
+    def __init__(self):
+        self._histories = EnvironmentHistories()
+        self._last: tuple[Any, list] | None = None
+
+    def _add(self, readout) -> list:
+        """Adds the readout's chunk to each environment's history; one decision per environment."""
+        raise NotImplementedError
+
+    def update(self, readout) -> list:
+        """Adds one chunk per environment (the policy's `EnergyReadout`, (B,) entries) and answers for each.
+
+        Raises:
+            ValueError: Not one entry per environment, or the readout's chunk index is not the monitor's next
+                (the policy and the monitor were not reset together).
+        """
+        if self._last is not None and self._last[0] is readout:
+            return self._last[1]
+        index, expected = readout.chunk_index, self._histories.n_chunks
+        indices = index.reshape(-1).tolist() if hasattr(index, "reshape") else [index]
+        if any(int(i) != expected for i in indices):
+            raise ValueError(
+                f"The readout is of chunk {index} of its episode, and this monitor has seen {expected} chunks: "
+                "call `monitor.reset()` whenever the policy is reset (`policy.reset()`)."
+            )
+        decisions = self._add(readout)
+        self._last = (readout, decisions)
+        return decisions
+
+    def reset(self) -> None:
+        """Forgets the histories; call it when the environments reset (with `policy.reset()`)."""
+        self._histories.reset()
+        self._last = None

@@ -3,10 +3,10 @@
 After each refinement, the score of every chunk is compared to the threshold T = mu_v + k * sigma_v (Eq. 5)
 of the checkpoint's `ood_calibration.json`, with the one rule of `threshold.py`: only a score <= T is in
 distribution, so +inf (diverged refinement) and NaN are flagged. The score is the calibration's
-(`OODCalibration.chunk_score`, one of `scores.SCORES`: the final energy E(a^(K_inf), C) is the paper's, the
-context k-NN distance what `ebvla-ood-report --calibrate_to` saves by default); a score
-that reads the chunk's pooled context has the policy compute it from the backbone pass that encoded the chunk's
-context. `EBVLAConfig.ood_response` picks what happens to a flagged chunk:
+(`OODCalibration.chunk_score`, the checkpoint's `monitor.score`, which `ebvla-ood-report --calibrate_to` saves:
+the final energy E(a^(K_inf), C), the paper's, unless the training preset says otherwise); a score that reads the
+chunk's pooled context has the policy compute it from the backbone pass that encoded the chunk's context.
+`EBVLAConfig.monitor.response` picks what happens to a flagged chunk:
 
 - "continue": it is executed and a warning is logged (the default).
 - "hold": each of its H actions is replaced by the hold action; the next refinement checks again.
@@ -39,6 +39,7 @@ from lerobot.utils.constants import OBS_STATE, POLICY_PREPROCESSOR_DEFAULT_NAME
 from torch import Tensor
 
 from .calibration import OOD_CALIBRATION_FILENAME, OODCalibration
+from .readout import EnergyReadout
 from .threshold import OODDecision
 
 if TYPE_CHECKING:  # annotations only: run-time code reads the config's fields and imports nothing above it
@@ -48,7 +49,7 @@ logger = logging.getLogger(__name__)
 
 
 class EnergyOODError(RuntimeError):
-    """Raised with `ood_response="raise"` when a refined chunk's score exceeds the OOD threshold.
+    """Raised with `monitor.response="raise"` when a refined chunk's score exceeds the OOD threshold.
 
     Attributes:
         energy: The highest score (the calibration's `score`) among the flagged chunks, NaN counted as +inf.
@@ -59,7 +60,7 @@ class EnergyOODError(RuntimeError):
     def __init__(self, energy: float, threshold: float, decision: OODDecision, score: str = "final_energy"):
         super().__init__(
             f"EB-VLA refined a chunk with {score} {energy:.4g} above the OOD threshold {threshold:.4g} "
-            "(`ood_response='raise'`): the observation looks out of distribution."
+            "(`monitor.response='raise'`): the observation looks out of distribution."
         )
         self.energy = energy
         self.threshold = threshold
@@ -109,15 +110,15 @@ class HoldAction:
 class EnergyOODResponse:
     """Applies the config's OOD response to refined chunks, with a checkpoint's calibrated threshold.
 
-    The config is the one source of truth: `ood_response`, `hold_action` and `ood_threshold_k` are read from
+    The config is the one source of truth: its `monitor.response`, `hold_action` and `threshold_k` are read from
     it at every chunk, so a response never disagrees with the config it was built for. What comes from the
     checkpoint is what the config cannot hold: the calibration and the normalizer of the hold action.
 
     Args:
         config: The policy's config (read at every call).
         calibration: The vanilla statistics of the checkpoint's `ood_calibration.json`.
-        hold_action: The hold action of `config.hold_action`, with the checkpoint's normalizer; required
-            while `config.ood_response == "hold"`.
+        hold_action: The hold action of `config.monitor.hold_action`, with the checkpoint's normalizer; required
+            while `config.monitor.response == "hold"`.
     """
 
     def __init__(
@@ -134,7 +135,7 @@ class EnergyOODResponse:
     ) -> "EnergyOODResponse | None":
         """The response of a checkpoint: its `ood_calibration.json`, and the pre-processor's normalizer to hold.
 
-        Returns None for `ood_response="continue"` when the checkpoint has no calibration.
+        Returns None for `monitor.response="continue"` when the checkpoint has no calibration.
 
         Raises:
             FileNotFoundError: "hold" or "raise" and the checkpoint has no calibration.
@@ -142,16 +143,16 @@ class EnergyOODResponse:
         try:
             calibration = OODCalibration.from_pretrained(pretrained_name_or_path)
         except FileNotFoundError as e:
-            if config.ood_response == "continue":
+            if config.monitor.response == "continue":
                 return None
             raise FileNotFoundError(
-                f"`ood_response={config.ood_response!r}` compares energies to the threshold saved in "
+                f"`monitor.response={config.monitor.response!r}` compares energies to the threshold saved in "
                 f"{OOD_CALIBRATION_FILENAME} beside the weights, and {pretrained_name_or_path} has none: "
                 "calibrate it with `ebvla-ood-report --calibrate_to=<pretrained_model>` on vanilla rollouts."
             ) from e
         hold_action = None
-        if config.ood_response == "hold":
-            hold_action = HoldAction.from_pretrained(config.hold_action, pretrained_name_or_path)
+        if config.monitor.response == "hold":
+            hold_action = HoldAction.from_pretrained(config.monitor.hold_action, pretrained_name_or_path)
         return cls(config, calibration, hold_action)
 
     @property
@@ -161,37 +162,30 @@ class EnergyOODResponse:
 
     @property
     def threshold(self) -> float:
-        """T of the calibration, at the config's `ood_threshold_k` when it sets one."""
-        k = self.config.ood_threshold_k
+        """T of the calibration, at the config's `monitor.threshold_k` when it sets one."""
+        k = self.config.monitor.threshold_k
         return (self.calibration if k is None else self.calibration.with_k(k)).threshold
 
     def _check_hold_action(self) -> None:
-        kind = self.config.hold_action
-        if self.config.ood_response == "hold" and (self.hold_action is None or self.hold_action.kind != kind):
+        kind = self.config.monitor.hold_action
+        if self.config.monitor.response == "hold" and (
+            self.hold_action is None or self.hold_action.kind != kind
+        ):
             raise ValueError(
-                f"`ood_response='hold'` with `hold_action={kind!r}` needs that hold action built from the "
+                f"`monitor.response='hold'` with `monitor.hold_action={kind!r}` needs that hold action built from the "
                 "checkpoint's normalizer: change the response with "
-                "`policy.configure_ood_response(<checkpoint>, ood_response=..., hold_action=...)`."
+                "`policy.configure_ood_response(<checkpoint>, response=..., hold_action=...)`."
             )
 
     def __call__(
-        self,
-        actions: Tensor,
-        final_energy: Tensor,
-        batch: dict[str, Tensor],
-        chunk_index: int = 0,
-        context_features: Tensor | None = None,
-        context_energy: Tensor | None = None,
+        self, actions: Tensor, readout: EnergyReadout, batch: dict[str, Tensor]
     ) -> tuple[Tensor, OODDecision]:
-        """Checks each chunk (B, H, action_dim) against T and continues, holds or raises.
+        """Checks each chunk (B, H, action_dim) of `readout` against T and continues, holds or raises.
 
-        `chunk_index` is the chunk's index in its episode, for a score that reads it; `context_features`,
-        (B, D), the pooled context of each chunk's observation, and `context_energy`, (B,) E_c(C) of a joint
-        energy, for a score that reads them. Returns the chunks to execute (held ones replaced) and the decision.
+        Returns the chunks to execute (held ones replaced) and the decision.
         """
-        response, threshold = self.config.ood_response, self.threshold
-        energies = final_energy.detach().float().cpu().reshape(-1)
-        scores = self.calibration.chunk_score(energies, chunk_index, context_features, context_energy)
+        response, threshold = self.config.monitor.response, self.threshold
+        scores = self.calibration.chunk_score(readout)
         decision = OODDecision.of(torch.as_tensor(scores, dtype=torch.float32), threshold, response)
         flagged, held = decision.flagged, decision.held
         if not flagged.any():
@@ -208,7 +202,7 @@ class EnergyOODResponse:
             score,
             threshold,
             energy,
-            "holding them" if response == "hold" else "executing them anyway (`ood_response='continue'`)",
+            "holding them" if response == "hold" else "executing them anyway (`monitor.response='continue'`)",
         )
         if response == "hold":
             self._check_hold_action()
@@ -223,26 +217,21 @@ def respond_to_energy(
     response: EnergyOODResponse | None,
     config: "EBVLAConfig",
     actions: Tensor,
-    final_energy: Tensor,
+    readout: EnergyReadout,
     batch: dict[str, Tensor],
-    chunk_index: int = 0,
-    context_features: Tensor | None = None,
-    context_energy: Tensor | None = None,
 ) -> tuple[Tensor, OODDecision | None]:
-    """The policy's entry point: applies `response`, or checks that none is needed without a calibration.
-
-    `context_features` is the chunks' pooled context, (B, D), when `response.needs_context_features`;
-    `context_energy` the joint energy's E_c(C), (B,), when the policy has one.
+    """The policy's entry point: applies `response` to the chunks of `readout`, or checks that none is needed
+    without a calibration. The readout holds the pooled context when `response.needs_context_features`.
 
     Raises:
-        ValueError: `config.ood_response` is "hold" or "raise" and the policy has no calibrated response.
+        ValueError: `config.monitor.response` is "hold" or "raise" and the policy has no calibrated response.
     """
     if response is None:
-        if config.ood_response != "continue":
+        if config.monitor.response != "continue":
             raise ValueError(
-                f"`ood_response={config.ood_response!r}` needs the threshold of an OOD calibration: load the "
+                f"`monitor.response={config.monitor.response!r}` needs the threshold of an OOD calibration: load the "
                 f"policy with `EBVLAPolicy.from_pretrained` from a checkpoint holding {OOD_CALIBRATION_FILENAME} "
                 "(or call `policy.configure_ood_response(<checkpoint>)`)."
             )
         return actions, None
-    return response(actions, final_energy, batch, chunk_index, context_features, context_energy)
+    return response(actions, readout, batch)

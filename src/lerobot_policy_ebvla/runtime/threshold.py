@@ -111,7 +111,7 @@ class OODDecision:
         threshold: The threshold T they were compared to.
         flagged: (B,) bool, the score exceeds T or is not finite (`exceeds`).
         held: (B,) bool, the chunk was replaced by the hold action (flagged and `response == "hold"`).
-        response: The policy's `ood_response` to the flagged chunks ("continue", "hold" or "raise"); None for
+        response: The policy's `monitor.response` to the flagged chunks ("continue", "hold" or "raise"); None for
             a decision that nothing acts on (the monitor's).
     """
 

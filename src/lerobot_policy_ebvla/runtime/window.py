@@ -31,6 +31,7 @@ import numpy as np
 from scipy.stats import mannwhitneyu
 
 from .calibration import OODCalibration
+from .readout import EnergyReadout
 from .statistics import float64
 from .threshold import ArrayLike
 
@@ -147,7 +148,7 @@ class WindowTypicalityMonitor:
         monitor = WindowTypicalityMonitor.from_pretrained("outputs/.../pretrained_model", window=8)
         for episode in episodes:
             ...  # run it, keeping each chunk's final energy (and E_c, for a context-energy calibration)
-            decision = monitor.add_rollout(chunk_energies, context_energies=chunk_context_energies)
+            decision = monitor.add_rollout(EnergyReadout.of_arrays(chunk_energies, context_energy=chunk_context_energies))
             if decision is not None and decision.is_atypical:
                 ...  # these conditions are not the calibration's: recalibrate, or look at the scene
     """
@@ -190,15 +191,10 @@ class WindowTypicalityMonitor:
             return None
         return self.test.check(np.stack(self._values))
 
-    def add_rollout(
-        self,
-        chunk_energies: ArrayLike,
-        context_features: ArrayLike | None = None,
-        context_energies: ArrayLike | None = None,
-    ) -> WindowDecision | None:
-        """Adds one finished rollout from its chunks (chunks 0, 1, ...), with the inputs
-        `EnergyOODMonitor.check_rollout` takes."""
-        components = self.calibration.rollout_components(chunk_energies, context_features, context_energies)
+    def add_rollout(self, readout: EnergyReadout) -> WindowDecision | None:
+        """Adds one finished rollout from a readout of its chunks in order (`EnergyReadout.of_arrays`), as
+        `EnergyOODMonitor.check_rollout` takes it."""
+        components = self.calibration.chunk_components(readout)
         return self.add_values(self.calibration.window_values(components))
 
     def reset(self) -> None:

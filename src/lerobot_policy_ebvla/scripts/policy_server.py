@@ -13,8 +13,8 @@ The robot side is LeRobot's own client, unchanged:
         --pretrained_name_or_path=outputs/train/ebvla/checkpoints/last/pretrained_model --robot.type=... ...
 
 The server logs the final energy of every chunk it refines, with the OOD decision of the policy's
-`ood_response` (taken from the checkpoint's config, or from `--ood_response`/`--hold_action`/`--ood_threshold_k`
-here), and keeps the latest ones in `EBVLAPolicyServer.served_chunks`. With `ood_response="raise"`, LeRobot's
+response (the checkpoint's `monitor` config, or from `--ood_response`/`--hold_action`/`--ood_threshold_k`
+here), and keeps the latest ones in `EBVLAPolicyServer.served_chunks`. With the response "raise", LeRobot's
 server catches the `EnergyOODError`, logs it and sends the client no actions for that observation, so the
 robot runs out of actions and stops; with "hold" it receives the hold action.
 """

@@ -27,6 +27,7 @@ Every `--policy.*` field of `EBVLAConfig` can be set; the light policy's values 
 defaults of the ones it changes.
 """
 
+import dataclasses
 import json
 import os
 import sys
@@ -37,6 +38,24 @@ from lerobot_policy_ebvla.pipelines.quickstart import QuickstartConfig, quiet_in
 from lerobot_policy_ebvla.presets import LIGHT_POLICY
 
 
+def preset_flags(preset: dict, prefix: str) -> list[str]:
+    """The command-line flags of a preset, a nested config's fields (a dataclass) as `--policy.monitor.score=...`."""
+    flags = []
+    for name, value in preset.items():
+        if dataclasses.is_dataclass(value):
+            flags += preset_flags(
+                {
+                    f.name: getattr(value, f.name)
+                    for f in dataclasses.fields(value)
+                    if getattr(value, f.name) is not None
+                },
+                f"{prefix}.{name}",
+            )
+        else:
+            flags.append(f"{prefix}.{name}={json.dumps(value)}")
+    return flags
+
+
 def parse_config(args: list[str]) -> QuickstartConfig:
     """Parses the command line into a `QuickstartConfig`; an invalid value raises a ValueError naming it.
 
@@ -44,7 +63,7 @@ def parse_config(args: list[str]) -> QuickstartConfig:
     `default_factory` once any `--policy.*` flag is given; `LIGHT_POLICY` therefore goes first on the
     command line, where the user's own flags override it.
     """
-    defaults = [f"--policy.{name}={json.dumps(value)}" for name, value in LIGHT_POLICY.items()]
+    defaults = preset_flags(LIGHT_POLICY, "--policy")
     if "--help" in args or "-h" in args:
         # argparse type-checks flags when printing help; `LIGHT_POLICY` is not needed for that.
         defaults = []

@@ -16,10 +16,14 @@ from lerobot_policy_ebvla import EBVLAPolicy
 from lerobot_policy_ebvla.runtime import EnergyOODError
 from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
 from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
-from lerobot_policy_ebvla.runtime.scores import CONTEXT_FILE, ContextDistance
+from lerobot_policy_ebvla.runtime.readout import EnergyReadout
 from lerobot_policy_ebvla.runtime.statistics import ContextStatistics, ledoit_wolf_covariance
+from research.tests.conftest import load_benchmark
+from tests.conftest import tiny_batch, tiny_config
 
-from .conftest import tiny_batch, tiny_config
+research_scores = load_benchmark("research_scores")
+CONTEXT_FILE = research_scores.CONTEXT_FILE
+ContextDistance = research_scores.ContextDistance
 
 D = 4
 
@@ -74,19 +78,21 @@ def test_a_context_calibration_scores_a_chunk_by_its_context_distance():
     calibration = context_calibration()
     features = np.array([[0.0, 0.0, 0.0, 0.0], [5.0, 5.0, 5.0, 5.0]])
     np.testing.assert_allclose(
-        calibration.chunk_score(torch.tensor([9.0, 9.0]), context_features=torch.from_numpy(features)),
+        calibration.chunk_score(
+            EnergyReadout.of_arrays(torch.tensor([9.0, 9.0]), 0, torch.from_numpy(features))
+        ),
         calibration.score.context.distance(features),
     )
 
 
 def test_a_context_calibration_needs_the_context_features():
     with pytest.raises(ValueError, match="context_features"):
-        context_calibration().chunk_score(1.0, chunk_index=0)
+        context_calibration().chunk_score(EnergyReadout.of_arrays(1.0, 0))
 
 
 def test_a_context_calibration_needs_one_context_per_chunk():
     with pytest.raises(ValueError, match="`context_features` has 2 row.*one per chunk"):
-        context_calibration().chunk_score(torch.zeros(3), context_features=np.zeros((2, D)))
+        context_calibration().chunk_score(EnergyReadout.of_arrays(torch.zeros(3), 0, np.zeros((2, D))))
 
 
 def test_a_context_calibration_needs_its_statistics():
@@ -119,7 +125,9 @@ def test_context_statistics_of_another_calibration_are_refused(tmp_path):
 def test_the_monitor_scores_each_environments_chunk_by_its_context_distance():
     monitor = EnergyOODMonitor(context_calibration())
     features = np.array([[0.0, 0.0, 0.0, 0.0], [5.0, 5.0, 5.0, 5.0]])
-    decisions = monitor.update(torch.tensor([9.0, 9.0]), context_features=features)
+    decisions = monitor.update(
+        EnergyReadout(None, torch.tensor([9.0, 9.0]), context_features=torch.from_numpy(features))
+    )
     expected = monitor.calibration.score.context.distance(features)
     assert [d.energy for d in decisions] == pytest.approx(expected.tolist())
 
@@ -127,13 +135,13 @@ def test_the_monitor_scores_each_environments_chunk_by_its_context_distance():
 def test_the_monitor_checks_a_rollout_by_its_chunks_context_distances():
     monitor = EnergyOODMonitor(context_calibration(aggregation="max"))
     features = vanilla_features(n=3, seed=2)
-    decision = monitor.check_rollout([0.0, 0.0, 0.0], context_features=features)
+    decision = monitor.check_rollout(EnergyReadout.of_arrays([0.0, 0.0, 0.0], context_features=features))
     assert decision.energy == pytest.approx(monitor.calibration.score.context.distance(features).max())
 
 
 def test_the_monitor_checks_one_chunk_with_one_context_feature():
     monitor = EnergyOODMonitor(context_calibration())
-    decision = monitor.check(0.0, context_features=np.full(D, 10.0))
+    (decision,) = monitor.check(EnergyReadout.of_arrays(0.0, 0, np.full(D, 10.0)))
     assert decision.energy == pytest.approx(monitor.calibration.score.context.distance(np.full(D, 10.0))[0])
 
 
@@ -147,7 +155,7 @@ def test_the_policy_scores_each_chunk_by_the_context_distance_of_its_observation
     statistics = ContextStatistics.fit(torch.cat([policy.context_features(b) for b in contexts]))
     # A threshold below every distance: every chunk is flagged and raises with its highest distance.
     OODCalibration(mu_v=-1.0, sigma_v=0.0, score=ContextDistance(statistics)).save(tmp_path)
-    policy.configure_ood_response(tmp_path, ood_response="raise")
+    policy.configure_ood_response(tmp_path, response="raise")
     batch = tiny_batch(policy.config, batch_size=2, seed=7, with_action=False)
     with pytest.raises(EnergyOODError, match="context_distance") as raised:
         policy.predict_action_chunk(batch)

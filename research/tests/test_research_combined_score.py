@@ -22,10 +22,14 @@ from lerobot_policy_ebvla.monitoring.scores import chunk_scores, combined_rollou
 from lerobot_policy_ebvla.runtime import EnergyOODError
 from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
 from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
-from lerobot_policy_ebvla.runtime.scores import CONTEXT_FILE, EnergyAndContext
+from lerobot_policy_ebvla.runtime.readout import EnergyReadout
 from lerobot_policy_ebvla.runtime.statistics import CombinedStatistics, ContextStatistics
+from research.tests.conftest import load_benchmark
+from tests.conftest import context_rollouts, tiny_batch, tiny_config, write_records
 
-from .conftest import context_rollouts, tiny_batch, tiny_config, write_records
+research_scores = load_benchmark("research_scores")
+CONTEXT_FILE = research_scores.CONTEXT_FILE
+EnergyAndContext = research_scores.EnergyAndContext
 
 D = 4
 # mu = (1, 2), sigma = (0.5, 4): z_E = (E - 1) / 0.5, z_d = (d - 2) / 4.
@@ -146,13 +150,15 @@ def test_an_energy_and_context_calibration_scores_a_chunk_by_the_larger_z_of_its
     features = np.array([[0.0, 0.0, 0.0, 0.0], [6.0, 6.0, 6.0, 6.0]])
     distances = calibration.score.context.distance(features)
     expected = np.maximum((np.array([3.0, 1.0]) - 1.0) / 0.5, (distances - 2.0) / 4.0)
-    np.testing.assert_allclose(calibration.chunk_score(np.array([3.0, 1.0]), 0, features), expected)
+    np.testing.assert_allclose(
+        calibration.chunk_score(EnergyReadout.of_arrays([3.0, 1.0], 0, features)), expected
+    )
     assert calibration.needs_context_features
 
 
 def test_an_energy_and_context_calibration_needs_the_context_features():
     with pytest.raises(ValueError, match="pooled context"):
-        combined_calibration().chunk_score(np.array([1.0]))
+        combined_calibration().chunk_score(EnergyReadout.of_arrays([1.0], 0))
 
 
 def test_a_rollout_aggregates_each_score_over_its_chunks_before_combining_them():
@@ -174,10 +180,12 @@ def test_the_monitor_scores_a_running_rollout_as_it_scores_the_finished_one():
     energies = np.array([[1.2, 0.8], [3.0, 1.0], [1.1, 0.9]])
     monitor = EnergyOODMonitor(calibration)
     for chunk in range(3):
-        decisions = monitor.update(torch.tensor(energies[chunk]), context_features=features[chunk])
+        chunk_readout = EnergyReadout(None, torch.tensor(energies[chunk]), chunk_index=chunk)
+        chunk_readout.context_features = torch.from_numpy(features[chunk])
+        decisions = monitor.update(chunk_readout)
     for env in range(2):
         finished = EnergyOODMonitor(calibration).check_rollout(
-            energies[:, env], context_features=features[:, env]
+            EnergyReadout.of_arrays(energies[:, env], context_features=features[:, env])
         )
         mean_distance = calibration.score.context.distance(features[:, env]).mean()
         expected = STATISTICS.combine(energies[:, env].mean(), mean_distance)[0]
@@ -193,9 +201,8 @@ def test_an_energy_and_context_calibration_round_trips_through_json_and_safetens
     loaded = OODCalibration.load(tmp_path)
     assert loaded == calibration and loaded.score.combined == STATISTICS
     features = np.full((1, D), 3.0)
-    assert loaded.chunk_score(np.array([2.0]), 0, features) == pytest.approx(
-        calibration.chunk_score(np.array([2.0]), 0, features)
-    )
+    chunk = EnergyReadout.of_arrays([2.0], 0, features)
+    assert loaded.chunk_score(chunk) == pytest.approx(calibration.chunk_score(chunk))
 
 
 def test_a_calibration_json_with_a_broken_combined_field_names_it(tmp_path):
@@ -215,7 +222,7 @@ def test_the_policy_responds_to_the_larger_z_of_each_chunks_energy_and_context(t
     statistics = ContextStatistics.fit(torch.cat([policy.context_features(b) for b in contexts]))
     # A threshold below every score: every chunk is flagged and raises with its highest score.
     combined_calibration(mu_v=-1e6, sigma_v=0.0, context=statistics).save(tmp_path)
-    policy.configure_ood_response(tmp_path, ood_response="raise")
+    policy.configure_ood_response(tmp_path, response="raise")
     batch = tiny_batch(policy.config, batch_size=2, seed=7, with_action=False)
     with pytest.raises(EnergyOODError, match="energy_and_context") as raised:
         policy.predict_action_chunk(batch)
@@ -375,8 +382,9 @@ def test_the_report_saves_the_energy_and_context_calibration_its_tables_score(re
     scored = [
         calibration.score_rollout(
             calibration.chunk_components(
-                np.array([r.final_energy for r in e]),
-                context_features=np.stack([r.context_feature for r in e]),
+                EnergyReadout.of_arrays(
+                    [r.final_energy for r in e], context_features=np.stack([r.context_feature for r in e])
+                )
             )
         )
         for e in vanilla.values()

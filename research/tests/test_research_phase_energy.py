@@ -20,8 +20,13 @@ from lerobot_policy_ebvla.monitoring.records import EnergyRecord
 from lerobot_policy_ebvla.monitoring.scores import chunk_scores, episode_scores
 from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
 from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
-from lerobot_policy_ebvla.runtime.scores import FinalEnergy, PhaseEnergy
+from lerobot_policy_ebvla.runtime.readout import EnergyReadout
+from lerobot_policy_ebvla.runtime.scores import FinalEnergy
 from lerobot_policy_ebvla.runtime.statistics import PhaseStatistics
+from research.tests.conftest import load_benchmark
+
+research_scores = load_benchmark("research_scores")
+PhaseEnergy = research_scores.PhaseEnergy
 
 VANILLA = [[0.0, 2.0, 10.0], [2.0, 4.0]]
 POOLED_SIGMA = float(np.std([0.0, 2.0, 10.0, 2.0, 4.0]))
@@ -82,18 +87,19 @@ def phase_calibration(**kwargs) -> OODCalibration:
 
 
 def test_a_final_energy_calibration_scores_a_chunk_by_its_final_energy():
-    assert OODCalibration(mu_v=1.0, sigma_v=1.0).chunk_score(3.5, chunk_index=4) == 3.5
+    assert OODCalibration(mu_v=1.0, sigma_v=1.0).chunk_score(EnergyReadout.of_arrays(3.5, 4)) == [3.5]
 
 
 def test_a_phase_calibration_scores_a_chunk_against_vanilla_at_its_index():
     calibration = phase_calibration()
-    assert calibration.chunk_score(5.0, 1) == pytest.approx(2.0)
-    np.testing.assert_allclose(calibration.chunk_score(torch.tensor([5.0, 5.0]), [0, 1]), [4.0, 2.0])
+    assert calibration.chunk_score(EnergyReadout.of_arrays(5.0, 1)) == pytest.approx([2.0])
+    chunks = EnergyReadout.of_arrays(torch.tensor([5.0, 5.0]), [0, 1])
+    np.testing.assert_allclose(calibration.chunk_score(chunks), [4.0, 2.0])
 
 
-def test_a_phase_calibration_needs_the_chunk_index():
-    with pytest.raises(ValueError, match="chunk_index"):
-        phase_calibration().chunk_score(5.0)
+def test_a_readout_needs_one_chunk_index_per_chunk():
+    with pytest.raises(ValueError, match="`chunk_index` has 3 row"):
+        phase_calibration().chunk_score(EnergyReadout.of_arrays([5.0, 5.0], [0, 1, 2]))
 
 
 def write_calibration(folder, **fields):
@@ -108,7 +114,7 @@ def test_a_phase_calibration_needs_its_statistics(tmp_path):
 
 def test_a_calibration_of_an_unknown_score_is_rejected(tmp_path):
     write_calibration(tmp_path, score="knn")
-    with pytest.raises(ValueError, match="score"):
+    with pytest.raises(LookupError, match="score 'knn', which is not registered"):
         OODCalibration.load(tmp_path)
 
 
@@ -129,13 +135,13 @@ def test_a_calibration_file_without_the_phase_fields_loads_as_the_final_energy(t
 
 def test_the_monitor_counts_chunks_to_apply_a_phase_calibration():
     monitor = EnergyOODMonitor(phase_calibration(k=0.0))
-    monitor.update(torch.tensor([1.0, 5.0]))  # index 0: z = 0 and 4
-    decisions = monitor.update(torch.tensor([3.0, 5.0]))  # index 1: z = 0 and 2
+    monitor.update(EnergyReadout(None, torch.tensor([1.0, 5.0]), chunk_index=0))  # z = 0 and 4
+    decisions = monitor.update(EnergyReadout(None, torch.tensor([3.0, 5.0]), chunk_index=1))  # z = 0 and 2
     assert [d.energy for d in decisions] == pytest.approx([0.0, 3.0])
 
 
 def test_the_monitor_checks_a_chunk_of_a_phase_calibration_at_its_index():
-    decision = EnergyOODMonitor(phase_calibration(k=0.0)).check(5.0, chunk_index=1)
+    (decision,) = EnergyOODMonitor(phase_calibration(k=0.0)).check(EnergyReadout.of_arrays(5.0, 1))
     assert decision.energy == pytest.approx(2.0) and decision.is_ood
 
 

@@ -1,4 +1,5 @@
-"""Two-sided scores: a shift that lowers the energy below vanilla's is flagged, and the report's safe default.
+"""The research scores (`benchmarks/research_scores.py`): two-sided scores flag a shift that lowers the energy
+below vanilla's; and the report saves the checkpoint's own monitor score.
 
 A shift can make the final energy fall below vanilla's (issue 32: dim light, another colour), so the one-sided
 energy is confidently wrong there. The two-sided forms flag a rollout on either side of the vanilla band.
@@ -6,35 +7,42 @@ energy is confidently wrong there. The two-sided forms flag a rollout on either 
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from lerobot_policy_ebvla.monitoring.ood_report import (
-    DEFAULT_ENERGY_SCORE,
-    DEFAULT_SCORE,
     OODReportConfig,
     write_ood_report,
 )
 from lerobot_policy_ebvla.runtime import SCORES, EnergyOODMonitor, OODCalibration, VanillaRollouts
+from lerobot_policy_ebvla.runtime.readout import EnergyReadout
 from lerobot_policy_ebvla.runtime.scores import (
     ChunkInputs,
-    ContextEnergy,
-    ContextEnergyTwoSided,
     ContextPhaseEnergy,
-    EnergyTwoSidedAndContextKNN,
     FinalEnergy,
-    FinalEnergyTwoSided,
     HeadEnergyTwoSided,
-    PhaseEnergy,
-    PhaseEnergyDeviation,
-    PhaseEnergyTwoSided,
     score_rollout,
 )
+from research.tests.conftest import load_benchmark
+from tests.conftest import write_calibration_vanilla_and_ood, write_records
 
-from .conftest import write_calibration_vanilla_and_ood, write_records
+research_scores = load_benchmark("research_scores")
+ContextEnergy = research_scores.ContextEnergy
+ContextEnergyTwoSided = research_scores.ContextEnergyTwoSided
+EnergyTwoSidedAndContextKNN = research_scores.EnergyTwoSidedAndContextKNN
+FinalEnergyTwoSided = research_scores.FinalEnergyTwoSided
+PhaseEnergy = research_scores.PhaseEnergy
+PhaseEnergyDeviation = research_scores.PhaseEnergyDeviation
+PhaseEnergyTwoSided = research_scores.PhaseEnergyTwoSided
 
 N_CHUNKS, DIM = 6, 4
+
+
+def chunk_inputs(*arrays) -> ChunkInputs:
+    """Recorded chunks as the scores read them (`EnergyReadout.of_arrays`'s arguments)."""
+    return ChunkInputs.of(EnergyReadout.of_arrays(*arrays))
 
 
 def vanilla(n=12, seed=0) -> VanillaRollouts:
@@ -46,7 +54,7 @@ def vanilla(n=12, seed=0) -> VanillaRollouts:
     features = [rng.normal(0, 1, (N_CHUNKS, DIM)) for _ in range(n)]
     context_energies = [rng.normal(0, 0.1, N_CHUNKS) for _ in range(n)]
     series = zip(energies, features, context_energies, strict=True)
-    return VanillaRollouts([ChunkInputs.of(e, np.arange(N_CHUNKS), c, ec) for e, c, ec in series])
+    return VanillaRollouts([chunk_inputs(e, np.arange(N_CHUNKS), c, ec) for e, c, ec in series])
 
 
 def calibrated(score_class, rollouts: VanillaRollouts) -> OODCalibration:
@@ -61,7 +69,9 @@ def calibrated(score_class, rollouts: VanillaRollouts) -> OODCalibration:
 def rollout_score(calibration: OODCalibration, energies, features=None, context_energy=None) -> float:
     features = np.zeros((len(energies), DIM)) if features is None else features
     context_energy = np.zeros(len(energies)) if context_energy is None else context_energy
-    components = calibration.chunk_components(energies, np.arange(len(energies)), features, context_energy)
+    components = calibration.chunk_components(
+        EnergyReadout.of_arrays(energies, None, features, context_energy)
+    )
     return calibration.score_rollout(components)
 
 
@@ -93,8 +103,8 @@ def test_the_two_sided_phase_energy_is_the_magnitude_of_the_phase_energy():
     rollouts = vanilla()
     one, two = PhaseEnergy.fit(rollouts), PhaseEnergyTwoSided.fit(rollouts)
     energies = np.array([4.0, 5.5, 3.0])
-    z = one.components(ChunkInputs.of(energies, np.arange(3)))
-    assert two.components(ChunkInputs.of(energies, np.arange(3))) == pytest.approx(z)
+    z = one.components(chunk_inputs(energies, np.arange(3)))
+    assert two.components(chunk_inputs(energies, np.arange(3))) == pytest.approx(z)
     assert score_rollout(two, z, "mean") == pytest.approx(abs(z.mean()))
 
 
@@ -111,7 +121,7 @@ def test_the_phase_energy_deviation_flags_a_rollout_on_both_sides_that_the_aggre
     both_sides = np.array(phase.mean[:N_CHUNKS]) + z_t * np.array(phase.std[:N_CHUNKS])
     assert rollout_score(aggregate, both_sides) < aggregate.threshold
     assert rollout_score(deviation, both_sides) > deviation.threshold
-    chunks = ChunkInputs.of(both_sides, np.arange(N_CHUNKS))
+    chunks = chunk_inputs(both_sides, np.arange(N_CHUNKS))
     assert deviation.score.components(chunks)[:, 0] == pytest.approx(np.abs(z_t))
 
 
@@ -143,7 +153,9 @@ def test_a_two_sided_calibration_is_saved_and_loaded_back_and_monitors_the_same(
     energies, context_energy = np.full(N_CHUNKS, 3.0), np.full(N_CHUNKS, -2.0)
     features = np.ones((N_CHUNKS, DIM))
     expected = rollout_score(calibration, energies, features, context_energy)
-    decision = EnergyOODMonitor(loaded).check_rollout(energies, features, context_energy)
+    decision = EnergyOODMonitor(loaded).check_rollout(
+        EnergyReadout.of_arrays(energies, None, features, context_energy)
+    )
     assert decision.energy == pytest.approx(expected) and decision.is_ood
 
 
@@ -179,21 +191,12 @@ def test_the_report_sets_each_two_sided_score_beside_its_one_sided_form(record_d
     assert row["final_energy_two_sided"].split(" | ")[1].startswith("1.000")
 
 
-def test_without_a_score_the_report_saves_the_safe_default(record_dirs, tmp_path):
+def test_without_a_score_or_a_checkpoint_config_the_report_saves_the_final_energy(record_dirs, tmp_path):
     text, calibration = report(record_dirs, tmp_path)
-    assert calibration.score.name == DEFAULT_SCORE == "context_knn"
-    assert f"Without `--score`, `--calibrate_to` saves `{DEFAULT_SCORE}`" in text
-
-
-def test_without_context_features_the_default_is_the_best_energy_only_score(record_dirs, tmp_path):
-    from lerobot_policy_ebvla.monitoring.records import read_energy_records
-
-    bare = []
-    for i, folder in enumerate(record_dirs):
-        records = [dataclasses.replace(r, context_feature=None) for r in read_energy_records(folder)]
-        bare.append(write_records(tmp_path / f"bare{i}", records))
-    _, calibration = report(bare, tmp_path / "out")
-    assert calibration.score.name == DEFAULT_ENERGY_SCORE == "phase_energy_two_sided"
+    assert calibration.score.name == "final_energy"
+    assert (
+        "Without `--score`, `--calibrate_to` saves the checkpoint's `monitor.score`: `final_energy`" in text
+    )
 
 
 def with_context_energy(record_dirs, root) -> list:
@@ -209,34 +212,22 @@ def with_context_energy(record_dirs, root) -> list:
     return folders
 
 
-OWN_ENCODER = {"energy_ood_margin_on": "observation", "energy_ood_margin_weight": 0.01}
-
-
 @pytest.mark.parametrize(
-    ("fields", "context_energy", "expected"),
-    [
-        (OWN_ENCODER, True, "context_energy_two_sided"),
-        ({**OWN_ENCODER, "energy_ood_gradient_penalty": 0.1}, True, "context_phase_energy"),
-        ({**OWN_ENCODER, "energy_ood_gradient_penalty": 0.1}, False, "final_energy"),
-        (OWN_ENCODER, False, "final_energy"),
-        ({"energy_ood_margin_on": "observation", "energy_ood_margin_weight": 0.0}, False, "context_knn"),
-        ({"energy_ood_margin_on": "context_backbone", "energy_ood_margin_weight": 1.0}, True, "context_knn"),
-    ],
+    ("monitor_score", "context_energy"), [("context_knn", False), ("context_phase_energy", True)]
 )
-def test_a_checkpoint_with_the_joint_energy_on_its_own_encoder_defaults_to_its_two_sided_context_energy(
-    record_dirs, tmp_path, fields, context_energy, expected
+def test_without_a_score_the_report_saves_the_checkpoints_monitor_score(
+    record_dirs, tmp_path, monitor_score, context_energy
 ):
-    """... one-sided where E_c was trained flat at the data (every shift raises it), or to its final energy when
-    the records hold no E_c; other checkpoints keep the context k-NN."""
+    """The score was decided when the policy was trained (`config.monitor.score`); the records change nothing."""
     checkpoint = tmp_path / "pretrained_model"
     checkpoint.mkdir()
-    (checkpoint / "config.json").write_text(json.dumps({"type": "ebvla", **fields}))
+    (checkpoint / "config.json").write_text(
+        json.dumps({"type": "ebvla", "monitor": {"score": monitor_score}})
+    )
     folders = with_context_energy(record_dirs, tmp_path / "records") if context_energy else record_dirs
     text, calibration = report(folders, tmp_path)
-    assert calibration.score.name == expected
-    assert f"Without `--score`, `--calibrate_to` saves `{expected}`" in text
-    if fields.get("energy_ood_margin_weight") and fields["energy_ood_margin_on"] == "observation":
-        assert ("hold no `context_energy`" in text) == (not context_energy)
+    assert calibration.score.name == monitor_score
+    assert f"saves the checkpoint's `monitor.score`: `{monitor_score}`" in text
 
 
 def test_a_context_energy_score_on_records_without_it_is_refused_by_name(record_dirs, tmp_path):
@@ -275,7 +266,7 @@ def rising_context_energy_rollouts() -> tuple[np.ndarray, VanillaRollouts]:
     rising = 0.5 * np.arange(N_CHUNKS)
     return rising, VanillaRollouts(
         [
-            ChunkInputs.of(
+            chunk_inputs(
                 np.zeros(N_CHUNKS), np.arange(N_CHUNKS), None, rising + rng.normal(0, 0.05, N_CHUNKS)
             )
             for _ in range(12)
@@ -291,7 +282,7 @@ def test_the_two_sided_context_energy_compares_each_chunk_with_vanilla_at_its_in
     np.testing.assert_allclose(calibration.score.phase.mean[:N_CHUNKS], rising, atol=0.05)
     energies = np.zeros(N_CHUNKS)
     flat = np.full(N_CHUNKS, rising.mean())
-    first_three = ChunkInputs.of(energies[:3], np.arange(3), None, flat[:3])
+    first_three = chunk_inputs(energies[:3], np.arange(3), None, flat[:3])
     assert calibration.score_rollout(calibration.score.components(first_three)) > calibration.threshold
     assert rollout_score(calibration, energies, context_energy=rising) < calibration.threshold
 
@@ -309,7 +300,7 @@ def test_the_one_sided_context_phase_energy_is_the_signed_z_the_two_sided_form_t
     for offset in (-1.0, 1.0):
         shifted = rising + offset
         z = one.score_rollout(
-            one.score.components(ChunkInputs.of(energies, np.arange(N_CHUNKS), None, shifted))
+            one.score.components(chunk_inputs(energies, np.arange(N_CHUNKS), None, shifted))
         )
         assert np.sign(z) == offset
         assert rollout_score(two, energies, context_energy=shifted) == pytest.approx(abs(z))
@@ -327,7 +318,7 @@ def test_the_head_energy_score_reads_the_final_energy_without_the_context_term(t
     phase = 5.0 - 0.2 * np.arange(N_CHUNKS)
     rollouts = VanillaRollouts(
         [
-            ChunkInputs.of(phase + c + rng.normal(0, 0.1, N_CHUNKS), np.arange(N_CHUNKS), None, c)
+            chunk_inputs(phase + c + rng.normal(0, 0.1, N_CHUNKS), np.arange(N_CHUNKS), None, c)
             for c in (rng.normal(0, 0.1, N_CHUNKS) for _ in range(12))
         ]
     )
@@ -352,9 +343,36 @@ def test_the_head_energy_score_reads_the_final_energy_without_the_context_term(t
 def test_a_context_energy_score_without_the_context_energy_says_where_it_comes_from(score_class):
     calibration = calibrated(score_class, vanilla())
     with pytest.raises(ValueError, match=f"{score_class.name} score needs each chunk's context energy E_c"):
-        calibration.chunk_score(1.0, 0)
+        calibration.chunk_score(EnergyReadout.of_arrays(1.0, 0))
     with pytest.raises(ValueError, match="`context_energy` has 2 row"):
-        calibration.chunk_score(np.ones(3), 0, context_energy=np.zeros(2))
-    bare = VanillaRollouts([ChunkInputs.of(r.final_energy, r.chunk_index) for r in vanilla().rollouts])
+        calibration.chunk_score(EnergyReadout.of_arrays(np.ones(3), 0, context_energy=np.zeros(2)))
+    bare = VanillaRollouts(
+        [EnergyReadout.of_arrays(r.final_energy, r.chunk_index) for r in vanilla().rollouts]
+    )
     with pytest.raises(ValueError, match="energy_ood_margin_on"):
         score_class.fit(bare)
+
+
+RESEARCH_FIXTURES = [
+    folder
+    for folder in sorted((Path(__file__).parent / "fixtures").glob("ood_calibration_v*/*"))
+    if folder.name in research_scores.RESEARCH_NAMES
+]
+
+
+@pytest.mark.parametrize(
+    "folder", RESEARCH_FIXTURES, ids=[f"{f.parent.name}/{f.name}" for f in RESEARCH_FIXTURES]
+)
+def test_a_saved_calibration_of_a_research_score_loads_once_registered(folder):
+    expected = json.loads((folder / "expected.json").read_text())
+    energies, index, features = (np.array(v) for v in expected["probe"].values())
+    calibration = OODCalibration.load(folder)
+    assert calibration.score.name == folder.name
+    np.testing.assert_allclose(
+        calibration.chunk_score(EnergyReadout.of_arrays(energies, index, features)), expected["chunk_scores"]
+    )
+    assert calibration.threshold == pytest.approx(expected["threshold"])
+
+
+def test_the_research_scores_of_the_v0_1_0_fixtures_are_registered():
+    assert {f.name for f in RESEARCH_FIXTURES} == {"phase_energy", "context_distance", "energy_and_context"}

@@ -7,13 +7,8 @@ import pytest
 
 from lerobot_policy_ebvla.monitoring.window_report import WindowRates, window_indices
 from lerobot_policy_ebvla.runtime import OODCalibration, PhaseStatistics
-from lerobot_policy_ebvla.runtime.scores import (
-    ContextEnergyTwoSided,
-    FinalEnergy,
-    FinalEnergyTwoSided,
-    PhaseEnergyDeviation,
-    PhaseEnergyTwoSided,
-)
+from lerobot_policy_ebvla.runtime.readout import EnergyReadout
+from lerobot_policy_ebvla.runtime.scores import FinalEnergy
 from lerobot_policy_ebvla.runtime.window import (
     HIGH_SCORES,
     SHIFTED,
@@ -21,6 +16,13 @@ from lerobot_policy_ebvla.runtime.window import (
     WindowTypicalityMonitor,
     WindowTypicalityTest,
 )
+from research.tests.conftest import load_benchmark
+
+research_scores = load_benchmark("research_scores")
+ContextEnergyTwoSided = research_scores.ContextEnergyTwoSided
+FinalEnergyTwoSided = research_scores.FinalEnergyTwoSided
+PhaseEnergyDeviation = research_scores.PhaseEnergyDeviation
+PhaseEnergyTwoSided = research_scores.PhaseEnergyTwoSided
 
 
 def test_the_window_test_alarms_on_vanilla_windows_at_most_at_its_false_alarm_rate():
@@ -117,7 +119,7 @@ def test_the_monitor_decides_once_it_has_a_window_and_then_on_the_last_rollouts(
 
 def test_the_monitor_scores_a_rollout_as_the_calibration_does():
     monitor = WindowTypicalityMonitor(calibration_with_reference(), window=1)
-    decision = monitor.add_rollout(np.array([4.0, 5.0, 6.0]))  # the final energy's mean
+    decision = monitor.add_rollout(EnergyReadout.of_arrays([4.0, 5.0, 6.0]))  # the final energy's mean
     assert decision.rollout_values == ((5.0,),)
 
 

@@ -1,0 +1,78 @@
+"""The package's scores: four, in one registry that research code extends through one hook."""
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from lerobot_policy_ebvla.runtime import EnergyReadout, OODCalibration
+from lerobot_policy_ebvla.runtime.scores import (
+    PACKAGE_SCORES,
+    SCORES,
+    ChunkInputs,
+    ChunkScore,
+    ContextPhaseEnergy,
+    FinalEnergy,
+    HeadEnergyTwoSided,
+    VanillaRollouts,
+    register_score,
+)
+from lerobot_policy_ebvla.runtime.statistics import PhaseStatistics
+
+PHASE = PhaseStatistics((0.0, -10.0), (1.0, 2.0))
+
+
+def test_the_package_ships_four_scores():
+    assert PACKAGE_SCORES == ("final_energy", "context_phase_energy", "head_energy_two_sided", "context_knn")
+    assert set(PACKAGE_SCORES) <= set(SCORES)
+
+
+def test_a_registered_score_is_found_by_its_name_and_a_name_clash_is_refused(monkeypatch):
+    monkeypatch.setattr("lerobot_policy_ebvla.runtime.scores.SCORES", dict(SCORES))
+    from lerobot_policy_ebvla.runtime import scores
+
+    @dataclass(frozen=True)
+    class Doubled(ChunkScore):
+        name = "doubled_energy"
+
+        def components(self, chunks: ChunkInputs) -> np.ndarray:
+            return 2 * chunks.final_energy[:, None]
+
+    assert register_score(Doubled) is Doubled and register_score(Doubled) is Doubled
+    assert scores.SCORES["doubled_energy"] is Doubled
+
+    @dataclass(frozen=True)
+    class Impostor(FinalEnergy):
+        pass
+
+    with pytest.raises(ValueError, match="'final_energy' is already registered for FinalEnergy"):
+        register_score(Impostor)
+
+
+def test_the_context_phase_energy_reads_e_c_at_the_chunks_index():
+    calibration = OODCalibration(mu_v=0.0, sigma_v=1.0, score=ContextPhaseEnergy(PHASE))
+    readout = EnergyReadout.of_arrays([7.0, 7.0], [0, 1], context_energy=[-5.0, -5.0])
+    np.testing.assert_allclose(calibration.chunk_score(readout), [-5.0, 2.5])
+
+
+def test_the_head_energy_is_the_final_energy_less_e_c_and_two_sided():
+    calibration = OODCalibration(mu_v=0.0, sigma_v=1.0, score=HeadEnergyTwoSided(PHASE))
+    readout = EnergyReadout.of_arrays([-3.0, -20.0], [0, 1], context_energy=[2.0, -4.0])
+    np.testing.assert_allclose(calibration.chunk_score(readout), [5.0, 3.0])
+
+
+def test_calibrating_a_named_score_scores_each_rollout_against_the_others():
+    rollouts = [
+        EnergyReadout.of_arrays([1.0, 2.0], context_energy=[0.0, 1.0]),
+        EnergyReadout.of_arrays([3.0, 3.0], context_energy=[2.0, 3.0]),
+        EnergyReadout.of_arrays([0.0, 5.0], context_energy=[4.0, 2.0]),
+    ]
+    final = OODCalibration.calibrate("final_energy", VanillaRollouts(rollouts), k=2.0)
+    assert (final.mu_v, final.k, final.score) == (pytest.approx(14 / 6), 2.0, FinalEnergy())
+    phase = OODCalibration.calibrate("context_phase_energy", VanillaRollouts(rollouts))
+    # Each rollout's E_c against the other two at each index: the first at z = -3 and -3, the second at 0 and 3,
+    # the third at 3 and 0; the saved score is fitted on all three.
+    assert phase.score == ContextPhaseEnergy.fit(VanillaRollouts(rollouts))
+    assert (phase.mu_v, phase.sigma_v) == (pytest.approx(0.0), pytest.approx(np.std([-3.0, 1.5, 1.5])))
+    with pytest.raises(ValueError, match="context_knn score needs each chunk's pooled context"):
+        OODCalibration.calibrate("context_knn", VanillaRollouts(rollouts))
