@@ -355,7 +355,7 @@ def test_a_context_energy_score_without_the_context_energy_says_where_it_comes_f
 
 RESEARCH_FIXTURES = [
     folder
-    for folder in sorted((Path(__file__).parent / "fixtures").glob("ood_calibration_v*/*"))
+    for folder in sorted((Path(__file__).parents[2] / "tests" / "fixtures").glob("ood_calibration_v*/*"))
     if folder.name in research_scores.RESEARCH_NAMES
 ]
 
