@@ -169,7 +169,7 @@ def context_and_chain_diffs(policy: EBVLAPolicy, observation: dict, device: torc
     def chain_in(run_mode: str, kv: ContextKV) -> tuple[torch.Tensor, torch.Tensor]:
         policy.config.compile_mode = run_mode
         generator = torch.Generator(device=device).manual_seed(0)
-        initial = model._initial_actions(kv[0][0].shape[0], kv[0][0], generator)
+        initial = model.initial_actions(kv[0][0].shape[0], kv[0][0], generator)
         result, final_energy = model._inference_chain(kv, initial, generator, None)
         return result.actions.detach(), final_energy.detach()
 

@@ -50,7 +50,7 @@ def refinement(model: EBVLA, batch: dict, seed: int = 0):
     initial = torch.randn(
         BATCH_SIZE, cfg.chunk_size, cfg.action_dim, generator=torch.Generator().manual_seed(1)
     )
-    result = model._refine(
+    result = model.refine(
         kv,
         initial,
         [cfg.inference_step_size] * cfg.inference_mcmc_steps,

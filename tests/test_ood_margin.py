@@ -5,16 +5,19 @@ import pytest
 import torch
 
 from lerobot_policy_ebvla import EBVLAPolicy
-from lerobot_policy_ebvla.modeling_ebvla import pooled_context
+from lerobot_policy_ebvla.energy_head import pooled_context
 from lerobot_policy_ebvla.runtime import EnergyOODResponse, OODCalibration, PhaseStatistics
 from lerobot_policy_ebvla.runtime.scores import ContextEnergyTwoSided
 from lerobot_policy_ebvla.training_signal import (
     CORRUPTIONS,
     channel_gain,
+    compute_loss,
+    context_margin_loss,
     corrupt_observation,
     data_gradient_penalty,
     energy_margin_loss,
     graded_corruption,
+    ood_margin_loss,
     random_conv,
     shading,
     shading_log_gains,
@@ -30,7 +33,7 @@ def test_margin_term_is_off_by_default_and_adds_nothing():
     batch = tiny_batch(config, batch_size=4)
     torch.manual_seed(0)
     policy = EBVLAPolicy(config)
-    _, info = policy.model.compute_loss(batch, generator=torch.Generator().manual_seed(0))
+    _, info = compute_loss(policy.model, batch, generator=torch.Generator().manual_seed(0))
     assert "ood_margin_loss" not in info
 
 
@@ -40,7 +43,7 @@ def test_margin_term_is_added_with_its_weight_and_reported():
     for weight in (0.0, 0.5):
         torch.manual_seed(0)
         policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=weight, energy_ood_margin=100.0))
-        losses[weight] = policy.model.compute_loss(batch, generator=torch.Generator().manual_seed(0))
+        losses[weight] = compute_loss(policy.model, batch, generator=torch.Generator().manual_seed(0))
     (plain, _), (with_term, info) = losses[0.0], losses[0.5]
     # A margin far above any gap of an untrained head: the hinge is active, 100 - gap.
     assert info["ood_margin_loss"] == pytest.approx(100.0 - info["ood_energy_gap"], rel=1e-4)
@@ -53,7 +56,8 @@ def test_margin_term_runs_on_either_chunk_and_reaches_the_backbone(chunk):
     policy = EBVLAPolicy(
         tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin=100.0, energy_ood_margin_chunk=chunk)
     )
-    margin, _ = policy.model.ood_margin_loss(
+    margin, _ = ood_margin_loss(
+        policy.model,
         tiny_batch(policy.config, batch_size=3),
         policy.model.encode_context(tiny_batch(policy.config, batch_size=3)),
         tiny_batch(policy.config, batch_size=3)["action"],
@@ -93,7 +97,7 @@ def test_training_with_the_margin_opens_the_gap_on_a_fixed_batch():
     optimizer = torch.optim.Adam(policy.parameters(), lr=3e-3)
     gaps = []
     for step in range(30):
-        loss, info = policy.model.compute_loss(batch, generator=torch.Generator().manual_seed(step))
+        loss, info = compute_loss(policy.model, batch, generator=torch.Generator().manual_seed(step))
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -211,14 +215,14 @@ def test_graded_corruption_asks_each_observation_for_its_strength_of_the_margin(
     torch.testing.assert_close(strengths, torch.full((4,), 0.3))
     with torch.no_grad():
         if target == "observation":
-            loss, _ = model.context_margin_loss(batch, torch.Generator().manual_seed(7))
+            loss, _ = context_margin_loss(model, batch, torch.Generator().manual_seed(7))
             energy = model.context_energy
             clean = energy(pooled_context(model.observation_encoder(batch)))
             shifted = energy(pooled_context(model.observation_encoder(shifted_batch)))
             expected = torch.relu(0.6 - (shifted - clean)).mean() + clean.pow(2).mean()
         else:
             kv = model.encode_context(batch)
-            loss, _ = model.ood_margin_loss(batch, kv, batch["action"], torch.Generator().manual_seed(7), [])
+            loss, _ = ood_margin_loss(model, batch, kv, batch["action"], torch.Generator().manual_seed(7), [])
             clean = model.head(batch["action"], kv).mean(dim=-1)
             shifted = model.head(batch["action"], model.encode_context(shifted_batch)).mean(dim=-1)
             expected = torch.relu(0.6 - (shifted - clean)).mean()
@@ -318,7 +322,7 @@ def test_gradient_penalty_is_added_to_the_margin_and_trains_the_observation_enco
     losses = {}
     for penalty in (0.0, 50.0):
         policy = policy_with_gradient_penalty(penalty)
-        losses[penalty], _ = policy.model.context_margin_loss(batch, torch.Generator().manual_seed(0))
+        losses[penalty], _ = context_margin_loss(policy.model, batch, torch.Generator().manual_seed(0))
     value = image_gradient_penalty(policy_with_gradient_penalty(0.0), batch)
     assert value > 0
     assert losses[50.0].item() == pytest.approx(losses[0.0].item() + 50.0 * value, rel=1e-4)
@@ -354,7 +358,7 @@ def policy_after_the_context_margin(target: str) -> EBVLAPolicy:
     """A tiny policy with the joint energy's margin on `target`, after one backward pass of that margin alone."""
     torch.manual_seed(0)
     policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on=target))
-    margin, _ = policy.model.context_margin_loss(tiny_batch(policy.config, batch_size=3), torch.Generator())
+    margin, _ = context_margin_loss(policy.model, tiny_batch(policy.config, batch_size=3), torch.Generator())
     margin.backward()
     return policy
 
@@ -375,7 +379,9 @@ def test_context_margin_through_the_backbone_trains_the_backbone_and_the_context
     assert all(p.grad is None for p in policy.model.head.parameters())
     # In a training step the margin reads the context of the step's own backbone pass.
     policy.zero_grad(set_to_none=True)
-    loss, info = policy.model.compute_loss(tiny_batch(config, batch_size=3), torch.Generator().manual_seed(0))
+    loss, info = compute_loss(
+        policy.model, tiny_batch(config, batch_size=3), torch.Generator().manual_seed(0)
+    )
     assert "ood_margin_loss" in info and torch.isfinite(loss)
 
 
@@ -396,8 +402,8 @@ def test_with_the_observation_energy_the_policy_starts_and_trains_exactly_as_wit
         torch.manual_seed(0)
         config = tiny_config(energy_ood_margin_weight=1.0 if fields else 0.0, **fields)
         policies[name] = EBVLAPolicy(config)
-        loss, _ = policies[name].model.compute_loss(
-            tiny_batch(config, batch_size=3), torch.Generator().manual_seed(0)
+        loss, _ = compute_loss(
+            policies[name].model, tiny_batch(config, batch_size=3), torch.Generator().manual_seed(0)
         )
         loss.backward()
     without, observation = policies["without"].model, policies["observation"].model

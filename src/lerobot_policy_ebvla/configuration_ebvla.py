@@ -9,7 +9,10 @@ head-only experiments (Sec. III-A) and for CPU training.
 import math
 import warnings
 from dataclasses import dataclass, field
+from pathlib import Path
 
+import draccus
+from huggingface_hub.constants import CONFIG_NAME
 from lerobot.configs import NormalizationMode, PreTrainedConfig
 from lerobot.optim import AdamWConfig, CosineDecayWithWarmupSchedulerConfig
 from lerobot.policies.rtc.configuration_rtc import RTCConfig
@@ -690,6 +693,17 @@ class EBVLAConfig(PreTrainedConfig):
     @property
     def reward_delta_indices(self) -> None:
         return None
+
+
+def load_saved_config(pretrained_name_or_path: str | Path, **kwargs) -> PreTrainedConfig:
+    """The saved config; a value its checks reject is reported with the file and the field, which draccus's
+    own "Couldn't instantiate class" message leaves out."""
+    try:
+        return PreTrainedConfig.from_pretrained(pretrained_name_or_path, **kwargs)
+    except draccus.utils.ParsingError as e:
+        if not isinstance(e.__cause__, ValueError | TypeError):
+            raise
+        raise ValueError(f"{CONFIG_NAME} of {pretrained_name_or_path}: {e.__cause__}") from e
 
 
 def context_energy_on_own_encoder(margin_on: str, margin_weight: float) -> bool:
