@@ -203,7 +203,7 @@ def test_importing_the_policy_and_building_one_loads_no_analysis_and_no_matplotl
                 "observation.state": PolicyFeature(FeatureType.STATE, (4,)),
             },
             output_features={"action": PolicyFeature(FeatureType.ACTION, (4,))},
-            task_instructions=["press the button"],
+            resnet={"task_instructions": ["press the button"]},
         )
         EBVLAPolicy(config)
         loaded = sorted(m for m in sys.modules if m.split(".")[0] == "matplotlib" or any(

@@ -29,7 +29,7 @@ from .conftest import load_benchmark, tiny_batch, tiny_config
 
 def test_margin_term_is_off_by_default_and_adds_nothing():
     config = tiny_config()
-    assert config.energy_ood_margin_weight == 0.0
+    assert config.joint_energy.weight == 0.0
     batch = tiny_batch(config, batch_size=4)
     torch.manual_seed(0)
     policy = EBVLAPolicy(config)
@@ -42,7 +42,7 @@ def test_margin_term_is_added_with_its_weight_and_reported():
     losses = {}
     for weight in (0.0, 0.5):
         torch.manual_seed(0)
-        policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=weight, energy_ood_margin=100.0))
+        policy = EBVLAPolicy(tiny_config(joint_energy={"weight": weight, "margin": 100.0}))
         losses[weight] = compute_loss(policy.model, batch, generator=torch.Generator().manual_seed(0))
     (plain, _), (with_term, info) = losses[0.0], losses[0.5]
     # A margin far above any gap of an untrained head: the hinge is active, 100 - gap.
@@ -53,9 +53,7 @@ def test_margin_term_is_added_with_its_weight_and_reported():
 @pytest.mark.parametrize("chunk", ["expert", "refined"])
 def test_margin_term_runs_on_either_chunk_and_reaches_the_backbone(chunk):
     torch.manual_seed(0)
-    policy = EBVLAPolicy(
-        tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin=100.0, energy_ood_margin_chunk=chunk)
-    )
+    policy = EBVLAPolicy(tiny_config(joint_energy={"weight": 1.0, "margin": 100.0, "chunk": chunk}))
     margin, _ = ood_margin_loss(
         policy.model,
         tiny_batch(policy.config, batch_size=3),
@@ -89,9 +87,7 @@ def test_training_with_the_margin_opens_the_gap_on_a_fixed_batch():
     (its context moves by 0.004 of 8 under them): the state's corruption is the one it can learn to tell."""
     torch.manual_seed(0)
     policy = EBVLAPolicy(
-        tiny_config(
-            energy_ood_margin_weight=1.0, energy_ood_margin=1.0, energy_ood_corruptions=("state_noise",)
-        )
+        tiny_config(joint_energy={"weight": 1.0, "margin": 1.0, "corruptions": ("state_noise",)})
     )
     batch = tiny_batch(policy.config, batch_size=4)
     optimizer = torch.optim.Adam(policy.parameters(), lr=3e-3)
@@ -195,11 +191,13 @@ def test_graded_corruption_asks_each_observation_for_its_strength_of_the_margin(
     all, so the loss is computed from the same draws by hand)."""
     torch.manual_seed(0)
     config = tiny_config(
-        energy_ood_margin_weight=1.0,
-        energy_ood_margin=2.0,
-        energy_ood_margin_on=target,
-        energy_ood_corruptions=("state_noise", "channel_gain"),
-        energy_ood_corruption_strength=(0.3, 0.3),
+        joint_energy={
+            "weight": 1.0,
+            "margin": 2.0,
+            "target": target,
+            "corruptions": ("state_noise", "channel_gain"),
+            "corruption_strength": (0.3, 0.3),
+        },
     )
     policy = EBVLAPolicy(config).eval()
     model = policy.model
@@ -207,10 +205,10 @@ def test_graded_corruption_asks_each_observation_for_its_strength_of_the_margin(
     shifted_batch, strengths = graded_corruption(
         batch,
         list(config.image_features),
-        config.energy_ood_corruptions,
+        config.joint_energy.corruptions,
         torch.Generator().manual_seed(7),
         "observation.state",
-        config.energy_ood_corruption_strength,
+        config.joint_energy.corruption_strength,
     )
     torch.testing.assert_close(strengths, torch.full((4,), 0.3))
     with torch.no_grad():
@@ -276,11 +274,9 @@ def test_margin_fields_are_validated_by_name(field, value):
 @pytest.mark.parametrize("target", ["head", "context", "context_backbone"])
 def test_gradient_penalty_needs_the_observation_encoder(target):
     with pytest.raises(ValueError, match="energy_ood_gradient_penalty.*energy_ood_margin_on='observation'"):
-        tiny_config(
-            energy_ood_margin_weight=0.01, energy_ood_margin_on=target, energy_ood_gradient_penalty=0.1
-        )
+        tiny_config(joint_energy={"weight": 0.01, "target": target, "gradient_penalty": 0.1})
     with pytest.raises(ValueError, match="energy_ood_margin_weight` > 0"):
-        tiny_config(energy_ood_margin_on="observation", energy_ood_gradient_penalty=0.1)
+        tiny_config(joint_energy={"target": "observation", "gradient_penalty": 0.1})
 
 
 def test_gradient_penalty_is_the_squared_image_gradient_per_observation_summed_over_cameras():
@@ -301,9 +297,7 @@ def policy_with_gradient_penalty(penalty: float, **fields) -> EBVLAPolicy:
     torch.manual_seed(0)
     return EBVLAPolicy(
         tiny_config(
-            energy_ood_margin_weight=1.0,
-            energy_ood_margin_on="observation",
-            energy_ood_gradient_penalty=penalty,
+            joint_energy={"weight": 1.0, "target": "observation", "gradient_penalty": penalty},
             **fields,
         )
     )
@@ -336,7 +330,7 @@ def test_descending_the_gradient_penalty_flattens_the_context_energy_at_the_imag
     """The penalty reaches the observation encoder's image weights through the second derivative (the feature
     map's tokens, which see the tiny policy's random images more than its keypoints do): steps on it alone make
     E_c flatter at the images."""
-    policy = policy_with_gradient_penalty(1.0, camera_tokens="feature_map")
+    policy = policy_with_gradient_penalty(1.0, resnet={"camera_tokens": "feature_map"})
     model = policy.model
     batch = tiny_batch(policy.config, batch_size=4)
     optimizer = torch.optim.SGD(model.observation_encoder.parameters(), lr=0.5)
@@ -357,7 +351,7 @@ def test_descending_the_gradient_penalty_flattens_the_context_energy_at_the_imag
 def policy_after_the_context_margin(target: str) -> EBVLAPolicy:
     """A tiny policy with the joint energy's margin on `target`, after one backward pass of that margin alone."""
     torch.manual_seed(0)
-    policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on=target))
+    policy = EBVLAPolicy(tiny_config(joint_energy={"weight": 1.0, "target": target}))
     margin, _ = context_margin_loss(policy.model, tiny_batch(policy.config, batch_size=3), torch.Generator())
     margin.backward()
     return policy
@@ -400,7 +394,7 @@ def test_with_the_observation_energy_the_policy_starts_and_trains_exactly_as_wit
     policies = {}
     for name, fields in (("without", {}), ("observation", {"energy_ood_margin_on": "observation"})):
         torch.manual_seed(0)
-        config = tiny_config(energy_ood_margin_weight=1.0 if fields else 0.0, **fields)
+        config = tiny_config(joint_energy={"weight": 1.0 if fields else 0.0}, **fields)
         policies[name] = EBVLAPolicy(config)
         loss, _ = compute_loss(
             policies[name].model, tiny_batch(config, batch_size=3), torch.Generator().manual_seed(0)
@@ -418,7 +412,7 @@ def test_with_the_observation_energy_the_policy_starts_and_trains_exactly_as_wit
 @pytest.mark.parametrize("target", ["context", "context_backbone", "observation"])
 def test_joint_final_energy_is_the_head_energy_plus_the_context_energy(target):
     torch.manual_seed(0)
-    policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on=target)).eval()
+    policy = EBVLAPolicy(tiny_config(joint_energy={"weight": 1.0, "target": target})).eval()
     batch = tiny_batch(policy.config, batch_size=3, with_action=False)
     chunk, readout = policy.predict_action_chunk(
         batch, generator=torch.Generator().manual_seed(0), return_energy=True
@@ -434,8 +428,8 @@ def test_joint_final_energy_is_the_head_energy_plus_the_context_energy(target):
 
 
 def test_without_the_context_variant_the_policy_has_no_context_energy():
-    assert EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0)).model.context_energy is None
-    policy = EBVLAPolicy(tiny_config(energy_ood_margin_on="context")).eval()
+    assert EBVLAPolicy(tiny_config(joint_energy={"weight": 1.0})).model.context_energy is None
+    policy = EBVLAPolicy(tiny_config(joint_energy={"target": "context"})).eval()
     assert policy.model.context_energy is None
     batch = tiny_batch(policy.config, batch_size=2, with_action=False)
     _, readout = policy.predict_action_chunk(batch, return_energy=True)
@@ -446,8 +440,7 @@ def test_adaptive_restarts_keep_the_observations_context_energy():
     """E_c depends on the observation only: a restarted chunk keeps it, and the readout still splits."""
     torch.manual_seed(0)
     config = tiny_config(
-        energy_ood_margin_weight=1.0,
-        energy_ood_margin_on="observation",
+        joint_energy={"weight": 1.0, "target": "observation"},
         num_restarts=3,
         restart_energy_threshold=-1e9,
     )
@@ -467,7 +460,7 @@ def test_the_policy_monitors_its_context_energy_on_either_side_of_the_vanilla_ba
     """A context-energy calibration reads the readout's E_c: a chunk whose E_c lies far *under* the band is
     flagged by the two-sided score."""
     torch.manual_seed(0)
-    policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on="observation")).eval()
+    policy = EBVLAPolicy(tiny_config(joint_energy={"weight": 1.0, "target": "observation"})).eval()
     batch = tiny_batch(policy.config, batch_size=2, with_action=False)
     context = policy.model.context_energy_of(batch, None).detach().double().numpy()
     # The vanilla band at chunk index 0 sits one unit above this batch's E_c, 0.1 wide.

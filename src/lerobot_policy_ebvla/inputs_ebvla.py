@@ -15,7 +15,7 @@ from .configuration_ebvla import EBVLAConfig
 def validate_observation(batch: dict[str, Tensor], config: EBVLAConfig) -> None:
     """Raises a ValueError naming the key when a camera or the state is missing, misshapen, non-finite, of the
     wrong dtype, or of another batch size than the rest of the observation."""
-    resizes = config.backbone == "vlm" or config.resize_shape is not None
+    resizes = config.backbone == "vlm" or config.resnet.resize_shape is not None
     for key, feature in config.image_features.items():
         if key not in batch:
             raise ValueError(

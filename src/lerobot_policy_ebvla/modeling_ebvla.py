@@ -62,7 +62,7 @@ class EnergyReadout:
         chains: (B,) how many MCMC chains were refined for each observation: `num_restarts`, or with
             `restart_energy_threshold` 1, and `num_restarts` where the first chunk's energy was above it.
         context_energy: E_c(C), (B,), the joint energy's context term, already inside `final_energy`; None
-            without a joint energy (it has one with `energy_ood_margin_on` "context", "context_backbone" or
+            without a joint energy (it has one with `joint_energy.target` "context", "context_backbone" or
             "observation"). Recorded apart because its rise under a shift can be small beside the spread of
             the head's part (docs/energy_study.md, section 8.8).
     """
@@ -86,13 +86,13 @@ class EBVLAPolicy(PreTrainedPolicy):
     def __init__(self, config: EBVLAConfig, dataset_meta=None, **kwargs):
         super().__init__(config)
         config.validate_features()
-        if config.backbone == "resnet" and config.task_instructions == []:
+        if config.backbone == "resnet" and config.resnet.task_instructions == []:
             if dataset_meta is None:
                 raise ValueError(
-                    "`task_instructions=[]` asks for the training dataset's tasks, but no `dataset_meta` was "
+                    "`resnet.task_instructions=[]` asks for the training dataset's tasks, but no `dataset_meta` was "
                     "given: pass the dataset's metadata or list the instructions."
                 )
-            config.task_instructions = [str(task) for task in dataset_meta.tasks.index]
+            config.resnet.task_instructions = [str(task) for task in dataset_meta.tasks.index]
         self.config = config
         self.model = EBVLA(config)
         # Set by `configure_ood_response` from the checkpoint's ood_calibration.json (`runtime/response.py`).
@@ -117,7 +117,7 @@ class EBVLAPolicy(PreTrainedPolicy):
         """
         if config is None:
             config = load_saved_config(pretrained_name_or_path, **kwargs)
-        config.load_pretrained_backbone = False
+        config.vlm.load_pretrained_backbone = False
         try:
             policy = super().from_pretrained(pretrained_name_or_path, config=config, strict=strict, **kwargs)
         except SafetensorError as e:
@@ -152,7 +152,7 @@ class EBVLAPolicy(PreTrainedPolicy):
         """Saves config and weights so that a save that fails midway leaves the previous files intact.
 
         Everything is written to a temporary folder beside `save_directory` first, then moved into place.
-        Every fp32 tensor that bf16 holds exactly is stored in bf16: with `frozen_weights_dtype="bfloat16"`
+        Every fp32 tensor that bf16 holds exactly is stored in bf16: with `vlm.frozen_weights_dtype="bfloat16"`
         that is all the frozen backbone weights, which halves a full-size checkpoint and loses nothing
         (loading casts them back to the parameters' dtype).
         """
@@ -356,7 +356,7 @@ class EBVLA(nn.Module):
         # Built last, so that the backbone's and head's initial weights do not depend on it.
         self.context_energy = None
         self.observation_encoder = None
-        if config.energy_ood_margin_weight > 0 and config.energy_ood_margin_on != "head":
+        if config.joint_energy.has_context_energy:
             self.context_energy = EBVLAContextEnergy(self.backbone.context_dim)
         if config.context_energy_on_own_encoder:
             self.observation_encoder = make_backbone(config)
@@ -415,7 +415,7 @@ class EBVLA(nn.Module):
 
     def context_energy_of(self, batch: dict[str, Tensor], features: Tensor | None) -> Tensor | None:
         """(B,) E_c of the joint energy E(a, C) + E_c(C) (None without one): of `features`, the pooled context of
-        the policy's own backbone pass, or of the observation encoder's (`energy_ood_margin_on="observation"`)."""
+        the policy's own backbone pass, or of the observation encoder's (`joint_energy.target="observation"`)."""
         if self.context_energy is None:
             return None
         if self.observation_encoder is not None:

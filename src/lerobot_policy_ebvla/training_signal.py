@@ -27,8 +27,8 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from torch import Tensor, nn
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
-from .configuration_ebvla import OOD_CORRUPTIONS as CORRUPTIONS
 from .configuration_ebvla import EBVLAConfig
+from .configuration_groups import OOD_CORRUPTIONS as CORRUPTIONS
 from .energy_head import ContextKV, pooled_context
 
 ACTION_IS_PAD = "action_is_pad"
@@ -277,7 +277,7 @@ def data_gradient_penalty(energy: Tensor, images: list[Tensor]) -> Tensor:
 
 class EBVLAContextEnergy(nn.Module):
     """E_c(C): a scalar energy of the pooled context, added to the head's final energy (a joint energy
-    E(a, C) + E_c(C), `energy_ood_margin_on="context"`, `"context_backbone"` or `"observation"`). It has no
+    E(a, C) + E_c(C), `joint_energy.target="context"`, `"context_backbone"` or `"observation"`). It has no
     gradient in a, so the MCMC refinement and its energy-scaled steps are those of the head alone."""
 
     def __init__(self, dim: int):
@@ -290,10 +290,10 @@ class EBVLAContextEnergy(nn.Module):
 
 
 def contrastive_in_bf16(config: EBVLAConfig, device_type: str) -> bool:
-    """Whether the contrastive term's head pass runs under bf16 autocast (`energy_contrastive_dtype`)."""
-    if config.energy_contrastive_dtype == "auto":
+    """Whether the contrastive term's head pass runs under bf16 autocast (`contrastive.dtype`)."""
+    if config.contrastive.dtype == "auto":
         return native_bf16(device_type)
-    return config.energy_contrastive_dtype == "bfloat16"
+    return config.contrastive.dtype == "bfloat16"
 
 
 @functools.cache
@@ -391,18 +391,18 @@ def compute_loss(
         "initial_energy": initial_energy.mean().item(),
         "last_step_energy": last.step_energies[-1].mean().item(),
     }
-    if cfg.energy_contrastive_weight > 0:
+    if cfg.contrastive.weight > 0:
         contrastive = contrastive_energy_loss(model, kv, target, generator)
-        loss = loss + cfg.energy_contrastive_weight * contrastive
+        loss = loss + cfg.contrastive.weight * contrastive
         info["contrastive_loss"] = contrastive.item()
     if model.context_energy is not None:
         margin_loss, gap = context_margin_loss(model, batch, generator, clean_features)
-        loss = loss + cfg.energy_ood_margin_weight * margin_loss
+        loss = loss + cfg.joint_energy.weight * margin_loss
         info["ood_margin_loss"], info["ood_energy_gap"] = margin_loss.item(), gap
-    elif cfg.energy_ood_margin_weight > 0:
-        chunk = target if cfg.energy_ood_margin_chunk == "expert" else last.actions.detach()
+    elif cfg.joint_energy.weight > 0:
+        chunk = target if cfg.joint_energy.chunk == "expert" else last.actions.detach()
         margin_loss, gap = ood_margin_loss(model, batch, kv, chunk, generator, step_sizes)
-        loss = loss + cfg.energy_ood_margin_weight * margin_loss
+        loss = loss + cfg.joint_energy.weight * margin_loss
         info["ood_margin_loss"], info["ood_energy_gap"] = margin_loss.item(), gap
     return loss, info
 
@@ -416,25 +416,25 @@ def context_margin_loss(
     """The margin on the context energy E_c of the joint energy E(a, C) + E_c(C), on the pooled backbone
     contexts of the batch (`clean_features` where the caller's backbone pass has them) and of its corrupted
     copy, plus E_c(C)^2 on the data (the hinge leaves E_c's level free), plus the gradient penalty on E_c at
-    the real images where `energy_ood_gradient_penalty` > 0 (the training log's `ood_margin_loss` is the sum).
+    the real images where `joint_energy.gradient_penalty` > 0 (the training log's `ood_margin_loss` is the sum).
 
-    `energy_ood_margin_on="context"` detaches both contexts: the backbone and head train as without the
+    `joint_energy.target="context"` detaches both contexts: the backbone and head train as without the
     term. "context_backbone" lets the margin's gradient into the backbone. "observation" reads the contexts
     of the observation encoder, which the margin alone trains.
     """
     cfg = model.config
     corrupted_batch, margin = _corrupted_copy(cfg, batch, generator)
     if model.observation_encoder is not None:
-        penalized = cfg.energy_ood_gradient_penalty > 0
+        penalized = cfg.joint_energy.gradient_penalty > 0
         images = {key: batch[key].detach().requires_grad_(penalized) for key in cfg.image_features}
         clean_features = pooled_context(model.observation_encoder({**batch, **images}))
         corrupted_features = pooled_context(model.observation_encoder(corrupted_batch))
         loss, gap, clean = _context_margin(model.context_energy, clean_features, corrupted_features, margin)
         if penalized:
             penalty = data_gradient_penalty(clean, list(images.values()))
-            loss = loss + cfg.energy_ood_gradient_penalty * penalty
+            loss = loss + cfg.joint_energy.gradient_penalty * penalty
         return loss, gap
-    through_backbone = cfg.energy_ood_margin_on == "context_backbone"
+    through_backbone = cfg.joint_energy.target == "context_backbone"
     with torch.set_grad_enabled(through_backbone):
         if clean_features is None:
             clean_features = pooled_context(model.backbone(batch))
@@ -449,16 +449,16 @@ def _corrupted_copy(
     cfg: EBVLAConfig, batch: dict[str, Tensor], generator: torch.Generator
 ) -> tuple[dict[str, Tensor], float | Tensor]:
     """The batch's corrupted copy and the margin each corrupted observation must clear: m, or s m at
-    strength s (`energy_ood_corruption_strength`)."""
+    strength s (`joint_energy.corruption_strength`)."""
     corrupted_batch, strengths = graded_corruption(
         batch,
         list(cfg.image_features),
-        cfg.energy_ood_corruptions,
+        cfg.joint_energy.corruptions,
         generator,
         state_key=OBS_STATE,
-        strength_range=cfg.energy_ood_corruption_strength,
+        strength_range=cfg.joint_energy.corruption_strength,
     )
-    margin = cfg.energy_ood_margin if strengths is None else cfg.energy_ood_margin * strengths.float()
+    margin = cfg.joint_energy.margin if strengths is None else cfg.joint_energy.margin * strengths.float()
     return corrupted_batch, margin
 
 
@@ -482,7 +482,7 @@ def ood_margin_loss(
     """`energy_margin_loss` on the head's energy under corrupted copies of the batch's observations, and the mean
     energy gap it acts on.
 
-    `energy_ood_margin_chunk="expert"`: E(a*, C~) against E(a*, C), `chunk` being a*. "refined": the energy
+    `joint_energy.chunk="expert"`: E(a*, C~) against E(a*, C), `chunk` being a*. "refined": the energy
     of the chunk refined under C~ (the same a^(0) and step sizes as the training chain, no graph) against
     that of the training chain's own refined chunk `chunk` under C, so that min_a E(a, C~) rises.
     """
@@ -490,7 +490,7 @@ def ood_margin_loss(
     corrupted_batch, margin = _corrupted_copy(cfg, batch, generator)
     corrupted_kv = model.encode_context(corrupted_batch)
     corrupted_chunk = chunk
-    if cfg.energy_ood_margin_chunk == "refined":
+    if cfg.joint_energy.chunk == "refined":
         initial = model.initial_actions(chunk.shape[0], kv[0][0], generator)
         detached_kv = [(k.detach(), v.detach()) for k, v in corrupted_kv]
         corrupted_chunk = model.refine(detached_kv, initial, step_sizes, generator).actions.detach()
@@ -506,25 +506,25 @@ def contrastive_energy_loss(
     """InfoNCE over chunks: under each context C_i, the expert chunk a*_i must have the lowest energy.
 
     Candidates for C_i are a*_i (the positive), other observations' expert chunks a*_j (a mismatched
-    action for this context; `energy_contrastive_mismatched` of them, all B - 1 by default) and noisy
+    action for this context; `contrastive.mismatched` of them, all B - 1 by default) and noisy
     copies a*_i + sigma n (a nearby worse action), so that E(a, C) ranks how well a chunk fits its context
     rather than only shaping the descent direction.
     """
     cfg = model.config
     batch_size = target.shape[0]
     mismatched = batch_size - 1
-    if cfg.energy_contrastive_mismatched is not None:
-        mismatched = min(mismatched, cfg.energy_contrastive_mismatched)
+    if cfg.contrastive.mismatched is not None:
+        mismatched = min(mismatched, cfg.contrastive.mismatched)
     anchors = batch_size
-    if cfg.energy_contrastive_anchors is not None:
-        anchors = min(anchors, cfg.energy_contrastive_anchors)
+    if cfg.contrastive.anchors is not None:
+        anchors = min(anchors, cfg.contrastive.anchors)
     noise = torch.randn(
-        (anchors, cfg.energy_contrastive_negatives, *target.shape[1:]),
+        (anchors, cfg.contrastive.negatives, *target.shape[1:]),
         generator=generator,
         device=target.device,
         dtype=target.dtype,
     )
-    noisy = target[:anchors].unsqueeze(1) + cfg.energy_contrastive_noise_std * noise  # (A, N_noisy, H, d_a)
+    noisy = target[:anchors].unsqueeze(1) + cfg.contrastive.noise_std * noise  # (A, N_noisy, H, d_a)
     # Row i: a*_i first (the positive), then a*_{i+1}, ..., a*_{i+M} (mismatched; the batch is shuffled, so
     # these are random other observations), then the noisy copies.
     rows = torch.arange(batch_size, device=target.device)
@@ -535,5 +535,5 @@ def contrastive_energy_loss(
     device_type = target.device.type
     with torch.autocast(device_type, torch.bfloat16, enabled=contrastive_in_bf16(cfg, device_type)):
         energies = model.head(candidates.flatten(0, 1), anchor_kv).mean(dim=-1)
-    logits = -energies.view(anchors, num_candidates).float() / cfg.energy_contrastive_temperature
+    logits = -energies.view(anchors, num_candidates).float() / cfg.contrastive.temperature
     return nn.functional.cross_entropy(logits, torch.zeros(anchors, dtype=torch.long, device=target.device))

@@ -19,12 +19,14 @@ import dataclasses
 import json
 import logging
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..configuration_ebvla import EBVLAConfig, context_energy_on_own_encoder
+from ..configuration_ebvla import upgrade_legacy_fields
+from ..configuration_groups import JointEnergyConfig
 from ..runtime.calibration import OOD_CALIBRATION_FILENAME, THRESHOLD_RULES, OODCalibration
 from ..runtime.scores import INPUT_SOURCES, SCORE_AGGREGATIONS, SCORES
 from ..runtime.statistics import DEFAULT_KNN_K
@@ -78,7 +80,7 @@ logger = logging.getLogger(__name__)
 # below 0.5). It reads the pooled context; records without it get the best energy-only score by the same rule.
 DEFAULT_SCORE = "context_knn"
 DEFAULT_ENERGY_SCORE = "phase_energy_two_sided"
-# ... unless the checkpoint's joint energy has its own encoder (`energy_ood_margin_on="observation"`): its context
+# ... unless the checkpoint's joint energy has its own encoder (`joint_energy.target="observation"`): its context
 # term E_c, two-sided against the vanilla E_c at each chunk index, pools 0.91-0.99 over the first 3 chunks on the
 # sweeps of eight training seeds, above the final energy's 0.87-0.95 on every one, with 0-2% alarms on held-out
 # vanilla (the final energy 5-25%). Neither is never wrong: each is confidently inverted on one seed's sweep, and
@@ -88,7 +90,7 @@ DEFAULT_ENERGY_SCORE = "phase_energy_two_sided"
 # against 0.77-0.92 on five seeds).
 DEFAULT_JOINT_ENERGY_SCORE = "context_energy_two_sided"
 JOINT_ENERGY_WITHOUT_CONTEXT_ENERGY = "final_energy"
-# ... and where E_c was trained flat at the data (`energy_ood_gradient_penalty` > 0), every shift of the sweep
+# ... and where E_c was trained flat at the data (`joint_energy.gradient_penalty` > 0), every shift of the sweep
 # raises it in every scene, and its one-sided form at each chunk index is the matched test: on four training
 # seeds (two of them trained after the rule was written) it sees every success-cutting shift and is confidently
 # inverted nowhere, where the two-sided form is on one (summary.md, "E_c flat at the data").
@@ -96,18 +98,17 @@ DEFAULT_FLAT_CONTEXT_ENERGY_SCORE = "context_phase_energy"
 
 
 def checkpoint_fields(checkpoint: Path | None) -> dict:
-    """The fields of a pretrained_model folder's config.json; empty without one."""
+    """The fields of a pretrained_model folder's config.json, in today's nested form; empty without one."""
     config = None if checkpoint is None else Path(checkpoint) / "config.json"
     if config is None or not config.is_file():
         return {}
-    return json.loads(config.read_text())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)  # loading the policy warns about a legacy config
+        return upgrade_legacy_fields(json.loads(config.read_text()))
 
 
 def _on_own_encoder(fields: dict) -> bool:
-    return context_energy_on_own_encoder(
-        fields.get("energy_ood_margin_on", EBVLAConfig.energy_ood_margin_on),
-        fields.get("energy_ood_margin_weight", EBVLAConfig.energy_ood_margin_weight),
-    )
+    return JointEnergyConfig(**fields.get("joint_energy", {})).on_own_encoder
 
 
 def joint_energy_on_own_encoder(checkpoint: Path | None) -> bool:
@@ -121,7 +122,7 @@ def default_score(cfg: "OODReportConfig", inputs: set[str]) -> str:
     if _on_own_encoder(fields):
         if "context_energy" not in inputs:
             return JOINT_ENERGY_WITHOUT_CONTEXT_ENERGY
-        penalty = fields.get("energy_ood_gradient_penalty", 0.0)
+        penalty = fields["joint_energy"].get("gradient_penalty", 0.0)
         return DEFAULT_FLAT_CONTEXT_ENERGY_SCORE if penalty > 0 else DEFAULT_JOINT_ENERGY_SCORE
     return DEFAULT_SCORE if "context_features" in inputs else DEFAULT_ENERGY_SCORE
 
@@ -178,9 +179,9 @@ class OODReportConfig:
     # None (default): context_knn, the best held out on the MetaWorld sweep (pooled first-3-chunk AUROC 0.842,
     # no condition confidently inverted; the final energy 0.585, confidently inverted under dim light), or
     # phase_energy_two_sided when the records have no context features, context_energy_two_sided when the
-    # checkpoint's joint energy has its own encoder (`energy_ood_margin_on="observation"`; final_energy for records
+    # checkpoint's joint energy has its own encoder (`joint_energy.target="observation"`; final_energy for records
     # without `context_energy`), context_phase_energy when its E_c was also trained flat at the data
-    # (`energy_ood_gradient_penalty` > 0). final_energy is the paper's score;
+    # (`joint_energy.gradient_penalty` > 0). final_energy is the paper's score;
     # phase_energy the final energy against the calibration rollouts' at the same chunk index;
     # final_energy_two_sided and phase_energy_two_sided their |z|, high on either side of the vanilla band;
     # context_distance the chunk's pooled context against the calibration contexts (Mahalanobis);
@@ -451,7 +452,7 @@ def _saved_score_note(cfg: OODReportConfig, saved_score: str) -> str:
             )
         elif saved_score == DEFAULT_FLAT_CONTEXT_ENERGY_SCORE:
             why = (
-                "the checkpoint's context term was trained flat at the data (`energy_ood_gradient_penalty`), so "
+                "the checkpoint's context term was trained flat at the data (`joint_energy.gradient_penalty`), so "
                 "every shift raises it, and its one-sided form at each chunk index is the safest score there "
                 "(docs/monitoring.md)."
             )
