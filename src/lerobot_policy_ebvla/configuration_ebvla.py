@@ -543,12 +543,15 @@ def upgrade_legacy_fields(fields: dict) -> dict:
                     "`compile_mode` alone."
                 )
             fields["compile_mode"] = legacy_mode
-        moved.append(f"compile_refinement={enabled} -> compile_mode={fields.get('compile_mode', 'off')!r}")
+        if enabled is not None:
+            moved.insert(
+                0, f"compile_refinement={enabled} -> compile_mode={fields.get('compile_mode', 'off')!r}"
+            )
     if moved:
         warnings.warn(
-            "This EB-VLA config was saved before its fields were grouped; read as "
-            + ", ".join(moved)
-            + ". Saving the config again stores the new form.",
+            f"This EB-VLA config was saved before its fields were grouped: {len(moved)} read into today's form "
+            f"(LEGACY_FIELDS): {', '.join(moved[:3])}{', ...' if len(moved) > 3 else ''}. Saving the config "
+            "again stores the new form.",
             FutureWarning,
             stacklevel=2,
         )
