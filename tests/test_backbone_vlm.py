@@ -218,11 +218,14 @@ def test_language_model_config_is_recorded_in_the_policy_config(tiny_lm):
 
 @pytest.mark.parametrize(
     ("overrides", "match"),
-    [({"context_layers": (0, 3)}, "context_layers"), ({"num_context_layers": 4}, "num_context_layers")],
+    [
+        ({"context_layers": (0, 3)}, "vlm.context_layers"),
+        ({"num_context_layers": 4}, "vlm.num_context_layers"),
+    ],
 )
 def test_context_layers_beyond_the_language_model_are_rejected(tiny_lm, overrides, match):
     with pytest.raises(ValueError, match=match):
-        EBVLAVisionLanguageBackbone(vlm_config(tiny_lm, **overrides))
+        EBVLAVisionLanguageBackbone(vlm_config(tiny_lm, vlm=overrides))
 
 
 def test_missing_language_tokens_name_the_keys(tiny_lm):

@@ -170,9 +170,9 @@ def test_local_folders_load_every_weight(repos, offline_cache):
 @pytest.mark.parametrize(
     ("cached", "field", "name"),
     [
-        ((), "dinov2_model_name", DINOV2),
-        ((timm_repo_id(DINOV2),), "siglip_model_name", SIGLIP),
-        ((timm_repo_id(DINOV2), timm_repo_id(SIGLIP)), "vlm_model_name", QWEN),
+        ((), "vlm.dinov2_model_name", DINOV2),
+        ((timm_repo_id(DINOV2),), "vlm.siglip_model_name", SIGLIP),
+        ((timm_repo_id(DINOV2), timm_repo_id(SIGLIP)), "vlm.model_name", QWEN),
     ],
     ids=["dinov2", "siglip", "language_model"],
 )
@@ -194,5 +194,5 @@ def test_default_offline_without_weights_names_them_and_how_to_proceed(
 
 
 def test_preprocessor_offline_without_the_tokenizer_names_it(offline_cache):
-    with pytest.raises(PretrainedWeightsUnavailableError, match=f"tokenizer `vlm_model_name={QWEN!r}`"):
+    with pytest.raises(PretrainedWeightsUnavailableError, match=f"tokenizer `vlm.model_name={QWEN!r}`"):
         make_ebvla_pre_post_processors(pretrained_config())
