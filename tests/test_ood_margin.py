@@ -255,27 +255,29 @@ def test_shading_scales_every_channel_by_one_smooth_field_of_both_signs():
 @pytest.mark.parametrize(
     ("field", "value"),
     [
-        ("energy_ood_margin_weight", -0.1),
-        ("energy_ood_margin", 0.0),
-        ("energy_ood_corruptions", ("fog",)),
-        ("energy_ood_margin_chunk", "prior"),
-        ("energy_ood_margin_on", "action"),
-        ("energy_ood_corruption_strength", (0.0, 1.0)),
-        ("energy_ood_corruption_strength", (0.6, 0.3)),
-        ("energy_ood_corruption_strength", (0.5, 1.5)),
-        ("energy_ood_gradient_penalty", -1.0),
+        ("weight", -0.1),
+        ("margin", 0.0),
+        ("corruptions", ("fog",)),
+        ("chunk", "prior"),
+        ("target", "action"),
+        ("corruption_strength", (0.0, 1.0)),
+        ("corruption_strength", (0.6, 0.3)),
+        ("corruption_strength", (0.5, 1.5)),
+        ("gradient_penalty", -1.0),
     ],
 )
 def test_margin_fields_are_validated_by_name(field, value):
-    with pytest.raises(ValueError, match=field):
-        tiny_config(**{field: value})
+    with pytest.raises(ValueError, match=f"`joint_energy.{field}`"):
+        tiny_config(joint_energy={field: value})
 
 
 @pytest.mark.parametrize("target", ["head", "context", "context_backbone"])
 def test_gradient_penalty_needs_the_observation_encoder(target):
-    with pytest.raises(ValueError, match="energy_ood_gradient_penalty.*energy_ood_margin_on='observation'"):
+    with pytest.raises(
+        ValueError, match="`joint_energy.gradient_penalty`.*`joint_energy.target='observation'`"
+    ):
         tiny_config(joint_energy={"weight": 0.01, "target": target, "gradient_penalty": 0.1})
-    with pytest.raises(ValueError, match="energy_ood_margin_weight` > 0"):
+    with pytest.raises(ValueError, match="`joint_energy.weight` > 0"):
         tiny_config(joint_energy={"target": "observation", "gradient_penalty": 0.1})
 
 
@@ -392,9 +394,9 @@ def test_with_the_observation_energy_the_policy_starts_and_trains_exactly_as_wit
     differ from a policy without the term only through what they share with nothing (the observation encoder
     and E_c are built last and the corruptions drawn after the action losses)."""
     policies = {}
-    for name, fields in (("without", {}), ("observation", {"energy_ood_margin_on": "observation"})):
+    for name, fields in (("without", {}), ("observation", {"target": "observation"})):
         torch.manual_seed(0)
-        config = tiny_config(joint_energy={"weight": 1.0 if fields else 0.0}, **fields)
+        config = tiny_config(joint_energy={"weight": 1.0 if fields else 0.0, **fields})
         policies[name] = EBVLAPolicy(config)
         loss, _ = compute_loss(
             policies[name].model, tiny_batch(config, batch_size=3), torch.Generator().manual_seed(0)

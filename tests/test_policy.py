@@ -324,17 +324,17 @@ def test_feature_map_tokens_give_one_context_token_per_cell_and_camera():
     loss, _ = policy.forward(batch)
     loss.backward()
     assert policy.model.backbone.rgb_encoders[0].backbone[0].weight.grad.abs().sum() > 0
-    with pytest.raises(ValueError, match="`camera_tokens` must be one of"):
+    with pytest.raises(ValueError, match="`resnet.camera_tokens` must be one of"):
         tiny_config(resnet={"camera_tokens": "patches"})
 
 
 def test_too_small_images_for_the_kept_stages_are_refused():
     small = {"observation.images.top": PolicyFeature(FeatureType.VISUAL, (3, 24, 24))}
-    with pytest.raises(ValueError, match="vision_backbone_stages=2.*larger than 8 px"):
+    with pytest.raises(ValueError, match="`resnet.vision_backbone_stages=2`.*larger than 8 px"):
         EBVLAPolicy(
             tiny_config(resnet={"vision_backbone_stages": 2, "resize_shape": (8, 8)}, input_features=small)
         )
-    with pytest.raises(ValueError, match="`vision_backbone_stages` must be 1, 2, 3 or 4"):
+    with pytest.raises(ValueError, match="`resnet.vision_backbone_stages` must be 1, 2, 3 or 4"):
         tiny_config(resnet={"vision_backbone_stages": 5})
 
 

@@ -123,12 +123,12 @@ def test_contrastive_anchors_rank_their_candidates_against_the_whole_batch():
     torch.testing.assert_close(
         contrastive_energy_loss(policy.model, kv, batch["action"], torch.Generator().manual_seed(0)), full
     )
-    with pytest.raises(ValueError, match="energy_contrastive_anchors"):
+    with pytest.raises(ValueError, match="`contrastive.anchors`"):
         tiny_config(contrastive={"anchors": 0})
 
 
 def test_contrastive_mismatched_must_not_be_negative():
-    with pytest.raises(ValueError, match="energy_contrastive_mismatched"):
+    with pytest.raises(ValueError, match="`contrastive.mismatched`"):
         tiny_config(contrastive={"mismatched": -1})
 
 
@@ -160,7 +160,7 @@ def test_state_dropout_hides_the_state_token_in_training_only():
 
 
 def test_state_dropout_outside_zero_one_is_rejected_by_name():
-    with pytest.raises(ValueError, match="state_dropout"):
+    with pytest.raises(ValueError, match="`resnet.state_dropout`"):
         tiny_config(resnet={"state_dropout": 1.0})
 
 
@@ -204,5 +204,5 @@ def test_contrastive_dtype_auto_uses_bf16_only_where_the_device_has_it(monkeypat
 
 
 def test_contrastive_dtype_must_be_a_known_precision():
-    with pytest.raises(ValueError, match="energy_contrastive_dtype.*'float16'"):
+    with pytest.raises(ValueError, match="`contrastive.dtype`.*'float16'"):
         tiny_config(contrastive={"dtype": "float16"})
