@@ -10,7 +10,7 @@ would, and prints each window's decision.
 The defaults are records committed with the repository (MetaWorld, light preset, training seed 12000): 24 fresh
 rollouts under sensor noise of severity 3, which the per-rollout default scores as *more* typical than vanilla
 (AUROC 0.33). Point the three folders at your own `ebvla-eval` records (with `context_energy`, from a policy
-trained with `energy_ood_margin_on`) to do the same.
+trained with `joint_energy.target`) to do the same.
 
     python examples/window_monitor_on_records.py --window=8
 """

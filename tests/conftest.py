@@ -6,17 +6,19 @@ import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 
 from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
+from lerobot_policy_ebvla.presets import ebvla_config
 
 TINY_HEAD = {"dim_model": 32, "n_heads": 2, "n_blocks": 2}
 IMAGE_SHAPE = (3, 64, 64)
 
 
 def tiny_config(**overrides) -> EBVLAConfig:
-    """A light-backbone config small enough for CPU tests; keyword arguments override any field."""
+    """A light-backbone config small enough for CPU tests; keyword arguments override any field, a group's as a
+    dict of the fields it changes (`joint_energy={"weight": 0.5}`) or as its dataclass (`presets.ebvla_config`)."""
     fields = {
         "backbone": "resnet",
         "device": "cpu",
-        "spatial_softmax_num_keypoints": 8,
+        "resnet": {"spatial_softmax_num_keypoints": 8},
         "input_features": {
             "observation.images.top": PolicyFeature(FeatureType.VISUAL, IMAGE_SHAPE),
             "observation.state": PolicyFeature(FeatureType.STATE, (4,)),
@@ -24,8 +26,7 @@ def tiny_config(**overrides) -> EBVLAConfig:
         "output_features": {"action": PolicyFeature(FeatureType.ACTION, (3,))},
         **TINY_HEAD,
     }
-    fields.update(overrides)
-    return EBVLAConfig(**fields)
+    return ebvla_config(fields, overrides)
 
 
 def tiny_batch(config: EBVLAConfig, batch_size: int = 2, seed: int = 0, with_action: bool = True) -> dict:

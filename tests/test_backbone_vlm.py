@@ -18,6 +18,7 @@ from transformers import PreTrainedTokenizerFast, Qwen2Config
 
 from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
 from lerobot_policy_ebvla.backbone_vlm import EBVLAVisionLanguageBackbone, default_context_layers
+from lerobot_policy_ebvla.presets import ebvla_config
 from lerobot_policy_ebvla.processor_ebvla import make_ebvla_pre_post_processors
 
 CAMERAS = {"observation.images.primary": (3, 32, 32), "observation.images.wrist": (3, 24, 24)}
@@ -63,23 +64,24 @@ def vlm_config(lm_path: Path, with_state: bool = True, **overrides) -> EBVLAConf
         input_features[OBS_STATE] = PolicyFeature(FeatureType.STATE, (4,))
     fields = {
         "device": "cpu",
-        "vlm_model_name": str(lm_path),
-        "load_pretrained_backbone": False,
-        "vision_image_size": 28,  # 2 x 2 patches of 14 px per camera
-        "vision_model_overrides": TINY_VISION,
-        "num_latent_tokens": 4,
-        "tokenizer_max_length": 8,
-        "lora_rank": 4,
-        "lora_alpha": 8,
-        "num_context_layers": 3,
+        "vlm": {
+            "model_name": str(lm_path),
+            "load_pretrained_backbone": False,
+            "vision_image_size": 28,  # 2 x 2 patches of 14 px per camera
+            "vision_model_overrides": TINY_VISION,
+            "num_latent_tokens": 4,
+            "tokenizer_max_length": 8,
+            "lora_rank": 4,
+            "lora_alpha": 8,
+            "num_context_layers": 3,
+        },
         "dim_model": 32,
         "n_heads": 2,
         "n_blocks": 2,
         "input_features": input_features,
         "output_features": {ACTION: PolicyFeature(FeatureType.ACTION, (3,))},
     }
-    fields.update(overrides)
-    return EBVLAConfig(**fields)
+    return ebvla_config(fields, overrides)
 
 
 def raw_batch(batch_size: int = 2, with_action: bool = False, seed: int = 0) -> dict:
@@ -109,14 +111,14 @@ def test_context_follows_eq1_one_tensor_per_block(tiny_lm):
     assert backbone.context_dim == 64
     assert len(contexts) == config.n_blocks
     for context in contexts:
-        assert context.shape == (2, config.num_latent_tokens + 1 + k_t, 64)
+        assert context.shape == (2, config.vlm.num_latent_tokens + 1 + k_t, 64)
 
 
 def test_context_is_latents_then_state_then_vision_tokens(tiny_lm):
     # Hidden state 0 is the embedding output, so its h_t is the projected vision tokens and h_a the latents.
-    config = vlm_config(tiny_lm, context_layers=(0, 2))
+    config = vlm_config(tiny_lm, vlm={"context_layers": (0, 2)})
     backbone, batch = build(config)
-    k_a = config.num_latent_tokens
+    k_a = config.vlm.num_latent_tokens
     with torch.no_grad():
         context = backbone(batch)[0]
         torch.testing.assert_close(context[:, :k_a], backbone.latents.expand(2, -1, -1))
@@ -125,7 +127,7 @@ def test_context_is_latents_then_state_then_vision_tokens(tiny_lm):
 
 
 def test_camera_gives_256_tokens_at_224_px(tiny_lm):
-    backbone = EBVLAVisionLanguageBackbone(vlm_config(tiny_lm, vision_image_size=224))
+    backbone = EBVLAVisionLanguageBackbone(vlm_config(tiny_lm, vlm={"vision_image_size": 224}))
     assert backbone.vision.num_patches == 256
     assert backbone.num_vision_tokens == 256 * len(CAMERAS)
 
@@ -139,7 +141,7 @@ def test_default_context_layers_spread_over_the_first_n_l_states_embedding_inclu
 
 def test_lora_adapts_only_the_layers_the_head_reads(tiny_lm):
     # Hidden state 1 is layer 0's output: layer 1 never reaches the head, so it gets no adapter.
-    backbone = EBVLAVisionLanguageBackbone(vlm_config(tiny_lm, context_layers=(0, 1)))
+    backbone = EBVLAVisionLanguageBackbone(vlm_config(tiny_lm, vlm={"context_layers": (0, 1)}))
     adapted = {name.split(".")[1] for name, _ in backbone.lm.named_parameters() if "lora_" in name}
     assert adapted == {"0"}
 
@@ -164,7 +166,7 @@ def test_only_lora_projector_latents_and_state_projection_train(tiny_lm):
 
 
 def test_latents_read_the_instruction_and_vision_tokens_do_not(tiny_lm):
-    config = vlm_config(tiny_lm, context_layers=(2, 2))
+    config = vlm_config(tiny_lm, vlm={"context_layers": (2, 2)})
     backbone, batch = build(config)
     other = dict(
         batch,
@@ -173,7 +175,7 @@ def test_latents_read_the_instruction_and_vision_tokens_do_not(tiny_lm):
             OBS_LANGUAGE_ATTENTION_MASK: batch[OBS_LANGUAGE_ATTENTION_MASK].flip(0),
         },
     )
-    k_a = config.num_latent_tokens
+    k_a = config.vlm.num_latent_tokens
     with torch.no_grad():
         context, other_context = backbone(batch)[0], backbone(other)[0]
     torch.testing.assert_close(context[:, k_a + 1 :], other_context[:, k_a + 1 :])  # causal: h_t sees no text
@@ -181,7 +183,10 @@ def test_latents_read_the_instruction_and_vision_tokens_do_not(tiny_lm):
 
 
 def test_instruction_padding_does_not_change_the_context(tiny_lm):
-    short, long = vlm_config(tiny_lm, tokenizer_max_length=8), vlm_config(tiny_lm, tokenizer_max_length=16)
+    short, long = (
+        vlm_config(tiny_lm, vlm={"tokenizer_max_length": 8}),
+        vlm_config(tiny_lm, vlm={"tokenizer_max_length": 16}),
+    )
     backbone, batch = build(short)
     long_batch = make_ebvla_pre_post_processors(long)[0](raw_batch())
     assert long_batch[OBS_LANGUAGE_TOKENS].shape[1] == 16
@@ -196,25 +201,31 @@ def test_learned_state_token_without_state(tiny_lm):
     batch.pop(OBS_STATE)
     assert backbone.state_proj is None
     context = backbone(batch)[0]
-    torch.testing.assert_close(context[:, config.num_latent_tokens], backbone.state_token.expand(2, -1))
+    torch.testing.assert_close(context[:, config.vlm.num_latent_tokens], backbone.state_token.expand(2, -1))
 
 
 def test_language_model_config_is_recorded_in_the_policy_config(tiny_lm):
-    config = vlm_config(tiny_lm, vlm_config_overrides={"num_hidden_layers": 1}, num_context_layers=1)
-    assert config.vlm_config is None
+    config = vlm_config(
+        tiny_lm,
+        vlm={"model_config_overrides": {"num_hidden_layers": 1}, "num_context_layers": 1},
+    )
+    assert config.vlm.model_config is None
     backbone = EBVLAVisionLanguageBackbone(config)
-    assert config.vlm_config["model_type"] == "qwen2"
-    assert config.vlm_config["num_hidden_layers"] == 1 == len(backbone.lm.layers)
+    assert config.vlm.model_config["model_type"] == "qwen2"
+    assert config.vlm.model_config["num_hidden_layers"] == 1 == len(backbone.lm.layers)
     assert backbone.context_layers == (0, 0)  # N_l = 1: both blocks on the only extracted state
 
 
 @pytest.mark.parametrize(
     ("overrides", "match"),
-    [({"context_layers": (0, 3)}, "context_layers"), ({"num_context_layers": 4}, "num_context_layers")],
+    [
+        ({"context_layers": (0, 3)}, "vlm.context_layers"),
+        ({"num_context_layers": 4}, "vlm.num_context_layers"),
+    ],
 )
 def test_context_layers_beyond_the_language_model_are_rejected(tiny_lm, overrides, match):
     with pytest.raises(ValueError, match=match):
-        EBVLAVisionLanguageBackbone(vlm_config(tiny_lm, **overrides))
+        EBVLAVisionLanguageBackbone(vlm_config(tiny_lm, vlm=overrides))
 
 
 def test_missing_language_tokens_name_the_keys(tiny_lm):
@@ -284,7 +295,7 @@ def test_saved_policy_reloads_offline_with_identical_actions(tmp_path):
 @pytest.mark.parametrize("frozen_weights_dtype", ["bfloat16", "float32"])
 def test_checkpoint_stores_frozen_weights_in_frozen_weights_dtype(tiny_lm, tmp_path, frozen_weights_dtype):
     torch.manual_seed(0)
-    policy = EBVLAPolicy(vlm_config(tiny_lm, frozen_weights_dtype=frozen_weights_dtype))
+    policy = EBVLAPolicy(vlm_config(tiny_lm, vlm={"frozen_weights_dtype": frozen_weights_dtype}))
     policy.save_pretrained(tmp_path)
     with safe_open(tmp_path / "model.safetensors", framework="pt") as f:
         dtypes = {key: f.get_slice(key).get_dtype() for key in f.keys()}  # noqa: SIM118
@@ -302,11 +313,15 @@ def test_checkpoint_stores_frozen_weights_in_frozen_weights_dtype(tiny_lm, tmp_p
 def test_resaving_a_checkpoint_with_float32_frozen_weights_loses_nothing(tiny_lm, tmp_path):
     # A checkpoint saved before `frozen_weights_dtype` existed: fp32 frozen weights, no such field in its config.
     torch.manual_seed(0)
-    EBVLAPolicy(vlm_config(tiny_lm, frozen_weights_dtype="float32")).save_pretrained(tmp_path / "old")
+    EBVLAPolicy(vlm_config(tiny_lm, vlm={"frozen_weights_dtype": "float32"})).save_pretrained(
+        tmp_path / "old"
+    )
     config_file = tmp_path / "old" / "config.json"
     config_file.write_text(config_file.read_text().replace('"frozen_weights_dtype": "float32",', ""))
     old = EBVLAPolicy.from_pretrained(tmp_path / "old")
-    assert old.config.frozen_weights_dtype == "bfloat16"  # the new default applies, yet nothing is rounded
+    assert (
+        old.config.vlm.frozen_weights_dtype == "bfloat16"
+    )  # the new default applies, yet nothing is rounded
     old.save_pretrained(tmp_path / "new")
     new = EBVLAPolicy.from_pretrained(tmp_path / "new")
     for (name, tensor), (_, reloaded) in zip(old.state_dict().items(), new.state_dict().items(), strict=True):

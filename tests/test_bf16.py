@@ -61,14 +61,14 @@ def test_bf16_refinement_matches_fp32_within_tolerance(policies):
 def test_initial_actions_are_fp32_in_a_bf16_policy(policies):
     _, bf16 = policies
     reference = torch.zeros(1, dtype=torch.bfloat16)
-    assert bf16.model._initial_actions(2, reference, None).dtype == torch.float32
+    assert bf16.model.initial_actions(2, reference, None).dtype == torch.float32
 
 
 def test_langevin_noise_of_sigma_0001_is_not_rounded_away_in_a_bf16_policy(policies):
     _, bf16 = policies
     with torch.no_grad():
         kv = bf16.model.encode_context(observation(bf16))
-    initial = bf16.model._initial_actions(2, kv[0][0], torch.Generator().manual_seed(0))
+    initial = bf16.model.initial_actions(2, kv[0][0], torch.Generator().manual_seed(0))
 
     def run(sigma_l: float) -> torch.Tensor:
         return refine_actions(

@@ -1,13 +1,23 @@
 """A checkpoint saved by an earlier version still loads offline and acts the same."""
 
+import dataclasses
+import json
+from operator import attrgetter
 from pathlib import Path
 
 import pytest
 import torch
+from lerobot.configs import PreTrainedConfig
 from lerobot.policies.factory import make_pre_post_processors
 from safetensors import safe_open
 
-from lerobot_policy_ebvla import EBVLAPolicy
+from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
+from lerobot_policy_ebvla.configuration_ebvla import (
+    LEGACY_COMPILE_FIELDS,
+    LEGACY_FIELDS,
+    upgrade_legacy_fields,
+)
+from lerobot_policy_ebvla.presets import light_policy_config
 
 FIXTURES = sorted((Path(__file__).parent / "fixtures").glob("ebvla_*"))
 
@@ -31,3 +41,50 @@ def test_saved_checkpoint_loads_and_reproduces_its_actions(checkpoint):
 
 def test_there_is_a_fixture_to_load():
     assert FIXTURES, "tests/fixtures holds no saved checkpoint"
+
+
+PRE_NESTING = Path(__file__).parent / "fixtures" / "ebvla_light_preset_pre_nesting"
+# What fixtures/make_light_preset_fixture.py changed from the light preset, in today's nested form.
+SMALL = {
+    "resnet": {"vision_backbone_stages": 1, "spatial_softmax_num_keypoints": 8},
+    "dim_model": 32,
+    "n_heads": 2,
+    "n_blocks": 1,
+}
+
+
+def load_pre_nesting_config() -> EBVLAConfig:
+    with pytest.warns(FutureWarning, match="saved before its fields were grouped"):
+        return EBVLAConfig.from_pretrained(PRE_NESTING)
+
+
+def test_the_light_preset_saved_before_the_groups_loads_as_todays_light_preset():
+    loaded = load_pre_nesting_config()
+    features = {"input_features": loaded.input_features, "output_features": loaded.output_features}
+    expected = light_policy_config(device="cpu", **features, **SMALL)
+    for field in dataclasses.fields(EBVLAConfig):
+        assert getattr(loaded, field.name) == getattr(expected, field.name), field.name
+
+
+def test_every_flat_field_of_the_old_config_lands_where_the_table_says():
+    saved = json.loads((PRE_NESTING / "config.json").read_text())
+    loaded = load_pre_nesting_config()
+    current = {field.name for field in dataclasses.fields(EBVLAConfig)}
+    legacy = [key for key in saved if key not in current and key != "type"]
+    assert legacy and not set(legacy) - set(LEGACY_FIELDS) - set(LEGACY_COMPILE_FIELDS)
+    for old in set(legacy) & set(LEGACY_FIELDS):
+        value = attrgetter(LEGACY_FIELDS[old])(loaded)
+        assert json.loads(json.dumps(value)) == saved[old], old
+
+
+def test_an_old_config_saved_again_is_read_by_lerobots_own_loader(tmp_path):
+    """`lerobot-eval --policy.path=...` reads `PreTrainedConfig.from_pretrained`, which knows only today's form."""
+    load_pre_nesting_config().save_pretrained(tmp_path)
+    config = PreTrainedConfig.from_pretrained(tmp_path)
+    assert isinstance(config, EBVLAConfig) and config.joint_energy.target == "observation"
+    assert config.resnet.vision_backbone_stages == 1 and config.contrastive.weight == 0.2
+
+
+def test_a_flat_field_and_its_group_both_set_are_refused_naming_both():
+    with pytest.raises(ValueError, match="`energy_ood_margin_weight`.*`joint_energy.weight`"):
+        upgrade_legacy_fields({"energy_ood_margin_weight": 0.1, "joint_energy": {"weight": 0.2}})

@@ -11,7 +11,6 @@ import os
 
 import pytest
 import torch
-from lerobot.configs import PreTrainedConfig
 from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS
 from torch.utils._pytree import tree_flatten, tree_unflatten
 
@@ -26,7 +25,7 @@ from .test_backbone_vlm import vlm_config, write_tiny_language_model
 # light head, 2e-5 over 15 steps of the paper's head; research/docs/benchmarks_speed.md).
 TOL = {"atol": 1e-5, "rtol": 1e-5}
 # One ResNet stage: the smallest light backbone, so inductor compiles it quickly.
-SMALL = {"vision_backbone_stages": 1}
+SMALL = {"resnet": {"vision_backbone_stages": 1}}
 BATCH_SIZE = 2
 
 
@@ -50,7 +49,7 @@ def refinement(model: EBVLA, batch: dict, seed: int = 0):
     initial = torch.randn(
         BATCH_SIZE, cfg.chunk_size, cfg.action_dim, generator=torch.Generator().manual_seed(1)
     )
-    result = model._refine(
+    result = model.refine(
         kv,
         initial,
         [cfg.inference_step_size] * cfg.inference_mcmc_steps,
@@ -259,21 +258,26 @@ def test_a_mode_this_torch_does_not_know_is_rejected_naming_the_field(monkeypatc
         ({"compile_refinement": False, "compile_refinement_mode": "default"}, "off"),
     ],
 )
-def test_deprecated_compile_fields_map_to_compile_mode(legacy, compile_mode):
-    with pytest.warns(FutureWarning, match="deprecated"):
-        config = tiny_config(**legacy)
+def test_deprecated_compile_fields_map_to_compile_mode(tmp_path, legacy, compile_mode):
+    write_legacy_config(tmp_path, **legacy)
+    with pytest.warns(FutureWarning, match="saved before"):
+        config = EBVLAConfig.from_pretrained(tmp_path)
     assert config.compile_mode == compile_mode
-    assert config.compile_refinement is None and config.compile_refinement_mode is None
+    assert not hasattr(config, "compile_refinement") and not hasattr(config, "compile_refinement_mode")
 
 
-def test_deprecated_fields_that_contradict_compile_mode_are_rejected():
+def test_deprecated_fields_that_contradict_compile_mode_are_rejected(tmp_path):
+    write_legacy_config(
+        tmp_path, compile_mode="default", compile_refinement=True, compile_refinement_mode="max-autotune"
+    )
     with pytest.raises(ValueError, match="`compile_refinement=True`.*`compile_mode` is 'default'"):
-        tiny_config(compile_mode="default", compile_refinement=True, compile_refinement_mode="max-autotune")
+        EBVLAConfig.from_pretrained(tmp_path)
 
 
-def test_an_unknown_deprecated_mode_is_rejected_naming_the_field():
+def test_an_unknown_deprecated_mode_is_rejected_naming_the_field(tmp_path):
+    write_legacy_config(tmp_path, compile_refinement=True, compile_refinement_mode="cudagraphs")
     with pytest.raises(ValueError, match="`compile_refinement_mode`"):
-        tiny_config(compile_refinement=True, compile_refinement_mode="cudagraphs")
+        EBVLAConfig.from_pretrained(tmp_path)
 
 
 def write_legacy_config(path, **legacy) -> None:
@@ -281,40 +285,30 @@ def write_legacy_config(path, **legacy) -> None:
     tiny_config().save_pretrained(path)
     config_file = path / "config.json"
     saved = json.loads(config_file.read_text())
-    for key in ("compile_mode", "compile_refinement", "compile_refinement_mode"):
-        del saved[key]
+    del saved["compile_mode"]
     config_file.write_text(json.dumps({**saved, **legacy}))
 
 
 def test_a_checkpoint_saved_with_compile_refinement_loads_with_compile_mode(tmp_path):
     """What `lerobot-eval --policy.path` reads; saving again stores `compile_mode`."""
     write_legacy_config(tmp_path, compile_refinement=True, compile_refinement_mode="reduce-overhead")
-    with pytest.warns(FutureWarning, match="`compile_mode='reduce-overhead'`"):
-        config = PreTrainedConfig.from_pretrained(tmp_path)
+    with pytest.warns(FutureWarning, match="compile_mode='reduce-overhead'"):
+        config = EBVLAConfig.from_pretrained(tmp_path)
     assert isinstance(config, EBVLAConfig) and config.compile_mode == "reduce-overhead"
     config.save_pretrained(tmp_path / "again")
     saved = json.loads((tmp_path / "again" / "config.json").read_text())
-    assert saved["compile_mode"] == "reduce-overhead" and saved["compile_refinement"] is None
+    assert saved["compile_mode"] == "reduce-overhead" and "compile_refinement" not in saved
 
 
 def test_a_policy_saved_with_compile_refinement_loads(tmp_path, eager):
     eager.save_pretrained(tmp_path)
     saved = json.loads((tmp_path / "config.json").read_text())
-    for key in ("compile_mode", "compile_refinement", "compile_refinement_mode"):
-        del saved[key]
+    del saved["compile_mode"]
     (tmp_path / "config.json").write_text(json.dumps({**saved, "compile_refinement": False}))
-    with pytest.warns(FutureWarning, match="`compile_mode='off'`"):
+    with pytest.warns(FutureWarning, match="compile_mode='off'"):
         loaded = EBVLAPolicy.from_pretrained(tmp_path)
     batch = tiny_batch(eager.config, batch_size=BATCH_SIZE, seed=12, with_action=False)
     torch.testing.assert_close(chunk(loaded.eval(), batch), chunk(eager, batch), atol=0, rtol=0)
-
-
-def test_the_deprecated_command_line_flag_is_mapped(tmp_path):
-    """`--policy.compile_refinement=true` next to `--policy.path` reaches the config as an override."""
-    tiny_config().save_pretrained(tmp_path)
-    with pytest.warns(FutureWarning, match="deprecated"):
-        config = PreTrainedConfig.from_pretrained(tmp_path, cli_overrides=["--compile_refinement=true"])
-    assert config.compile_mode == "default"
 
 
 def vlm_policy(lm_path, **overrides) -> EBVLAPolicy:

@@ -2,19 +2,21 @@
 
 import dataclasses
 import math
+from operator import attrgetter
 
 import pytest
 from lerobot.configs import PreTrainedConfig
 
 from lerobot_policy_ebvla import EBVLAConfig
+from lerobot_policy_ebvla.presets import ebvla_config
 
 from .conftest import tiny_config
 
 TABLE_V = {
-    "vlm_model_name": "Qwen/Qwen2.5-0.5B",
-    "lora_rank": 64,
-    "num_latent_tokens": 64,  # K_a
-    "num_context_layers": 23,  # N_l
+    "vlm.model_name": "Qwen/Qwen2.5-0.5B",
+    "vlm.lora_rank": 64,
+    "vlm.num_latent_tokens": 64,  # K_a
+    "vlm.num_context_layers": 23,  # N_l
     "n_blocks": 4,  # L
     "n_heads": 8,
     "dim_model": 896,  # D
@@ -35,8 +37,11 @@ TABLE_V = {
 def test_defaults_are_the_papers_table_v():
     config = EBVLAConfig(device="cpu")
     for name, value in TABLE_V.items():
-        assert getattr(config, name) == value, name
+        assert attrgetter(name)(config) == value, name
     assert config.backbone == "vlm"
+    assert (
+        config.contrastive.weight == 0 and config.joint_energy.weight == 0
+    )  # no training signal beyond Eq. 4
     assert config.num_restarts == 1 and config.early_stop_tol is None
 
 
@@ -57,7 +62,22 @@ def test_is_registered_as_ebvla():
         ("train_step_size_range", (0.4, 0.05)),
         ("train_mcmc_steps_range", (0, 3)),
         ("inference_mcmc_steps", 0),
-        ("context_layers", (1, 2)),
+        ("vlm.context_layers", (1, 2)),  # one per head block (n_blocks=4)
+        ("vlm.context_layers", (-1, 0, 1, 2)),
+        ("vlm.lora_rank", 0),
+        ("vlm.frozen_weights_dtype", "float16"),
+        ("resnet.vision_backbone_stages", 5),
+        ("resnet.state_dropout", 1.0),
+        ("resnet.camera_tokens", "patches"),
+        ("contrastive.weight", -0.1),
+        ("contrastive.anchors", 0),
+        ("contrastive.dtype", "float16"),
+        ("joint_energy.weight", -1.0),
+        ("joint_energy.margin", 0.0),
+        ("joint_energy.target", "everything"),
+        ("joint_energy.corruptions", ("rain",)),
+        ("joint_energy.corruption_strength", (0.5, 0.2)),
+        ("joint_energy.gradient_penalty", 0.1),  # needs target "observation" and a weight
         ("dropout", 1.0),
         ("num_restarts", 0),
         ("restart_energy_threshold", 2.0),  # with num_restarts 1: nothing to restart with
@@ -65,18 +85,47 @@ def test_is_registered_as_ebvla():
     ],
 )
 def test_impossible_values_are_rejected_naming_the_field(field, value):
+    group, _, name = field.rpartition(".")
+    fields = {group: {name: value}} if group else {field: value}
     with pytest.raises(ValueError, match=f"`{field}`"):
-        EBVLAConfig(device="cpu", **{field: value})
+        ebvla_config({"device": "cpu"}, fields)
+
+
+def test_the_config_adds_at_most_45_top_level_fields_to_lerobots():
+    own = {f.name for f in dataclasses.fields(EBVLAConfig)} - {
+        f.name for f in dataclasses.fields(PreTrainedConfig)
+    }
+    assert len(own) <= 45, sorted(own)
+
+
+def test_a_group_given_as_anything_but_its_dataclass_is_rejected_naming_it():
+    with pytest.raises(ValueError, match="`joint_energy` must be a `JointEnergyConfig`"):
+        EBVLAConfig(device="cpu", joint_energy={"weight": 0.1})
+
+
+def test_a_groups_fields_parse_from_the_command_line_next_to_a_saved_config(tmp_path):
+    """`lerobot-train --policy.path=... --policy.joint_energy.weight=0.1` reaches the nested field."""
+    tiny_config().save_pretrained(tmp_path)
+    overrides = [
+        "--joint_energy.weight=0.1",
+        "--joint_energy.target=observation",
+        "--resnet.state_dropout=0.25",
+    ]
+    config = PreTrainedConfig.from_pretrained(tmp_path, cli_overrides=overrides)
+    assert (config.joint_energy.weight, config.joint_energy.target) == (0.1, "observation")
+    assert config.resnet.state_dropout == 0.25 and config.context_energy_on_own_encoder
 
 
 def test_save_and_load_keep_every_field(tmp_path):
     config = tiny_config(
         energy_temperature=5.0,
         train_mcmc_steps_range=(2, 3),
-        crop_shape=(28, 28),
+        resnet={"crop_shape": (28, 28), "state_dropout": 0.25},
+        contrastive={"weight": 0.2, "anchors": 4},
+        joint_energy={"weight": 0.01, "target": "observation", "gradient_penalty": 0.1},
+        vlm={"model_config_overrides": {"hidden_size": 64}},
         num_restarts=3,
         restart_energy_threshold=1.5,
-        vlm_config_overrides={"hidden_size": 64},
     )
     config.save_pretrained(tmp_path)
     loaded = PreTrainedConfig.from_pretrained(tmp_path)

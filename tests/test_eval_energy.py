@@ -242,7 +242,7 @@ def test_metaworld_eval_config_applies_the_perturbation_and_the_extra_options(tm
 def test_recorder_records_the_joint_energys_context_term_apart(tmp_path):
     """A joint-energy policy's records carry E_c (`context_energy`), that of each chunk's own observation."""
     torch.manual_seed(0)
-    policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on="observation"))
+    policy = EBVLAPolicy(tiny_config(joint_energy={"weight": 1.0, "target": "observation"}))
     _, recorder, batch = recorded_actions(policy)
     records = recorder.records_from_successes({("g", 0): [True, False]}, n_episodes=2)
     with torch.no_grad():

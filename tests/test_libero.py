@@ -141,7 +141,7 @@ def libero_policy_config():
             OBS_STATE: PolicyFeature(FeatureType.STATE, (8,)),
         },
         output_features={ACTION: PolicyFeature(FeatureType.ACTION, (7,))},
-        resize_shape=(64, 64),
+        resnet={"resize_shape": (64, 64)},
         chunk_size=CHUNK,
         n_action_steps=CHUNK,
         inference_mcmc_steps=3,

@@ -122,7 +122,7 @@ def test_train_then_eval_writes_one_energy_record_per_chunk(recorded, tmp_path):
             "--policy.n_heads=2",
             "--policy.n_blocks=1",
             f"--policy.n_action_steps={N_ACTION_STEPS}",
-            f"--policy.resize_shape=[{IMAGE_SIZE},{IMAGE_SIZE}]",
+            f"--policy.resnet.resize_shape=[{IMAGE_SIZE},{IMAGE_SIZE}]",
             "--policy.device=cpu",
             "--policy.push_to_hub=false",
             "--steps=2",

@@ -5,16 +5,19 @@ import pytest
 import torch
 
 from lerobot_policy_ebvla import EBVLAPolicy
-from lerobot_policy_ebvla.modeling_ebvla import pooled_context
+from lerobot_policy_ebvla.energy_head import pooled_context
 from lerobot_policy_ebvla.runtime import EnergyOODResponse, OODCalibration, PhaseStatistics
 from lerobot_policy_ebvla.runtime.scores import ContextPhaseEnergy
 from lerobot_policy_ebvla.training_signal import (
     CORRUPTIONS,
     channel_gain,
+    compute_loss,
+    context_margin_loss,
     corrupt_observation,
     data_gradient_penalty,
     energy_margin_loss,
     graded_corruption,
+    ood_margin_loss,
     random_conv,
     shading,
     shading_log_gains,
@@ -26,11 +29,11 @@ from .conftest import tiny_batch, tiny_config
 
 def test_margin_term_is_off_by_default_and_adds_nothing():
     config = tiny_config()
-    assert config.energy_ood_margin_weight == 0.0
+    assert config.joint_energy.weight == 0.0
     batch = tiny_batch(config, batch_size=4)
     torch.manual_seed(0)
     policy = EBVLAPolicy(config)
-    _, info = policy.model.compute_loss(batch, generator=torch.Generator().manual_seed(0))
+    _, info = compute_loss(policy.model, batch, generator=torch.Generator().manual_seed(0))
     assert "ood_margin_loss" not in info
 
 
@@ -39,8 +42,8 @@ def test_margin_term_is_added_with_its_weight_and_reported():
     losses = {}
     for weight in (0.0, 0.5):
         torch.manual_seed(0)
-        policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=weight, energy_ood_margin=100.0))
-        losses[weight] = policy.model.compute_loss(batch, generator=torch.Generator().manual_seed(0))
+        policy = EBVLAPolicy(tiny_config(joint_energy={"weight": weight, "margin": 100.0}))
+        losses[weight] = compute_loss(policy.model, batch, generator=torch.Generator().manual_seed(0))
     (plain, _), (with_term, info) = losses[0.0], losses[0.5]
     # A margin far above any gap of an untrained head: the hinge is active, 100 - gap.
     assert info["ood_margin_loss"] == pytest.approx(100.0 - info["ood_energy_gap"], rel=1e-4)
@@ -50,10 +53,9 @@ def test_margin_term_is_added_with_its_weight_and_reported():
 @pytest.mark.parametrize("chunk", ["expert", "refined"])
 def test_margin_term_runs_on_either_chunk_and_reaches_the_backbone(chunk):
     torch.manual_seed(0)
-    policy = EBVLAPolicy(
-        tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin=100.0, energy_ood_margin_chunk=chunk)
-    )
-    margin, _ = policy.model.ood_margin_loss(
+    policy = EBVLAPolicy(tiny_config(joint_energy={"weight": 1.0, "margin": 100.0, "chunk": chunk}))
+    margin, _ = ood_margin_loss(
+        policy.model,
         tiny_batch(policy.config, batch_size=3),
         policy.model.encode_context(tiny_batch(policy.config, batch_size=3)),
         tiny_batch(policy.config, batch_size=3)["action"],
@@ -85,15 +87,13 @@ def test_training_with_the_margin_opens_the_gap_on_a_fixed_batch():
     (its context moves by 0.004 of 8 under them): the state's corruption is the one it can learn to tell."""
     torch.manual_seed(0)
     policy = EBVLAPolicy(
-        tiny_config(
-            energy_ood_margin_weight=1.0, energy_ood_margin=1.0, energy_ood_corruptions=("state_noise",)
-        )
+        tiny_config(joint_energy={"weight": 1.0, "margin": 1.0, "corruptions": ("state_noise",)})
     )
     batch = tiny_batch(policy.config, batch_size=4)
     optimizer = torch.optim.Adam(policy.parameters(), lr=3e-3)
     gaps = []
     for step in range(30):
-        loss, info = policy.model.compute_loss(batch, generator=torch.Generator().manual_seed(step))
+        loss, info = compute_loss(policy.model, batch, generator=torch.Generator().manual_seed(step))
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -191,11 +191,13 @@ def test_graded_corruption_asks_each_observation_for_its_strength_of_the_margin(
     all, so the loss is computed from the same draws by hand)."""
     torch.manual_seed(0)
     config = tiny_config(
-        energy_ood_margin_weight=1.0,
-        energy_ood_margin=2.0,
-        energy_ood_margin_on=target,
-        energy_ood_corruptions=("state_noise", "channel_gain"),
-        energy_ood_corruption_strength=(0.3, 0.3),
+        joint_energy={
+            "weight": 1.0,
+            "margin": 2.0,
+            "target": target,
+            "corruptions": ("state_noise", "channel_gain"),
+            "corruption_strength": (0.3, 0.3),
+        },
     )
     policy = EBVLAPolicy(config).eval()
     model = policy.model
@@ -203,22 +205,22 @@ def test_graded_corruption_asks_each_observation_for_its_strength_of_the_margin(
     shifted_batch, strengths = graded_corruption(
         batch,
         list(config.image_features),
-        config.energy_ood_corruptions,
+        config.joint_energy.corruptions,
         torch.Generator().manual_seed(7),
         "observation.state",
-        config.energy_ood_corruption_strength,
+        config.joint_energy.corruption_strength,
     )
     torch.testing.assert_close(strengths, torch.full((4,), 0.3))
     with torch.no_grad():
         if target == "observation":
-            loss, _ = model.context_margin_loss(batch, torch.Generator().manual_seed(7))
+            loss, _ = context_margin_loss(model, batch, torch.Generator().manual_seed(7))
             energy = model.context_energy
             clean = energy(pooled_context(model.observation_encoder(batch)))
             shifted = energy(pooled_context(model.observation_encoder(shifted_batch)))
             expected = torch.relu(0.6 - (shifted - clean)).mean() + clean.pow(2).mean()
         else:
             kv = model.encode_context(batch)
-            loss, _ = model.ood_margin_loss(batch, kv, batch["action"], torch.Generator().manual_seed(7), [])
+            loss, _ = ood_margin_loss(model, batch, kv, batch["action"], torch.Generator().manual_seed(7), [])
             clean = model.head(batch["action"], kv).mean(dim=-1)
             shifted = model.head(batch["action"], model.encode_context(shifted_batch)).mean(dim=-1)
             expected = torch.relu(0.6 - (shifted - clean)).mean()
@@ -253,30 +255,30 @@ def test_shading_scales_every_channel_by_one_smooth_field_of_both_signs():
 @pytest.mark.parametrize(
     ("field", "value"),
     [
-        ("energy_ood_margin_weight", -0.1),
-        ("energy_ood_margin", 0.0),
-        ("energy_ood_corruptions", ("fog",)),
-        ("energy_ood_margin_chunk", "prior"),
-        ("energy_ood_margin_on", "action"),
-        ("energy_ood_corruption_strength", (0.0, 1.0)),
-        ("energy_ood_corruption_strength", (0.6, 0.3)),
-        ("energy_ood_corruption_strength", (0.5, 1.5)),
-        ("energy_ood_gradient_penalty", -1.0),
+        ("weight", -0.1),
+        ("margin", 0.0),
+        ("corruptions", ("fog",)),
+        ("chunk", "prior"),
+        ("target", "action"),
+        ("corruption_strength", (0.0, 1.0)),
+        ("corruption_strength", (0.6, 0.3)),
+        ("corruption_strength", (0.5, 1.5)),
+        ("gradient_penalty", -1.0),
     ],
 )
 def test_margin_fields_are_validated_by_name(field, value):
-    with pytest.raises(ValueError, match=field):
-        tiny_config(**{field: value})
+    with pytest.raises(ValueError, match=f"`joint_energy.{field}`"):
+        tiny_config(joint_energy={field: value})
 
 
 @pytest.mark.parametrize("target", ["head", "context", "context_backbone"])
 def test_gradient_penalty_needs_the_observation_encoder(target):
-    with pytest.raises(ValueError, match="energy_ood_gradient_penalty.*energy_ood_margin_on='observation'"):
-        tiny_config(
-            energy_ood_margin_weight=0.01, energy_ood_margin_on=target, energy_ood_gradient_penalty=0.1
-        )
-    with pytest.raises(ValueError, match="energy_ood_margin_weight` > 0"):
-        tiny_config(energy_ood_margin_on="observation", energy_ood_gradient_penalty=0.1)
+    with pytest.raises(
+        ValueError, match="`joint_energy.gradient_penalty`.*`joint_energy.target='observation'`"
+    ):
+        tiny_config(joint_energy={"weight": 0.01, "target": target, "gradient_penalty": 0.1})
+    with pytest.raises(ValueError, match="`joint_energy.weight` > 0"):
+        tiny_config(joint_energy={"target": "observation", "gradient_penalty": 0.1})
 
 
 def test_gradient_penalty_is_the_squared_image_gradient_per_observation_summed_over_cameras():
@@ -297,9 +299,7 @@ def policy_with_gradient_penalty(penalty: float, **fields) -> EBVLAPolicy:
     torch.manual_seed(0)
     return EBVLAPolicy(
         tiny_config(
-            energy_ood_margin_weight=1.0,
-            energy_ood_margin_on="observation",
-            energy_ood_gradient_penalty=penalty,
+            joint_energy={"weight": 1.0, "target": "observation", "gradient_penalty": penalty},
             **fields,
         )
     )
@@ -318,7 +318,7 @@ def test_gradient_penalty_is_added_to_the_margin_and_trains_the_observation_enco
     losses = {}
     for penalty in (0.0, 50.0):
         policy = policy_with_gradient_penalty(penalty)
-        losses[penalty], _ = policy.model.context_margin_loss(batch, torch.Generator().manual_seed(0))
+        losses[penalty], _ = context_margin_loss(policy.model, batch, torch.Generator().manual_seed(0))
     value = image_gradient_penalty(policy_with_gradient_penalty(0.0), batch)
     assert value > 0
     assert losses[50.0].item() == pytest.approx(losses[0.0].item() + 50.0 * value, rel=1e-4)
@@ -332,7 +332,7 @@ def test_descending_the_gradient_penalty_flattens_the_context_energy_at_the_imag
     """The penalty reaches the observation encoder's image weights through the second derivative (the feature
     map's tokens, which see the tiny policy's random images more than its keypoints do): steps on it alone make
     E_c flatter at the images."""
-    policy = policy_with_gradient_penalty(1.0, camera_tokens="feature_map")
+    policy = policy_with_gradient_penalty(1.0, resnet={"camera_tokens": "feature_map"})
     model = policy.model
     batch = tiny_batch(policy.config, batch_size=4)
     optimizer = torch.optim.SGD(model.observation_encoder.parameters(), lr=0.5)
@@ -353,8 +353,8 @@ def test_descending_the_gradient_penalty_flattens_the_context_energy_at_the_imag
 def policy_after_the_context_margin(target: str) -> EBVLAPolicy:
     """A tiny policy with the joint energy's margin on `target`, after one backward pass of that margin alone."""
     torch.manual_seed(0)
-    policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on=target))
-    margin, _ = policy.model.context_margin_loss(tiny_batch(policy.config, batch_size=3), torch.Generator())
+    policy = EBVLAPolicy(tiny_config(joint_energy={"weight": 1.0, "target": target}))
+    margin, _ = context_margin_loss(policy.model, tiny_batch(policy.config, batch_size=3), torch.Generator())
     margin.backward()
     return policy
 
@@ -375,7 +375,9 @@ def test_context_margin_through_the_backbone_trains_the_backbone_and_the_context
     assert all(p.grad is None for p in policy.model.head.parameters())
     # In a training step the margin reads the context of the step's own backbone pass.
     policy.zero_grad(set_to_none=True)
-    loss, info = policy.model.compute_loss(tiny_batch(config, batch_size=3), torch.Generator().manual_seed(0))
+    loss, info = compute_loss(
+        policy.model, tiny_batch(config, batch_size=3), torch.Generator().manual_seed(0)
+    )
     assert "ood_margin_loss" in info and torch.isfinite(loss)
 
 
@@ -392,12 +394,12 @@ def test_with_the_observation_energy_the_policy_starts_and_trains_exactly_as_wit
     differ from a policy without the term only through what they share with nothing (the observation encoder
     and E_c are built last and the corruptions drawn after the action losses)."""
     policies = {}
-    for name, fields in (("without", {}), ("observation", {"energy_ood_margin_on": "observation"})):
+    for name, fields in (("without", {}), ("observation", {"target": "observation"})):
         torch.manual_seed(0)
-        config = tiny_config(energy_ood_margin_weight=1.0 if fields else 0.0, **fields)
+        config = tiny_config(joint_energy={"weight": 1.0 if fields else 0.0, **fields})
         policies[name] = EBVLAPolicy(config)
-        loss, _ = policies[name].model.compute_loss(
-            tiny_batch(config, batch_size=3), torch.Generator().manual_seed(0)
+        loss, _ = compute_loss(
+            policies[name].model, tiny_batch(config, batch_size=3), torch.Generator().manual_seed(0)
         )
         loss.backward()
     without, observation = policies["without"].model, policies["observation"].model
@@ -412,7 +414,7 @@ def test_with_the_observation_energy_the_policy_starts_and_trains_exactly_as_wit
 @pytest.mark.parametrize("target", ["context", "context_backbone", "observation"])
 def test_joint_final_energy_is_the_head_energy_plus_the_context_energy(target):
     torch.manual_seed(0)
-    policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on=target)).eval()
+    policy = EBVLAPolicy(tiny_config(joint_energy={"weight": 1.0, "target": target})).eval()
     batch = tiny_batch(policy.config, batch_size=3, with_action=False)
     chunk, readout = policy.predict_action_chunk(
         batch, generator=torch.Generator().manual_seed(0), return_energy=True
@@ -428,8 +430,8 @@ def test_joint_final_energy_is_the_head_energy_plus_the_context_energy(target):
 
 
 def test_without_the_context_variant_the_policy_has_no_context_energy():
-    assert EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0)).model.context_energy is None
-    policy = EBVLAPolicy(tiny_config(energy_ood_margin_on="context")).eval()
+    assert EBVLAPolicy(tiny_config(joint_energy={"weight": 1.0})).model.context_energy is None
+    policy = EBVLAPolicy(tiny_config(joint_energy={"target": "context"})).eval()
     assert policy.model.context_energy is None
     batch = tiny_batch(policy.config, batch_size=2, with_action=False)
     _, readout = policy.predict_action_chunk(batch, return_energy=True)
@@ -440,8 +442,7 @@ def test_adaptive_restarts_keep_the_observations_context_energy():
     """E_c depends on the observation only: a restarted chunk keeps it, and the readout still splits."""
     torch.manual_seed(0)
     config = tiny_config(
-        energy_ood_margin_weight=1.0,
-        energy_ood_margin_on="observation",
+        joint_energy={"weight": 1.0, "target": "observation"},
         num_restarts=3,
         restart_energy_threshold=-1e9,
     )
@@ -461,7 +462,7 @@ def test_the_policy_monitors_its_context_energy_against_the_vanilla_band_at_its_
     """A context-energy calibration reads the readout's E_c: a chunk whose E_c lies far above the vanilla band at
     its chunk index is flagged, with z = (E_c - mu_v[0]) / sigma_v[0]."""
     torch.manual_seed(0)
-    policy = EBVLAPolicy(tiny_config(energy_ood_margin_weight=1.0, energy_ood_margin_on="observation")).eval()
+    policy = EBVLAPolicy(tiny_config(joint_energy={"weight": 1.0, "target": "observation"})).eval()
     batch = tiny_batch(policy.config, batch_size=2, with_action=False)
     context = policy.model.context_energy_of(batch, None).detach().double().numpy()
     # The vanilla band at chunk index 0 sits one unit below this batch's E_c, 0.1 wide.

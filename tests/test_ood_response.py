@@ -76,7 +76,7 @@ def metaworld_config():
             "observation.state": PolicyFeature(FeatureType.STATE, (4,)),
         },
         output_features={"action": PolicyFeature(FeatureType.ACTION, (4,))},
-        resize_shape=(64, 64),
+        resnet={"resize_shape": (64, 64)},
         chunk_size=CHUNK,
         n_action_steps=CHUNK,
         inference_mcmc_steps=3,

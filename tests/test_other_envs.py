@@ -8,6 +8,7 @@ from lerobot.envs.configs import PushtEnv
 from lerobot.envs.utils import preprocess_observation
 
 from lerobot_policy_ebvla import EBVLAPolicy
+from lerobot_policy_ebvla.configuration_groups import ResNetBackboneConfig
 
 from .conftest import TINY_HEAD
 
@@ -28,7 +29,11 @@ def test_pusht_env_features_and_real_env_observations():
 
     policy = EBVLAPolicy(
         EBVLAConfig(
-            backbone="resnet", device="cpu", spatial_softmax_num_keypoints=8, **TINY_HEAD, **config_features
+            backbone="resnet",
+            device="cpu",
+            resnet=ResNetBackboneConfig(spatial_softmax_num_keypoints=8),
+            **TINY_HEAD,
+            **config_features,
         )
     ).eval()
     env_config = PushtEnv()
@@ -62,8 +67,7 @@ def test_libero_features_two_cameras_8d_state_7d_action():
     config = EBVLAConfig(
         backbone="resnet",
         device="cpu",
-        resize_shape=(96, 96),
-        spatial_softmax_num_keypoints=8,
+        resnet=ResNetBackboneConfig(resize_shape=(96, 96), spatial_softmax_num_keypoints=8),
         input_features={
             "observation.images.image": camera,
             "observation.images.image2": camera,

@@ -9,6 +9,7 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 
 from lerobot_policy_ebvla import EBVLAPolicy, EnergyReadout
 from lerobot_policy_ebvla.mcmc import refine_actions
+from lerobot_policy_ebvla.training_signal import compute_loss
 
 from .conftest import IMAGE_SHAPE, tiny_batch, tiny_config
 
@@ -58,9 +59,9 @@ def test_forward_returns_l1_loss_and_energy_metrics(tiny_policy):
 def test_padded_action_steps_do_not_count_in_the_loss(tiny_policy):
     batch = tiny_batch(tiny_policy.config)
     batch["action_is_pad"][:, -3:] = True
-    loss, _ = tiny_policy.model.compute_loss(batch, generator=seeded(1))
+    loss, _ = compute_loss(tiny_policy.model, batch, generator=seeded(1))
     batch["action"][:, -3:] += 100.0
-    loss_changed_padding, _ = tiny_policy.model.compute_loss(batch, generator=seeded(1))
+    loss_changed_padding, _ = compute_loss(tiny_policy.model, batch, generator=seeded(1))
     torch.testing.assert_close(loss, loss_changed_padding)
 
 
@@ -262,7 +263,7 @@ def test_training_randomness_is_restored_with_the_weights(tiny_policy, tmp_path)
 
 def test_task_tokens_tell_instructions_apart_and_reject_unknown_ones():
     torch.manual_seed(0)
-    policy = EBVLAPolicy(tiny_config(task_instructions=["open the drawer", "close the drawer"]))
+    policy = EBVLAPolicy(tiny_config(resnet={"task_instructions": ["open the drawer", "close the drawer"]}))
     policy.eval()
     batch = tiny_batch(policy.config, batch_size=1, with_action=False)
     chunks = [
@@ -283,19 +284,21 @@ def test_task_instructions_are_filled_from_the_training_dataset_and_saved(tmp_pa
     from .conftest import write_tiny_dataset
 
     root = write_tiny_dataset(tmp_path / "data")
-    config = tiny_config(task_instructions=[], input_features={}, output_features={})
+    config = tiny_config(resnet={"task_instructions": []}, input_features={}, output_features={})
     # LeRobot's factory, as lerobot-train calls it: it hands the dataset's metadata to the policy.
     policy = make_policy(config, ds_meta=LeRobotDatasetMetadata("local/ebvla_tiny", root=root))
-    assert policy.config.task_instructions == ["reach the goal"]
+    assert policy.config.resnet.task_instructions == ["reach the goal"]
     policy.save_pretrained(tmp_path / "ckpt")
-    assert EBVLAPolicy.from_pretrained(tmp_path / "ckpt").config.task_instructions == ["reach the goal"]
+    assert EBVLAPolicy.from_pretrained(tmp_path / "ckpt").config.resnet.task_instructions == [
+        "reach the goal"
+    ]
     with pytest.raises(ValueError, match="no `dataset_meta`"):
-        EBVLAPolicy(tiny_config(task_instructions=[]))
+        EBVLAPolicy(tiny_config(resnet={"task_instructions": []}))
 
 
 @pytest.mark.parametrize("stages, map_side", [(4, 2), (3, 4), (2, 8)])
 def test_fewer_resnet_stages_keep_a_finer_keypoint_map(stages, map_side):
-    policy = EBVLAPolicy(tiny_config(vision_backbone_stages=stages))
+    policy = EBVLAPolicy(tiny_config(resnet={"vision_backbone_stages": stages}))
     encoder = policy.model.backbone.rgb_encoders[0]
     features = encoder.backbone(torch.rand(1, *IMAGE_SHAPE))
     assert features.shape[-2:] == (map_side, map_side)
@@ -306,7 +309,7 @@ def test_feature_map_tokens_give_one_context_token_per_cell_and_camera():
     cameras = {f"observation.images.{name}": PolicyFeature(FeatureType.VISUAL, IMAGE_SHAPE) for name in "ab"}
     state = {"observation.state": PolicyFeature(FeatureType.STATE, (4,))}
     config = tiny_config(
-        camera_tokens="feature_map", vision_backbone_stages=3, input_features=cameras | state
+        resnet={"camera_tokens": "feature_map", "vision_backbone_stages": 3}, input_features=cameras | state
     )
     policy = EBVLAPolicy(config)
     batch = tiny_batch(config)
@@ -321,16 +324,18 @@ def test_feature_map_tokens_give_one_context_token_per_cell_and_camera():
     loss, _ = policy.forward(batch)
     loss.backward()
     assert policy.model.backbone.rgb_encoders[0].backbone[0].weight.grad.abs().sum() > 0
-    with pytest.raises(ValueError, match="`camera_tokens` must be one of"):
-        tiny_config(camera_tokens="patches")
+    with pytest.raises(ValueError, match="`resnet.camera_tokens` must be one of"):
+        tiny_config(resnet={"camera_tokens": "patches"})
 
 
 def test_too_small_images_for_the_kept_stages_are_refused():
     small = {"observation.images.top": PolicyFeature(FeatureType.VISUAL, (3, 24, 24))}
-    with pytest.raises(ValueError, match="vision_backbone_stages=2.*larger than 8 px"):
-        EBVLAPolicy(tiny_config(vision_backbone_stages=2, resize_shape=(8, 8), input_features=small))
-    with pytest.raises(ValueError, match="`vision_backbone_stages` must be 1, 2, 3 or 4"):
-        tiny_config(vision_backbone_stages=5)
+    with pytest.raises(ValueError, match="`resnet.vision_backbone_stages=2`.*larger than 8 px"):
+        EBVLAPolicy(
+            tiny_config(resnet={"vision_backbone_stages": 2, "resize_shape": (8, 8)}, input_features=small)
+        )
+    with pytest.raises(ValueError, match="`resnet.vision_backbone_stages` must be 1, 2, 3 or 4"):
+        tiny_config(resnet={"vision_backbone_stages": 5})
 
 
 def test_chunk_hooks_see_every_refined_chunk_until_removed(tiny_policy):

@@ -29,7 +29,7 @@ from lerobot_policy_ebvla.processor_ebvla import make_ebvla_pre_post_processors
 from .test_backbone_vlm import TASKS, TINY_VISION, raw_batch, vlm_config, write_tiny_language_model
 
 DEFAULTS = EBVLAConfig()
-QWEN, DINOV2, SIGLIP = DEFAULTS.vlm_model_name, DEFAULTS.dinov2_model_name, DEFAULTS.siglip_model_name
+QWEN, DINOV2, SIGLIP = DEFAULTS.vlm.model_name, DEFAULTS.vlm.dinov2_model_name, DEFAULTS.vlm.siglip_model_name
 IMAGE_SIZE = (
     28  # the encoders are saved at the size the policy uses, so timm has no position grid to resample
 )
@@ -100,13 +100,12 @@ def offline_cache(tmp_path, monkeypatch) -> Path:
 
 
 def pretrained_config(**names) -> EBVLAConfig:
-    """The tiny test config, loading pretrained weights under the default names unless `names` override them."""
-    names.setdefault("vlm_model_name", QWEN)
+    """The tiny test config, loading pretrained weights under the default names unless `names` (fields of the
+    `vlm` group) override them."""
+    names.setdefault("model_name", QWEN)
     return vlm_config(
-        Path(names.pop("vlm_model_name")),
-        load_pretrained_backbone=True,
-        vision_image_size=IMAGE_SIZE,
-        **names,
+        Path(names.pop("model_name")),
+        vlm={"load_pretrained_backbone": True, "vision_image_size": IMAGE_SIZE, **names},
     )
 
 
@@ -145,7 +144,7 @@ def assert_backbone_holds_saved_weights(policy: EBVLAPolicy, repos: dict[str, Pa
 def test_default_names_load_every_weight_from_the_hub_cache(repos, offline_cache, frozen_weights_dtype):
     populate_cache(offline_cache, repos)
     config = pretrained_config(frozen_weights_dtype=frozen_weights_dtype)
-    assert (config.dinov2_model_name, config.siglip_model_name) == (DINOV2, SIGLIP)
+    assert (config.vlm.dinov2_model_name, config.vlm.siglip_model_name) == (DINOV2, SIGLIP)
     policy = EBVLAPolicy(config)
     assert_backbone_holds_saved_weights(policy, repos, getattr(torch, frozen_weights_dtype))
 
@@ -160,7 +159,7 @@ def test_tokenizer_comes_from_the_hub_cache(repos, offline_cache):
 
 def test_local_folders_load_every_weight(repos, offline_cache):
     config = pretrained_config(
-        vlm_model_name=str(repos[QWEN]),
+        model_name=str(repos[QWEN]),
         dinov2_model_name=f"local-dir:{repos[timm_repo_id(DINOV2)]}",
         siglip_model_name=f"local-dir:{repos[timm_repo_id(SIGLIP)]}",
         frozen_weights_dtype="float32",
@@ -171,9 +170,9 @@ def test_local_folders_load_every_weight(repos, offline_cache):
 @pytest.mark.parametrize(
     ("cached", "field", "name"),
     [
-        ((), "dinov2_model_name", DINOV2),
-        ((timm_repo_id(DINOV2),), "siglip_model_name", SIGLIP),
-        ((timm_repo_id(DINOV2), timm_repo_id(SIGLIP)), "vlm_model_name", QWEN),
+        ((), "vlm.dinov2_model_name", DINOV2),
+        ((timm_repo_id(DINOV2),), "vlm.siglip_model_name", SIGLIP),
+        ((timm_repo_id(DINOV2), timm_repo_id(SIGLIP)), "vlm.model_name", QWEN),
     ],
     ids=["dinov2", "siglip", "language_model"],
 )
@@ -195,5 +194,5 @@ def test_default_offline_without_weights_names_them_and_how_to_proceed(
 
 
 def test_preprocessor_offline_without_the_tokenizer_names_it(offline_cache):
-    with pytest.raises(PretrainedWeightsUnavailableError, match=f"tokenizer `vlm_model_name={QWEN!r}`"):
+    with pytest.raises(PretrainedWeightsUnavailableError, match=f"tokenizer `vlm.model_name={QWEN!r}`"):
         make_ebvla_pre_post_processors(pretrained_config())

@@ -3,6 +3,7 @@ pipeline at a tiny size."""
 
 import json
 import math
+from operator import attrgetter
 
 import pytest
 
@@ -32,8 +33,8 @@ TINY = [
     "--policy.dim_model=16",
     "--policy.n_heads=2",
     "--policy.n_blocks=1",
-    "--policy.resize_shape=[40,40]",
-    "--policy.spatial_softmax_num_keypoints=4",
+    "--policy.resnet.resize_shape=[40,40]",
+    "--policy.resnet.spatial_softmax_num_keypoints=4",
     "--policy.inference_mcmc_steps=2",
     "--policy.train_mcmc_steps_range=[1,1]",
 ]
@@ -43,15 +44,33 @@ def test_policy_flags_override_the_light_policy_and_keep_its_other_values():
     cfg = quickstart.parse_config(["--policy.dim_model=64", "--task=push-v3"])
 
     assert cfg.task == "push-v3" and cfg.policy.dim_model == 64
-    for name in ("backbone", "n_heads", "n_blocks", "resize_shape", "train_mcmc_steps_range"):
+    for name in ("backbone", "n_heads", "n_blocks", "train_mcmc_steps_range"):
         assert getattr(cfg.policy, name) == LIGHT_POLICY[name], name
+    assert cfg.policy.resnet.resize_shape == LIGHT_POLICY["resnet"]["resize_shape"]
+
+
+def test_a_groups_flag_overrides_that_field_and_keeps_the_groups_other_light_policy_values():
+    cfg = quickstart.parse_config(["--policy.joint_energy.weight=0.1"])
+
+    assert cfg.policy.joint_energy.weight == 0.1
+    assert cfg.policy.joint_energy.gradient_penalty == LIGHT_POLICY["joint_energy"]["gradient_penalty"]
+    assert cfg.policy.joint_energy.target == "observation"
+
+
+def light_policy_leaves():
+    """(dotted name, value) of every field `LIGHT_POLICY` sets, a group's as `group.field`."""
+    for name, value in LIGHT_POLICY.items():
+        if isinstance(value, dict):
+            yield from ((f"{name}.{field}", v) for field, v in value.items())
+        else:
+            yield name, value
 
 
 def test_defaults_are_the_light_policy_from_the_command_line_and_from_python():
     from_cli, from_python = quickstart.parse_config([]), QuickstartConfig()
 
-    for name, value in LIGHT_POLICY.items():
-        assert getattr(from_cli.policy, name) == getattr(from_python.policy, name) == value, name
+    for name, value in light_policy_leaves():
+        assert attrgetter(name)(from_cli.policy) == attrgetter(name)(from_python.policy) == value, name
 
 
 def test_help_lists_the_quickstart_options(capsys):
@@ -60,7 +79,14 @@ def test_help_lists_the_quickstart_options(capsys):
 
     assert exit_info.value.code == 0
     help_text = capsys.readouterr().out
-    for option in ("--task", "--output_dir", "--steps", "--perturbation", "--policy.dim_model"):
+    for option in (
+        "--task",
+        "--output_dir",
+        "--steps",
+        "--perturbation",
+        "--policy.dim_model",
+        "--policy.joint_energy.weight",
+    ):
         assert option in help_text, option
 
 
@@ -69,7 +95,7 @@ def test_help_lists_the_quickstart_options(capsys):
     [
         ("--steps=0", "steps"),
         ("--eval_episodes=0", "eval_episodes"),
-        ("--policy.resize_shape=[8,8]", "resize_shape"),
+        ("--policy.resnet.resize_shape=[8,8]", "resize_shape"),
         ("--perturbation=rain", "perturbation"),
         ("--policy.backbone=vlm", "backbone"),
     ],

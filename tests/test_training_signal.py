@@ -4,7 +4,11 @@ import pytest
 import torch
 
 from lerobot_policy_ebvla import EBVLAPolicy
-from lerobot_policy_ebvla.modeling_ebvla import sample_training_step_sizes
+from lerobot_policy_ebvla.training_signal import (
+    compute_loss,
+    contrastive_energy_loss,
+    sample_training_step_sizes,
+)
 
 from .conftest import tiny_batch, tiny_config
 
@@ -47,8 +51,8 @@ def test_straight_through_clip_gives_the_backbone_a_larger_gradient_when_clips_a
     for straight_through in (False, True):
         torch.manual_seed(0)
         policy = EBVLAPolicy(tiny_config(grad_clip=1e-6, train_straight_through_clip=straight_through))
-        loss, _ = policy.model.compute_loss(
-            tiny_batch(policy.config), generator=torch.Generator().manual_seed(0)
+        loss, _ = compute_loss(
+            policy.model, tiny_batch(policy.config), generator=torch.Generator().manual_seed(0)
         )
         loss.backward()
         grads = [p.grad.norm() for p in policy.model.backbone.parameters() if p.grad is not None]
@@ -61,8 +65,8 @@ def test_contrastive_term_is_added_and_reported():
     losses = {}
     for weight in (0.0, 1.0):
         torch.manual_seed(0)
-        policy = EBVLAPolicy(tiny_config(energy_contrastive_weight=weight))
-        losses[weight] = policy.model.compute_loss(batch, generator=torch.Generator().manual_seed(0))
+        policy = EBVLAPolicy(tiny_config(contrastive={"weight": weight}))
+        losses[weight] = compute_loss(policy.model, batch, generator=torch.Generator().manual_seed(0))
     (plain, plain_info), (with_term, info) = losses[0.0], losses[1.0]
     assert "contrastive_loss" not in plain_info
     assert with_term.item() == pytest.approx(plain.item() + info["contrastive_loss"], rel=1e-5)
@@ -77,9 +81,7 @@ def test_contrastive_candidates_follow_the_mismatched_and_noisy_counts():
         torch.manual_seed(0)
         policy = EBVLAPolicy(
             tiny_config(
-                energy_contrastive_weight=1.0,
-                energy_contrastive_mismatched=mismatched,
-                energy_contrastive_negatives=noisy,
+                contrastive={"weight": 1.0, "mismatched": mismatched, "negatives": noisy},
             )
         )
         kv = policy.model.encode_context(batch)
@@ -87,7 +89,7 @@ def test_contrastive_candidates_follow_the_mismatched_and_noisy_counts():
         handle = policy.model.head.register_forward_hook(
             lambda m, args, out, sizes=sizes: sizes.append(args[0].shape[0])
         )
-        loss = policy.model.contrastive_energy_loss(kv, batch["action"], torch.Generator().manual_seed(0))
+        loss = contrastive_energy_loss(policy.model, kv, batch["action"], torch.Generator().manual_seed(0))
         handle.remove()
         seen.append((sizes, loss.item()))
     # All B - 1 = 5 other chunks by default; 6 contexts x (1 + M + N) candidates in one head call.
@@ -102,42 +104,42 @@ def test_contrastive_anchors_rank_their_candidates_against_the_whole_batch():
     batch; the loss is the mean of the full loss's first A rows."""
     batch = tiny_batch(tiny_config(), batch_size=6)
     torch.manual_seed(0)
-    policy = EBVLAPolicy(tiny_config(energy_contrastive_weight=1.0, energy_contrastive_negatives=0))
+    policy = EBVLAPolicy(tiny_config(contrastive={"weight": 1.0, "negatives": 0}))
     kv = policy.model.encode_context(batch)
     energies = []
     handle = policy.model.head.register_forward_hook(lambda m, args, out: energies.append(out.mean(dim=-1)))
-    full = policy.model.contrastive_energy_loss(kv, batch["action"], torch.Generator().manual_seed(0))
-    policy.config.energy_contrastive_anchors = 2
-    two = policy.model.contrastive_energy_loss(kv, batch["action"], torch.Generator().manual_seed(0))
+    full = contrastive_energy_loss(policy.model, kv, batch["action"], torch.Generator().manual_seed(0))
+    policy.config.contrastive.anchors = 2
+    two = contrastive_energy_loss(policy.model, kv, batch["action"], torch.Generator().manual_seed(0))
     handle.remove()
     assert [e.shape[0] for e in energies] == [6 * 6, 2 * 6]
     # Without noisy copies both calls score the same (context, chunk) pairs for the first two anchors.
-    logits = -energies[0].view(6, 6) / policy.config.energy_contrastive_temperature
+    logits = -energies[0].view(6, 6) / policy.config.contrastive.temperature
     per_row = torch.nn.functional.cross_entropy(logits, torch.zeros(6, dtype=torch.long), reduction="none")
     torch.testing.assert_close(full, per_row.mean(), rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(two, per_row[:2].mean(), rtol=1e-5, atol=1e-6)
     # More anchors than the batch holds: every observation.
-    policy.config.energy_contrastive_anchors = 50
+    policy.config.contrastive.anchors = 50
     torch.testing.assert_close(
-        policy.model.contrastive_energy_loss(kv, batch["action"], torch.Generator().manual_seed(0)), full
+        contrastive_energy_loss(policy.model, kv, batch["action"], torch.Generator().manual_seed(0)), full
     )
-    with pytest.raises(ValueError, match="energy_contrastive_anchors"):
-        tiny_config(energy_contrastive_anchors=0)
+    with pytest.raises(ValueError, match="`contrastive.anchors`"):
+        tiny_config(contrastive={"anchors": 0})
 
 
 def test_contrastive_mismatched_must_not_be_negative():
-    with pytest.raises(ValueError, match="energy_contrastive_mismatched"):
-        tiny_config(energy_contrastive_mismatched=-1)
+    with pytest.raises(ValueError, match="`contrastive.mismatched`"):
+        tiny_config(contrastive={"mismatched": -1})
 
 
 def test_training_with_the_contrastive_term_lowers_it_on_a_fixed_batch():
     torch.manual_seed(0)
-    policy = EBVLAPolicy(tiny_config(energy_contrastive_weight=1.0))
+    policy = EBVLAPolicy(tiny_config(contrastive={"weight": 1.0}))
     batch = tiny_batch(policy.config, batch_size=4)
     optimizer = torch.optim.Adam(policy.parameters(), lr=3e-3)
     contrastive = []
     for step in range(30):
-        loss, info = policy.model.compute_loss(batch, generator=torch.Generator().manual_seed(step))
+        loss, info = compute_loss(policy.model, batch, generator=torch.Generator().manual_seed(step))
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -147,7 +149,7 @@ def test_training_with_the_contrastive_term_lowers_it_on_a_fixed_batch():
 
 def test_state_dropout_hides_the_state_token_in_training_only():
     torch.manual_seed(0)
-    policy = EBVLAPolicy(tiny_config(state_dropout=0.5))
+    policy = EBVLAPolicy(tiny_config(resnet={"state_dropout": 0.5}))
     batch = tiny_batch(policy.config, batch_size=64, with_action=False)
     backbone = policy.model.backbone.train()
     state_tokens = backbone(batch)[0][:, -1]  # p is the last context token, (B, D)
@@ -158,8 +160,8 @@ def test_state_dropout_hides_the_state_token_in_training_only():
 
 
 def test_state_dropout_outside_zero_one_is_rejected_by_name():
-    with pytest.raises(ValueError, match="state_dropout"):
-        tiny_config(state_dropout=1.0)
+    with pytest.raises(ValueError, match="`resnet.state_dropout`"):
+        tiny_config(resnet={"state_dropout": 1.0})
 
 
 def test_contrastive_term_in_bf16_runs_its_head_pass_in_bf16_and_stays_close_to_fp32():
@@ -167,15 +169,15 @@ def test_contrastive_term_in_bf16_runs_its_head_pass_in_bf16_and_stays_close_to_
     fp32, close to the fp32 loss, with gradients reaching the head and the image encoder."""
     batch = tiny_batch(tiny_config(), batch_size=6)
     torch.manual_seed(0)
-    policy = EBVLAPolicy(tiny_config(energy_contrastive_weight=1.0))
+    policy = EBVLAPolicy(tiny_config(contrastive={"weight": 1.0}))
     kv = policy.model.encode_context(batch)
-    fp32 = policy.model.contrastive_energy_loss(kv, batch["action"], torch.Generator().manual_seed(0))
+    fp32 = contrastive_energy_loss(policy.model, kv, batch["action"], torch.Generator().manual_seed(0))
     dtypes = []
     handle = policy.model.head.blocks[0].ffn.down.register_forward_hook(
         lambda m, args, out: dtypes.append(out.dtype)
     )
-    policy.config.energy_contrastive_dtype = "bfloat16"
-    bf16 = policy.model.contrastive_energy_loss(kv, batch["action"], torch.Generator().manual_seed(0))
+    policy.config.contrastive.dtype = "bfloat16"
+    bf16 = contrastive_energy_loss(policy.model, kv, batch["action"], torch.Generator().manual_seed(0))
     handle.remove()
     assert dtypes == [torch.bfloat16]
     assert bf16.dtype == torch.float32 and torch.isfinite(bf16)
@@ -193,14 +195,14 @@ def test_contrastive_dtype_auto_uses_bf16_only_where_the_device_has_it(monkeypat
 
     monkeypatch.setattr(training_signal, "native_bf16", lambda device_type: native)
     batch = tiny_batch(tiny_config(), batch_size=3)
-    policy = EBVLAPolicy(tiny_config(energy_contrastive_weight=1.0, energy_contrastive_dtype="auto"))
+    policy = EBVLAPolicy(tiny_config(contrastive={"weight": 1.0, "dtype": "auto"}))
     dtypes = []
     policy.model.head.blocks[0].ffn.down.register_forward_hook(lambda m, args, out: dtypes.append(out.dtype))
     kv = policy.model.encode_context(batch)
-    policy.model.contrastive_energy_loss(kv, batch["action"], torch.Generator().manual_seed(0))
+    contrastive_energy_loss(policy.model, kv, batch["action"], torch.Generator().manual_seed(0))
     assert dtypes == [expected]
 
 
 def test_contrastive_dtype_must_be_a_known_precision():
-    with pytest.raises(ValueError, match="energy_contrastive_dtype.*'float16'"):
-        tiny_config(energy_contrastive_dtype="float16")
+    with pytest.raises(ValueError, match="`contrastive.dtype`.*'float16'"):
+        tiny_config(contrastive={"dtype": "float16"})

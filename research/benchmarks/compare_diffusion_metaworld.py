@@ -32,8 +32,8 @@ The energy study's five-task run (research/docs/energy_study.md, section 6) on t
         --tasks=button-press-v3,drawer-open-v3,drawer-close-v3,window-open-v3,door-open-v3 --record_episodes=30 \
         --image_size=64 --steps=4000 --batch_size=16 --num_workers=1 --ebvla_dim=128 \
         --ebvla_args="--policy.n_heads=4 --policy.n_blocks=2 --policy.train_mcmc_steps_range=[2,4] \
-            --policy.optimizer_lr=5e-4 --policy.vision_backbone_stages=2 --policy.state_dropout=0.5 \
-            --policy.energy_contrastive_weight=0.1" \
+            --policy.optimizer_lr=5e-4 --policy.resnet.vision_backbone_stages=2 --policy.resnet.state_dropout=0.5 \
+            --policy.contrastive.weight=0.1" \
         --ebvla_eval_args="--normalized_energy_samples=16 --restart_spread_chains=4 --record_context_features=true" \
         --diffusion_down_dims 128 256 512 --eval_episodes=10 --max_episode_steps=150 --seed=1000 \
         --calibration_seed=2000 --perturbations blank:1 pose:5 noise:5 --jobs=2
@@ -59,7 +59,7 @@ from typing import Any
 
 from lerobot_policy_ebvla.pipelines.eval_energy import eval_metaworld_checkpoint
 
-# The image encoder both methods share (field names are the same in DiffusionConfig and EBVLAConfig).
+# The image encoder both methods share (field names are the same in DiffusionConfig and EBVLAConfig's `resnet`).
 ENCODER = {
     "vision_backbone": "resnet18",
     "pretrained_backbone_weights": "null",
@@ -73,15 +73,16 @@ CROP_RATIO = 0.9
 
 
 def method_args(method: str, args: argparse.Namespace) -> list[str]:
-    encoder = [f"--policy.{name}={value}" for name, value in ENCODER.items()]
-    encoder.append(f"--policy.resize_shape=[{args.image_size},{args.image_size}]")
+    group = "resnet." if method == "ebvla" else ""
+    encoder = [f"--policy.{group}{name}={value}" for name, value in ENCODER.items()]
+    encoder.append(f"--policy.{group}resize_shape=[{args.image_size},{args.image_size}]")
     if method == "ebvla":
         crop = int(args.image_size * CROP_RATIO)
         return [
             "--policy.type=ebvla",
             "--policy.backbone=resnet",
             *encoder,
-            f"--policy.crop_shape=[{crop},{crop}]",
+            f"--policy.resnet.crop_shape=[{crop},{crop}]",
             f"--policy.dim_model={args.ebvla_dim}",
             "--policy.n_heads=8",
             "--policy.n_blocks=4",
@@ -324,7 +325,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--ebvla_args",
         type=shlex.split,
         default=[],
-        help="Extra ebvla training options, one string: '--policy.vision_backbone_stages=2 --policy.state_dropout=0.5'.",
+        help="Extra ebvla training options, one string: '--policy.resnet.vision_backbone_stages=2 --policy.resnet.state_dropout=0.5'.",
     )
     parser.add_argument(
         "--ebvla_eval_args",

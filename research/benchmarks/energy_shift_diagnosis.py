@@ -83,7 +83,7 @@ def measure(policy, batch, seed: int) -> dict[str, np.ndarray]:
         last[:, n_cam].numpy() if backbone.state_proj is not None else np.zeros((len(last), 1))
     )
     out["pooled_context"] = policy.context_features(batch).numpy()
-    if cfg.camera_tokens == "keypoints":
+    if cfg.resnet.camera_tokens == "keypoints":
         out["keypoint_radius"] = keypoint_spread(policy, batch)
     expert = batch["action"]
     out["expert_energy"] = policy.score_action_chunks(batch, expert[:, None])[:, 0].numpy()

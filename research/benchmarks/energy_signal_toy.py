@@ -27,6 +27,7 @@ import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 
 from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
+from lerobot_policy_ebvla.configuration_groups import ContrastiveConfig, ResNetBackboneConfig
 from lerobot_policy_ebvla.monitoring import auroc
 from lerobot_policy_ebvla.monitoring.vision import camera_dependence
 
@@ -36,8 +37,11 @@ CHUNK, ACTION_DIM = 8, 2
 VARIANTS = {
     "paper": {},
     "straight_through_clip": {"train_straight_through_clip": True},
-    "contrastive": {"energy_contrastive_weight": 1.0},
-    "straight_through+contrastive": {"train_straight_through_clip": True, "energy_contrastive_weight": 1.0},
+    "contrastive": {"contrastive": ContrastiveConfig(weight=1.0)},
+    "straight_through+contrastive": {
+        "train_straight_through_clip": True,
+        "contrastive": ContrastiveConfig(weight=1.0),
+    },
     "alpha_per_mcmc_step": {"train_step_size_sampling": "per_mcmc_step"},
 }
 
@@ -79,7 +83,7 @@ def make_config(overrides: dict) -> EBVLAConfig:
     return EBVLAConfig(
         backbone="resnet",
         device="cpu",
-        spatial_softmax_num_keypoints=8,
+        resnet=ResNetBackboneConfig(spatial_softmax_num_keypoints=8),
         input_features={
             "observation.images.top": PolicyFeature(FeatureType.VISUAL, IMAGE),
             "observation.state": PolicyFeature(FeatureType.STATE, (4,)),

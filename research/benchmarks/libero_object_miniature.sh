@@ -24,8 +24,8 @@ if [ ! -d "$CKPT" ]; then
   # Two cameras and a learned token per task instruction: LIBERO-Object's tasks share a scene and differ by
   # the object named in the instruction, which the light backbone cannot read.
   "$BIN/lerobot-train" --policy.type=ebvla --policy.backbone=resnet --policy.dim_model=128 --policy.n_heads=4 \
-      --policy.n_blocks=2 --policy.resize_shape=[96,96] --policy.vision_backbone_stages="${STAGES:-2}" \
-      --policy.camera_tokens="${CAMERA_TOKENS:-keypoints}" '--policy.task_instructions=[]' \
+      --policy.n_blocks=2 --policy.resnet.resize_shape=[96,96] --policy.resnet.vision_backbone_stages="${STAGES:-2}" \
+      --policy.resnet.camera_tokens="${CAMERA_TOKENS:-keypoints}" '--policy.resnet.task_instructions=[]' \
       --policy.train_mcmc_steps_range=[2,4] --policy.optimizer_lr=5e-4 --policy.push_to_hub=false \
       --policy.device="$DEVICE" --dataset.repo_id="$REPO_ID" --dataset.root="$DATA" \
       --batch_size="$BATCH" --steps="$STEPS" --save_freq="$STEPS" --log_freq=100 --num_workers=0 \

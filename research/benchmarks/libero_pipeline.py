@@ -46,9 +46,9 @@ SUITE = "libero_object"
 EBVLA_LIGHT = [
     "--policy.type=ebvla",
     "--policy.backbone=resnet",
-    "--policy.resize_shape=[128,128]",
-    "--policy.vision_backbone_stages=3",
-    "--policy.task_instructions=[]",
+    "--policy.resnet.resize_shape=[128,128]",
+    "--policy.resnet.vision_backbone_stages=3",
+    "--policy.resnet.task_instructions=[]",
     "--policy.dim_model=256",
     "--policy.n_heads=8",
     "--policy.n_blocks=2",
@@ -59,7 +59,7 @@ RUNS = {
     # The paper's training signal (Eq. 4 alone) at Table V's K_train 8-15.
     "ebvla_paper": EBVLA_LIGHT,
     # The variant the MetaWorld study favours for detection: the contrastive term and state dropout.
-    "ebvla_variant": [*EBVLA_LIGHT, "--policy.energy_contrastive_weight=0.1", "--policy.state_dropout=0.5"],
+    "ebvla_variant": [*EBVLA_LIGHT, "--policy.contrastive.weight=0.1", "--policy.resnet.state_dropout=0.5"],
     # LeRobot's Diffusion Policy at its defaults, both cameras, random crops of 90% of the frame (`run_args`),
     # its ResNet-18 from scratch as ebvla's (ImageNet weights cannot be downloaded offline). It has no language
     # input: on LIBERO-Object it cannot know which object the instruction names.
@@ -79,16 +79,16 @@ RUNS = {
 EBVLA_CPU = [
     "--policy.type=ebvla",
     "--policy.backbone=resnet",
-    "--policy.resize_shape=[96,96]",
-    "--policy.vision_backbone_stages=2",
-    "--policy.task_instructions=[]",
+    "--policy.resnet.resize_shape=[96,96]",
+    "--policy.resnet.vision_backbone_stages=2",
+    "--policy.resnet.task_instructions=[]",
     "--policy.dim_model=128",
     "--policy.n_heads=4",
     "--policy.n_blocks=2",
     "--policy.ffn_multiplier=2",
-    "--policy.state_dropout=0.5",
-    "--policy.energy_contrastive_weight=0.2",
-    "--policy.energy_contrastive_dtype=auto",
+    "--policy.resnet.state_dropout=0.5",
+    "--policy.contrastive.weight=0.2",
+    "--policy.contrastive.dtype=auto",
     "--policy.optimizer_lr=5e-4",
     "--policy.push_to_hub=false",
 ]

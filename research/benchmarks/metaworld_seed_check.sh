@@ -8,7 +8,7 @@
 #
 # A variant of the preset: VARIANT names its records' folder (seed<SEED>/<VARIANT>/, default the preset's
 # "observation") and QUICKSTART_ARGS its overrides, e.g.
-#   VARIANT=observation_appearance QUICKSTART_ARGS='--policy.energy_ood_corruptions=[channel_gain,state_noise]' \
+#   VARIANT=observation_appearance QUICKSTART_ARGS='--policy.joint_energy.corruptions=[channel_gain,state_noise]' \
 #     bash research/benchmarks/metaworld_seed_check.sh 12000
 #
 # Then: research/benchmarks/score_summaries.py and research/benchmarks/window_typicality.py on seed<SEED>/observation/context_energy_*.

@@ -18,14 +18,14 @@ second order) is what remains.
 Rows (`--policies`):
 
     ebvla                  the light policy (`presets.LIGHT_POLICY`): what the quickstart trains
-    ebvla-no-contrastive   the same without the contrastive term (energy_contrastive_weight=0)
+    ebvla-no-contrastive   the same without the contrastive term (contrastive.weight=0)
     ebvla-fewer-negatives  the same with 7 mismatched chunks and 4 noisy copies as contrastive candidates instead of
-                           all B - 1 and 8 (`energy_contrastive_mismatched=7`, `energy_contrastive_negatives=4`)
+                           all B - 1 and 8 (`contrastive.mismatched=7`, `contrastive.negatives=4`)
     ebvla-4-anchors        the same with 4 of the batch's observations ranking all of their candidates
-                           (`energy_contrastive_anchors=4`)
+                           (`contrastive.anchors=4`)
     ebvla-ffn4             the light policy before 2026-11-24: the head's FFN 4D wide (`ffn_multiplier=4`)
     ebvla-contrastive-fp32 the light policy until the evening of 2026-11-24: the contrastive term in fp32 on every CPU
-                           (`energy_contrastive_dtype="float32"`; the preset's "auto" takes bf16 where the CPU
+                           (`contrastive.dtype="float32"`; the preset's "auto" takes bf16 where the CPU
                            has AVX512-BF16 or AMX, and is this row elsewhere)
     diffusion              LeRobot's Diffusion Policy at its defaults (U-Net 512/1024/2048, 100 train timesteps),
                            with the light policy's encoder (ResNet-18 cut to the same stages, same image size, group
@@ -134,20 +134,20 @@ def policy_config(row: str):
     if row == "ebvla":
         return light_policy_config()
     if row == "ebvla-no-contrastive":
-        return light_policy_config(energy_contrastive_weight=0.0)
+        return light_policy_config(contrastive={"weight": 0.0})
     if row == "ebvla-fewer-negatives":
-        return light_policy_config(energy_contrastive_mismatched=7, energy_contrastive_negatives=4)
+        return light_policy_config(contrastive={"mismatched": 7, "negatives": 4})
     if row == "ebvla-4-anchors":
-        return light_policy_config(energy_contrastive_anchors=4)
+        return light_policy_config(contrastive={"anchors": 4})
     if row == "ebvla-ffn4":
         return light_policy_config(ffn_multiplier=4)
     if row == "ebvla-contrastive-fp32":
-        return light_policy_config(energy_contrastive_dtype="float32")
+        return light_policy_config(contrastive={"dtype": "float32"})
     from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 
     light = light_policy_config()
     encoder = {
-        name: getattr(light, name)
+        name: getattr(light.resnet, name)
         for name in (
             "vision_backbone",
             "pretrained_backbone_weights",
@@ -206,7 +206,7 @@ def build_row(name: str, args: argparse.Namespace) -> Row:
         encoders = policy.diffusion.rgb_encoder
         encoders = list(encoders) if isinstance(encoders, torch.nn.ModuleList) else [encoders]
         for encoder in encoders:
-            keep_resnet_stages(encoder, LIGHT_POLICY["vision_backbone_stages"], config)
+            keep_resnet_stages(encoder, LIGHT_POLICY["resnet"]["vision_backbone_stages"], config)
         image_encoder = encoders[0]
     else:
         image_encoder = policy.model.backbone.rgb_encoders[0]

@@ -32,27 +32,28 @@ from lerobot.datasets.factory import resolve_delta_timestamps
 from lerobot.policies.factory import make_pre_post_processors
 from lerobot.utils.feature_utils import dataset_to_policy_features
 
-from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
+from lerobot_policy_ebvla import EBVLAPolicy
 from lerobot_policy_ebvla.backbone_resnet import keep_resnet_stages
 from lerobot_policy_ebvla.monitoring.vision import blank_cameras
+from lerobot_policy_ebvla.presets import ebvla_config
 
 VARIANTS = {
     "paper": {},
     "straight_through_clip": {"train_straight_through_clip": True},
-    "contrastive": {"energy_contrastive_weight": 1.0},
-    "straight_through+contrastive": {"train_straight_through_clip": True, "energy_contrastive_weight": 1.0},
-    "state_dropout": {"state_dropout": 0.5},
-    "state_dropout+contrastive": {"state_dropout": 0.5, "energy_contrastive_weight": 1.0},
-    "state_dropout+straight_through": {"state_dropout": 0.5, "train_straight_through_clip": True},
+    "contrastive": {"contrastive": {"weight": 1.0}},
+    "straight_through+contrastive": {"train_straight_through_clip": True, "contrastive": {"weight": 1.0}},
+    "state_dropout": {"resnet": {"state_dropout": 0.5}},
+    "state_dropout+contrastive": {"resnet": {"state_dropout": 0.5}, "contrastive": {"weight": 1.0}},
+    "state_dropout+straight_through": {"resnet": {"state_dropout": 0.5}, "train_straight_through_clip": True},
     # The control: no state input at all, so the camera is the only way to the expert chunk.
     "no_state": {},
     "no_state+straight_through": {"train_straight_through_clip": True},
-    "no_state+contrastive": {"energy_contrastive_weight": 1.0},
-    "no_state+contrastive_0.1": {"energy_contrastive_weight": 0.1},
-    "contrastive_0.1": {"energy_contrastive_weight": 0.1},
-    "state_dropout+contrastive_0.1": {"state_dropout": 0.5, "energy_contrastive_weight": 0.1},
+    "no_state+contrastive": {"contrastive": {"weight": 1.0}},
+    "no_state+contrastive_0.1": {"contrastive": {"weight": 0.1}},
+    "contrastive_0.1": {"contrastive": {"weight": 0.1}},
+    "state_dropout+contrastive_0.1": {"resnet": {"state_dropout": 0.5}, "contrastive": {"weight": 0.1}},
 }
-# The image encoder both methods share (DiffusionConfig and EBVLAConfig name these fields alike).
+# The image encoder both methods share (DiffusionConfig and EBVLAConfig's `resnet` name these fields alike).
 ENCODER = {
     "vision_backbone": "resnet18",
     "pretrained_backbone_weights": None,
@@ -101,16 +102,19 @@ def make_policy(method: str, variant: str, meta, args):
         for encoder in encoders if isinstance(encoders, torch.nn.ModuleList) else [encoders]:
             keep_resnet_stages(encoder, args.stages, config)
         return policy, config
-    config = EBVLAConfig(
-        backbone="resnet",
-        dim_model=args.dim_model,
-        n_heads=4,
-        n_blocks=2,
-        train_mcmc_steps_range=tuple(args.train_mcmc_steps),
-        vision_backbone_stages=args.stages,
-        camera_tokens=args.camera_tokens,
-        **common,
-        **overrides,
+    io = {name: common.pop(name) for name in ("input_features", "output_features", "device")}
+    encoder = {**common, "vision_backbone_stages": args.stages, "camera_tokens": args.camera_tokens}
+    config = ebvla_config(
+        {
+            "backbone": "resnet",
+            "dim_model": args.dim_model,
+            "n_heads": 4,
+            "n_blocks": 2,
+            "train_mcmc_steps_range": tuple(args.train_mcmc_steps),
+            "resnet": encoder,
+            **io,
+        },
+        overrides,
     )
     return EBVLAPolicy(config), config
 

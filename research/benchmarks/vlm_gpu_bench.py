@@ -42,8 +42,9 @@ from lerobot_policy_ebvla.compile_ebvla import CHUNK_GRAPH_MODE, refinement_grap
 from lerobot_policy_ebvla.configuration_ebvla import COMPILE_MODES
 from lerobot_policy_ebvla.energy_head import ContextKV
 
-TINY = {
-    "vlm_config": {
+# Fields of the `vlm` group, then top-level fields, of the tiny VLM.
+TINY_VLM = {
+    "model_config": {
         "model_type": "qwen2",
         "vocab_size": 256,
         "hidden_size": 64,
@@ -55,24 +56,23 @@ TINY = {
     "vision_model_overrides": {"depth": 2, "embed_dim": 32, "num_heads": 2},
     "vision_image_size": 28,
     "num_context_layers": 3,
-    "dim_model": 32,
-    "n_heads": 2,
 }
+TINY = {"dim_model": 32, "n_heads": 2}
 
 
 def make_batch(
     config: EBVLAConfig, batch_size: int, device: torch.device, dtype: torch.dtype, text_tokens: int = 20
 ) -> dict:
     """A pre-processed batch; floats in `dtype`, as LeRobot's device step with `float_dtype` would give."""
-    vocab = config.vlm_config["vocab_size"]
+    vocab = config.vlm.model_config["vocab_size"]
     batch = {
         key: torch.rand(batch_size, *ft.shape, device=device) for key, ft in config.image_features.items()
     }
     batch[OBS_STATE] = torch.randn(batch_size, config.state_dim, device=device)
     batch[OBS_LANGUAGE_TOKENS] = torch.randint(
-        0, min(vocab, 151643), (batch_size, config.tokenizer_max_length), device=device
+        0, min(vocab, 151643), (batch_size, config.vlm.tokenizer_max_length), device=device
     )
-    mask = torch.zeros(batch_size, config.tokenizer_max_length, dtype=torch.bool, device=device)
+    mask = torch.zeros(batch_size, config.vlm.tokenizer_max_length, dtype=torch.bool, device=device)
     mask[:, :text_tokens] = True
     batch[OBS_LANGUAGE_ATTENTION_MASK] = mask
     batch[ACTION] = torch.randn(batch_size, config.chunk_size, config.action_dim, device=device)
@@ -169,7 +169,7 @@ def context_and_chain_diffs(policy: EBVLAPolicy, observation: dict, device: torc
     def chain_in(run_mode: str, kv: ContextKV) -> tuple[torch.Tensor, torch.Tensor]:
         policy.config.compile_mode = run_mode
         generator = torch.Generator(device=device).manual_seed(0)
-        initial = model._initial_actions(kv[0][0].shape[0], kv[0][0], generator)
+        initial = model.initial_actions(kv[0][0].shape[0], kv[0][0], generator)
         result, final_energy = model._inference_chain(kv, initial, generator, None)
         return result.actions.detach(), final_energy.detach()
 
@@ -430,6 +430,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.tiny:
         for name, value in TINY.items():
             setattr(config, name, value)
+        for name, value in TINY_VLM.items():
+            setattr(config.vlm, name, value)
     torch.manual_seed(0)
     start = time.perf_counter()
     with torch.device(device):

@@ -16,6 +16,7 @@ import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 
 from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
+from lerobot_policy_ebvla.configuration_groups import VLMBackboneConfig
 
 # FALLBACK ONLY, used when the Hub is unreachable: Qwen/Qwen2.5-0.5B's config.json values (24 layers, width 896,
 # MLP 4864, 14 query / 2 key-value heads, 151936 tokens, tied embeddings, RoPE theta 1e6).
@@ -46,7 +47,7 @@ def full_size_config(state_dim: int = 8, action_dim: int = 7, offline: bool = Fa
     """The paper's configuration: two 224 px cameras (primary, wrist), LIBERO-like state and action sizes."""
     config = EBVLAConfig(
         device="cpu",
-        load_pretrained_backbone=False,
+        vlm=VLMBackboneConfig(load_pretrained_backbone=False),
         input_features={
             "observation.images.primary": PolicyFeature(FeatureType.VISUAL, (3, 224, 224)),
             "observation.images.wrist": PolicyFeature(FeatureType.VISUAL, (3, 224, 224)),
@@ -55,15 +56,15 @@ def full_size_config(state_dim: int = 8, action_dim: int = 7, offline: bool = Fa
         output_features={"action": PolicyFeature(FeatureType.ACTION, (action_dim,))},
     )
     if offline:
-        config.vlm_config = dict(QWEN25_05B_FALLBACK_CONFIG)
+        config.vlm.model_config = dict(QWEN25_05B_FALLBACK_CONFIG)
     else:
         try:
             from transformers import AutoConfig
 
-            config.vlm_config = AutoConfig.from_pretrained(config.vlm_model_name).to_diff_dict()
+            config.vlm.model_config = AutoConfig.from_pretrained(config.vlm.model_name).to_diff_dict()
         except OSError as error:
             logging.warning("Hub unreachable (%s): using the built-in Qwen2.5-0.5B config.", error)
-            config.vlm_config = dict(QWEN25_05B_FALLBACK_CONFIG)
+            config.vlm.model_config = dict(QWEN25_05B_FALLBACK_CONFIG)
     return config
 
 
@@ -118,12 +119,12 @@ def size_table(policy: EBVLAPolicy) -> str:
     bf16_static = 2 * total + 3 * 2 * trainable_total  # everything bf16 (the GPU benchmark's setting)
     # `EBVLAPolicy._save_pretrained` stores a tensor in bf16 when bf16 holds it exactly: every frozen weight with
     # `frozen_weights_dtype="bfloat16"`, which rounds them when the backbone is built. Trainable ones stay fp32.
-    narrow_frozen = 2 if policy.config.frozen_weights_dtype == "bfloat16" else 4
+    narrow_frozen = 2 if policy.config.vlm.frozen_weights_dtype == "bfloat16" else 4
     lines += [
         "",
         "Checkpoint (model.safetensors, weights only):",
         f"- frozen_weights_dtype=float32 (all fp32): {4 * total / GIB:.3f} GiB",
-        f"- frozen_weights_dtype={policy.config.frozen_weights_dtype} (frozen in that dtype, trainable fp32): "
+        f"- frozen_weights_dtype={policy.config.vlm.frozen_weights_dtype} (frozen in that dtype, trainable fp32): "
         f"{(narrow_frozen * frozen + 4 * trainable_total) / GIB:.3f} GiB",
         "",
         "Static training memory (weights, gradients and AdamW moments; activations excluded):",
@@ -148,9 +149,9 @@ def main() -> None:
         policy = EBVLAPolicy(config)
     backbone = policy.model.backbone
     print(
-        f"EB-VLA full size: K_t = {backbone.num_vision_tokens} vision tokens, K_a = {config.num_latent_tokens} "
-        f"latents, {config.tokenizer_max_length} instruction tokens, context layers {backbone.context_layers}, "
-        f"LoRA rank {config.lora_rank}, head L = {config.n_blocks}, D = {config.dim_model}.\n"
+        f"EB-VLA full size: K_t = {backbone.num_vision_tokens} vision tokens, K_a = {config.vlm.num_latent_tokens} "
+        f"latents, {config.vlm.tokenizer_max_length} instruction tokens, context layers {backbone.context_layers}, "
+        f"LoRA rank {config.vlm.lora_rank}, head L = {config.n_blocks}, D = {config.dim_model}.\n"
     )
     print(size_table(policy))
 

@@ -241,8 +241,8 @@ def test_with_a_calibration_count_held_out_and_perturbed_rollouts_share_the_stat
 
 
 def test_cpu_runs_resize_their_cameras_and_diffusion_crops_by_ratio():
-    for run in ("ebvla_cpu", "diffusion_cpu"):
-        assert "--policy.resize_shape=[96,96]" in pipeline.run_args(run, 128)
+    assert "--policy.resnet.resize_shape=[96,96]" in pipeline.run_args("ebvla_cpu", 128)
+    assert "--policy.resize_shape=[96,96]" in pipeline.run_args("diffusion_cpu", 128)
     assert pipeline.run_args("diffusion_cpu", 128) == pipeline.RUNS["diffusion_cpu"]
     # The paper's MCMC: ebvla_cpu leaves Table V's K_train 8-15 and K_inf 15 at their defaults.
     assert not [arg for arg in pipeline.RUNS["ebvla_cpu"] if "mcmc_steps" in arg]

@@ -231,9 +231,7 @@ def test_without_a_score_the_report_saves_the_checkpoints_monitor_score(
 
 
 def test_a_context_energy_score_on_records_without_it_is_refused_by_name(record_dirs, tmp_path):
-    with pytest.raises(
-        ValueError, match="context_energy_two_sided.*context energy E_c.*energy_ood_margin_on"
-    ):
+    with pytest.raises(ValueError, match="context_energy_two_sided.*context energy E_c.*joint_energy.target"):
         report(record_dirs, tmp_path, score="context_energy_two_sided")
 
 
@@ -349,7 +347,7 @@ def test_a_context_energy_score_without_the_context_energy_says_where_it_comes_f
     bare = VanillaRollouts(
         [EnergyReadout.of_arrays(r.final_energy, r.chunk_index) for r in vanilla().rollouts]
     )
-    with pytest.raises(ValueError, match="energy_ood_margin_on"):
+    with pytest.raises(ValueError, match="joint_energy.target"):
         score_class.fit(bare)
 
 

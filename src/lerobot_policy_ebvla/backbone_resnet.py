@@ -2,13 +2,15 @@
 
 The paper validates the EBT head against Diffusion Policy with "the same vision encoder" (Sec. III-A). This
 backbone therefore reuses LeRobot's `DiffusionRgbEncoder` (ResNet, spatial-softmax keypoints, a linear layer)
-as it is (`vision_backbone_stages` can cut its ResNet short), so an `ebvla` policy and LeRobot's `diffusion` policy built from the same encoder fields differ
+as it is (`resnet.vision_backbone_stages` can cut its ResNet short), so an `ebvla` policy and LeRobot's `diffusion` policy built from the same encoder fields differ
 only in their action head. Each camera becomes one context token, the proprioceptive state another:
 
     C = [camera_1; ...; camera_n; p] in R^{(n + 1) x D},  shared by all head blocks,
 
-followed by a learned token of the task instruction when `task_instructions` is set.
+followed by a learned token of the task instruction when `resnet.task_instructions` is set.
 """
+
+from types import SimpleNamespace
 
 import torch
 from einops import rearrange
@@ -38,6 +40,12 @@ def keep_resnet_stages(encoder: DiffusionRgbEncoder, num_stages: int, config) ->
     return encoder
 
 
+def diffusion_encoder_fields(config: EBVLAConfig) -> SimpleNamespace:
+    """The light backbone's fields (`config.resnet`, under Diffusion Policy's names) with the cameras: what
+    `DiffusionRgbEncoder` and `keep_resnet_stages` read from a `DiffusionConfig`."""
+    return SimpleNamespace(**vars(config.resnet), image_features=config.image_features)
+
+
 class ResNetFeatureMap(DiffusionRgbEncoder):
     """Diffusion Policy's encoder without its pooling: every cell of the ResNet's feature map is one token.
 
@@ -47,7 +55,8 @@ class ResNetFeatureMap(DiffusionRgbEncoder):
     and the head's cross-attention picks the cells it needs, as it does with the VLM's patch tokens.
     """
 
-    def __init__(self, config: EBVLAConfig):
+    def __init__(self, config: SimpleNamespace):
+        """`config`: the encoder's fields, as `diffusion_encoder_fields` gives them."""
         super().__init__(config)
         keep_resnet_stages(self, config.vision_backbone_stages, config)
         del self.pool, self.out, self.relu
@@ -69,11 +78,11 @@ class EBVLAResNetBackbone(nn.Module):
     """Encodes cameras and state into the context tokens of the energy head.
 
     Args:
-        config: Reads the Diffusion-Policy encoder fields (`vision_backbone`, `resize_shape`, `crop_shape`,
-            `crop_is_random`, `use_group_norm`, `pretrained_backbone_weights`,
-            `spatial_softmax_num_keypoints`, `use_separate_rgb_encoder_per_camera`), `vision_backbone_stages`,
-            `camera_tokens`, the image and state features, `dim_model` (the token width), `n_blocks`,
-            `state_dropout` and `task_instructions`.
+        config: Reads the Diffusion-Policy encoder fields (`resnet.vision_backbone`, `resnet.resize_shape`, `resnet.crop_shape`,
+            `resnet.crop_is_random`, `resnet.use_group_norm`, `resnet.pretrained_backbone_weights`,
+            `resnet.spatial_softmax_num_keypoints`, `resnet.use_separate_rgb_encoder_per_camera`), `resnet.vision_backbone_stages`,
+            `resnet.camera_tokens`, the image and state features, `dim_model` (the token width), `n_blocks`,
+            `resnet.state_dropout` and `resnet.task_instructions`.
     """
 
     def __init__(self, config: EBVLAConfig):
@@ -81,14 +90,15 @@ class EBVLAResNetBackbone(nn.Module):
         self.config = config
         self.camera_keys = list(config.image_features)
         self.context_dim = config.dim_model
-        n_encoders = len(self.camera_keys) if config.use_separate_rgb_encoder_per_camera else 1
-        # `EBVLAConfig` carries the encoder's fields under Diffusion Policy's names, so it builds it directly.
-        if config.camera_tokens == "feature_map":
-            self.rgb_encoders = nn.ModuleList(ResNetFeatureMap(config) for _ in range(n_encoders))
+        n_encoders = len(self.camera_keys) if config.resnet.use_separate_rgb_encoder_per_camera else 1
+        # `config.resnet` carries the encoder's fields under Diffusion Policy's names, so it builds it directly.
+        encoder = diffusion_encoder_fields(config)
+        if config.resnet.camera_tokens == "feature_map":
+            self.rgb_encoders = nn.ModuleList(ResNetFeatureMap(encoder) for _ in range(n_encoders))
             tokens_per_camera = self.rgb_encoders[0].num_cells
         else:
             self.rgb_encoders = nn.ModuleList(
-                keep_resnet_stages(DiffusionRgbEncoder(config), config.vision_backbone_stages, config)
+                keep_resnet_stages(DiffusionRgbEncoder(encoder), encoder.vision_backbone_stages, encoder)
                 for _ in range(n_encoders)
             )
             tokens_per_camera = 1
@@ -102,7 +112,7 @@ class EBVLAResNetBackbone(nn.Module):
             self.cell_embed = nn.Parameter(torch.zeros(tokens_per_camera, self.context_dim))
             nn.init.normal_(self.cell_embed, std=0.02)
         self.state_proj = nn.Linear(config.state_dim, self.context_dim) if config.state_dim else None
-        self.task_index = {task: i for i, task in enumerate(config.task_instructions or [])}
+        self.task_index = {task: i for i, task in enumerate(config.resnet.task_instructions or [])}
         self.task_embed = nn.Embedding(len(self.task_index), self.context_dim) if self.task_index else None
 
     def encode_cameras(self, batch: dict[str, Tensor]) -> Tensor:
@@ -126,7 +136,7 @@ class EBVLAResNetBackbone(nn.Module):
         if tasks is None:
             raise ValueError(
                 f"The light backbone has task tokens for {len(self.task_index)} instructions "
-                "(`task_instructions`), and the batch has no `task`."
+                "(`resnet.task_instructions`), and the batch has no `task`."
             )
         tasks = [tasks] if isinstance(tasks, str) else list(tasks)
         unknown = sorted({task for task in tasks if task not in self.task_index})
@@ -144,9 +154,11 @@ class EBVLAResNetBackbone(nn.Module):
         tokens = [self.encode_cameras(batch)]
         if self.state_proj is not None:
             state = self.state_proj(batch[OBS_STATE]).unsqueeze(1)  # p, (B, 1, D)
-            if self.training and self.config.state_dropout > 0:
+            if self.training and self.config.resnet.state_dropout > 0:
                 # Zeroing p (not dropping the token) keeps the context's length fixed for every sample.
-                keep = torch.rand(state.shape[0], 1, 1, device=state.device) >= self.config.state_dropout
+                keep = (
+                    torch.rand(state.shape[0], 1, 1, device=state.device) >= self.config.resnet.state_dropout
+                )
                 state = state * keep
             tokens.append(state)
         if self.task_embed is not None:

@@ -40,9 +40,9 @@ ENCODER_LABELS = {"dinov2": "DINOv2", "siglip": "SigLIP"}
 
 # How to point each field at local weights, for the error message.
 _LOCAL_FOLDER_HINTS = {
-    "dinov2_model_name": "'local-dir:/path' holding timm's config.json and model.safetensors",
-    "siglip_model_name": "'local-dir:/path' holding timm's config.json and model.safetensors",
-    "vlm_model_name": "a folder written by transformers' save_pretrained, tokenizer included",
+    "vlm.dinov2_model_name": "'local-dir:/path' holding timm's config.json and model.safetensors",
+    "vlm.siglip_model_name": "'local-dir:/path' holding timm's config.json and model.safetensors",
+    "vlm.model_name": "a folder written by transformers' save_pretrained, tokenizer included",
 }
 
 
@@ -69,31 +69,34 @@ def fetching(field: str, name: str, what: str) -> Iterator[None]:
 class EBVLAFusedVisionEncoder(nn.Module):
     """DINOv2 and SigLIP patch features of the same image, concatenated per patch (Prismatic's fused encoder).
 
-    Each encoder sees the image resized to `vision_image_size` and normalized with its own mean and std, and
+    Each encoder sees the image resized to `vlm.vision_image_size` and normalized with its own mean and std, and
     contributes the patch tokens of its second-to-last block (Prismatic's choice; prefix tokens dropped).
     The last block, final norm and head are pruned away: they would never be used.
 
     Args:
-        config: Reads `dinov2_model_name`, `siglip_model_name`, `vision_image_size`, `vision_model_overrides`,
-            `load_pretrained_backbone` and `freeze_vision_encoder`.
+        config: Reads `vlm.dinov2_model_name`, `vlm.siglip_model_name`, `vlm.vision_image_size`, `vlm.vision_model_overrides`,
+            `vlm.load_pretrained_backbone` and `vlm.freeze_vision_encoder`.
     """
 
     def __init__(self, config: EBVLAConfig):
         super().__init__()
-        self.image_size = config.vision_image_size
-        self.frozen = config.freeze_vision_encoder
+        self.image_size = config.vlm.vision_image_size
+        self.frozen = config.vlm.freeze_vision_encoder
         self.encoders = nn.ModuleDict()
         self.layer_index: dict[str, int] = {}
         self.image_stats: dict[str, tuple[tuple[float, ...], tuple[float, ...]]] = {}
         grids = set()
-        for name, model_name in (("dinov2", config.dinov2_model_name), ("siglip", config.siglip_model_name)):
-            with fetching(f"{name}_model_name", model_name, f"{ENCODER_LABELS[name]} encoder weights"):
+        for name, model_name in (
+            ("dinov2", config.vlm.dinov2_model_name),
+            ("siglip", config.vlm.siglip_model_name),
+        ):
+            with fetching(f"vlm.{name}_model_name", model_name, f"{ENCODER_LABELS[name]} encoder weights"):
                 encoder = timm.create_model(
                     model_name,
-                    pretrained=config.load_pretrained_backbone,
+                    pretrained=config.vlm.load_pretrained_backbone,
                     img_size=self.image_size,
                     num_classes=0,
-                    **config.vision_model_overrides,
+                    **config.vlm.vision_model_overrides,
                 )
             if len(encoder.blocks) < 2:
                 raise ValueError(
@@ -109,7 +112,7 @@ class EBVLAFusedVisionEncoder(nn.Module):
             grids.add(tuple(encoder.patch_embed.grid_size))
         if len(grids) != 1:
             raise ValueError(
-                f"DINOv2 and SigLIP must cut `vision_image_size={self.image_size}` into the same patch grid to be "
+                f"DINOv2 and SigLIP must cut `vlm.vision_image_size={self.image_size}` into the same patch grid to be "
                 f"fused per patch. Got grids {sorted(grids)}."
             )
         (grid,) = grids
@@ -123,7 +126,7 @@ class EBVLAFusedVisionEncoder(nn.Module):
         return super().train(mode and not self.frozen)
 
     def resize(self, images: Tensor) -> Tensor:
-        """(N, 3, H, W) in [0, 1] -> (N, 3, S, S), S = `vision_image_size`, bicubic as in the timm transforms."""
+        """(N, 3, H, W) in [0, 1] -> (N, 3, S, S), S = `vlm.vision_image_size`, bicubic as in the timm transforms."""
         images = images.float()  # antialiased bicubic has no bf16 kernel; normalization is cast down after
         if images.shape[-2:] == (self.image_size, self.image_size):
             return images
@@ -167,20 +170,20 @@ class EBVLAVisionProjector(nn.Module):
 
 
 def resolve_language_model_config(config: EBVLAConfig) -> PretrainedConfig:
-    """The language model's config; resolved once from `vlm_model_name`, then read from `config.vlm_config`.
+    """The language model's config; resolved once from `vlm.model_name`, then read from `config.vlm.model_config`.
 
-    The first resolution (Hub, cache or local folder) is recorded in `config.vlm_config`, so a saved
+    The first resolution (Hub, cache or local folder) is recorded in `config.vlm.model_config`, so a saved
     `config.json` is enough to rebuild the model offline.
     """
-    if config.vlm_config is None:
-        with fetching("vlm_model_name", config.vlm_model_name, "language model's config"):
-            resolved = AutoConfig.from_pretrained(config.vlm_model_name).to_dict()
-        if "num_hidden_layers" in config.vlm_config_overrides:
+    if config.vlm.model_config is None:
+        with fetching("vlm.model_name", config.vlm.model_name, "language model's config"):
+            resolved = AutoConfig.from_pretrained(config.vlm.model_name).to_dict()
+        if "num_hidden_layers" in config.vlm.model_config_overrides:
             # The per-layer attention types are derived from the depth; a stale list would fail validation.
             resolved.pop("layer_types", None)
-        lm_config = AutoConfig.for_model(**{**resolved, **config.vlm_config_overrides})
-        config.vlm_config = lm_config.to_diff_dict()
-    return AutoConfig.for_model(**config.vlm_config)
+        lm_config = AutoConfig.for_model(**{**resolved, **config.vlm.model_config_overrides})
+        config.vlm.model_config = lm_config.to_diff_dict()
+    return AutoConfig.for_model(**config.vlm.model_config)
 
 
 def default_context_layers(num_context_layers: int, n_blocks: int) -> tuple[int, ...]:
@@ -209,21 +212,21 @@ def round_frozen_weights(module: nn.Module, dtype: torch.dtype) -> None:
 
 
 def resolve_context_layers(config: EBVLAConfig, num_layers: int) -> tuple[int, ...]:
-    """l_1..l_L: `context_layers` if set, else `default_context_layers`, checked against the N + 1 states."""
+    """l_1..l_L: `vlm.context_layers` if set, else `default_context_layers`, checked against the N + 1 states."""
     num_hidden_states = num_layers + 1
-    if config.context_layers is not None:
-        if max(config.context_layers) >= num_hidden_states:
+    if config.vlm.context_layers is not None:
+        if max(config.vlm.context_layers) >= num_hidden_states:
             raise ValueError(
-                f"`context_layers` must index the {num_hidden_states} hidden states of the language model "
-                f"(0..{num_hidden_states - 1}). Got {tuple(config.context_layers)}."
+                f"`vlm.context_layers` must index the {num_hidden_states} hidden states of the language model "
+                f"(0..{num_hidden_states - 1}). Got {tuple(config.vlm.context_layers)}."
             )
-        return tuple(config.context_layers)
-    if config.num_context_layers > num_hidden_states:
+        return tuple(config.vlm.context_layers)
+    if config.vlm.num_context_layers > num_hidden_states:
         raise ValueError(
-            f"`num_context_layers` must be <= {num_hidden_states} (the language model's layers + the "
-            f"embedding). Got {config.num_context_layers}."
+            f"`vlm.num_context_layers` must be <= {num_hidden_states} (the language model's layers + the "
+            f"embedding). Got {config.vlm.num_context_layers}."
         )
-    return default_context_layers(config.num_context_layers, config.n_blocks)
+    return default_context_layers(config.vlm.num_context_layers, config.n_blocks)
 
 
 class EBVLAVisionLanguageBackbone(nn.Module):
@@ -237,7 +240,7 @@ class EBVLAVisionLanguageBackbone(nn.Module):
         state ──► linear ──► p ─────────────────────────────────────────────────────┘
 
     Trainable: LoRA adapters, projector, latents and the state projection (or token). Frozen: the vision
-    encoders (unless `freeze_vision_encoder=False`) and every base weight of the language model.
+    encoders (unless `vlm.freeze_vision_encoder=False`) and every base weight of the language model.
 
     Attributes:
         context_dim: Width D of the context tokens (the language model's hidden size).
@@ -245,7 +248,7 @@ class EBVLAVisionLanguageBackbone(nn.Module):
         num_vision_tokens: K_t, vision tokens over all cameras.
 
     Args:
-        config: The EB-VLA config; `config.vlm_config` is filled in if it was None.
+        config: The EB-VLA config; `config.vlm.model_config` is filled in if it was None.
     """
 
     def __init__(self, config: EBVLAConfig):
@@ -258,11 +261,11 @@ class EBVLAVisionLanguageBackbone(nn.Module):
         lm_config = resolve_language_model_config(config)
         self.context_dim = lm_config.hidden_size
         self.context_layers = resolve_context_layers(config, lm_config.num_hidden_layers)
-        if config.load_pretrained_backbone:
+        if config.vlm.load_pretrained_backbone:
             # fp32 like the rest of the policy; cast the whole policy for bf16.
-            with fetching("vlm_model_name", config.vlm_model_name, "language model weights"):
+            with fetching("vlm.model_name", config.vlm.model_name, "language model weights"):
                 self.lm = AutoModel.from_pretrained(
-                    config.vlm_model_name, config=lm_config, dtype=torch.float32
+                    config.vlm.model_name, config=lm_config, dtype=torch.float32
                 )
         else:
             self.lm = AutoModel.from_config(lm_config, dtype=torch.float32)
@@ -272,10 +275,10 @@ class EBVLAVisionLanguageBackbone(nn.Module):
         deepest = max(self.context_layers)
         read_layers = {"layers_to_transform": list(range(deepest)), "layers_pattern": "layers"}
         lora = LoraConfig(
-            r=config.lora_rank,
-            lora_alpha=config.lora_alpha,
-            lora_dropout=config.lora_dropout,
-            target_modules=list(config.lora_target_modules),
+            r=config.vlm.lora_rank,
+            lora_alpha=config.vlm.lora_alpha,
+            lora_dropout=config.vlm.lora_dropout,
+            target_modules=list(config.vlm.lora_target_modules),
             **(read_layers if 0 < deepest < lm_config.num_hidden_layers else {}),
         )
         self.lm = inject_adapter_in_model(lora, self.lm)
@@ -285,7 +288,7 @@ class EBVLAVisionLanguageBackbone(nn.Module):
         self.projector = EBVLAVisionProjector(self.vision.embed_dim, self.context_dim)
         # Initialised like the language model's own embeddings.
         self.latents = nn.Parameter(
-            torch.randn(config.num_latent_tokens, self.context_dim) * lm_config.initializer_range
+            torch.randn(config.vlm.num_latent_tokens, self.context_dim) * lm_config.initializer_range
         )
         if config.state_dim is not None:
             self.state_proj = nn.Linear(config.state_dim, self.context_dim)
@@ -293,8 +296,8 @@ class EBVLAVisionLanguageBackbone(nn.Module):
         else:
             self.state_proj = None
             self.state_token = nn.Parameter(torch.randn(1, self.context_dim) * lm_config.initializer_range)
-        if config.frozen_weights_dtype != "float32":
-            round_frozen_weights(self, getattr(torch, config.frozen_weights_dtype))
+        if config.vlm.frozen_weights_dtype != "float32":
+            round_frozen_weights(self, getattr(torch, config.vlm.frozen_weights_dtype))
 
     def encode_images(self, batch: dict[str, Tensor]) -> Tensor:
         """Projected vision tokens of all cameras, camera after camera: (B, K_t, D)."""
@@ -320,7 +323,11 @@ class EBVLAVisionLanguageBackbone(nn.Module):
                 f"`{OBS_LANGUAGE_ATTENTION_MASK}` (the EB-VLA pre-processor's tokenizer step). Got {sorted(batch)}."
             )
         vision_tokens = self.encode_images(batch)  # (B, K_t, D)
-        batch_size, k_t, k_a = vision_tokens.shape[0], self.num_vision_tokens, self.config.num_latent_tokens
+        batch_size, k_t, k_a = (
+            vision_tokens.shape[0],
+            self.num_vision_tokens,
+            self.config.vlm.num_latent_tokens,
+        )
         text_tokens = self.lm.get_input_embeddings()(batch[OBS_LANGUAGE_TOKENS])  # (B, T, D)
         latents = self.latents.to(text_tokens.dtype).expand(batch_size, -1, -1)  # (B, K_a, D)
         inputs_embeds = torch.cat([vision_tokens.to(text_tokens.dtype), text_tokens, latents], dim=1)

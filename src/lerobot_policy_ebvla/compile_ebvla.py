@@ -28,17 +28,13 @@ import logging
 import weakref
 from collections import OrderedDict
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 from torch.func import functional_call
 
 from .energy_head import ContextKV, EBVLAEnergyHead
 from .mcmc import EnergyFn, RefinementResult, RTCPrefix
-
-if TYPE_CHECKING:
-    from .modeling_ebvla import EBVLA
 
 logger = logging.getLogger(__name__)
 
@@ -58,7 +54,7 @@ def head_energy(head: EBVLAEnergyHead, params: dict[str, Tensor], actions: Tenso
     return functional_call(head, params, (actions, kv))
 
 
-def encode_context(model: "EBVLA", batch: dict[str, Tensor], return_features: bool = False):
+def encode_context(model: nn.Module, batch: dict[str, Tensor], return_features: bool = False):
     """`model.encode_context(batch, return_features)`, as a function torch.compile can take."""
     return model.encode_context(batch, return_features)
 
@@ -112,7 +108,7 @@ def compiled_context_encoder(mode: str = "default"):
 
 
 def compiled_context(
-    model: "EBVLA", batch: dict[str, Tensor], return_features: bool = False
+    model: nn.Module, batch: dict[str, Tensor], return_features: bool = False
 ) -> ContextKV | tuple[ContextKV, Tensor]:
     """`model.encode_context` compiled in `model.config.compile_mode`, its outputs copied out."""
     mode = compiled_part_mode(model.config.compile_mode, model.head.energy_out.weight.device.type)

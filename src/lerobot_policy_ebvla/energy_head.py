@@ -19,6 +19,12 @@ from .configuration_ebvla import EBVLAConfig
 ContextKV = list[tuple[Tensor, Tensor]]
 
 
+def pooled_context(contexts: list[Tensor]) -> Tensor:
+    """(B, D) the last block's context C_L averaged over its tokens, in fp32: the observation's embedding that
+    the context distance and the feature baselines compare (`EBVLAPolicy.context_features`)."""
+    return contexts[-1].float().mean(dim=1)
+
+
 class EBVLARotaryEmbedding(nn.Module):
     """Rotary position embedding over the H action timesteps (RoFormer); frequencies always in fp32."""
 

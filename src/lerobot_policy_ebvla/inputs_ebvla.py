@@ -1,7 +1,8 @@
 """The checks a batch passes before the model sees it: each camera, the state and the action chunk by key.
 
 A wrong input gets a ValueError that names the key, what was found and what was expected (a uint8 frame, a
-state of another batch size, a NaN), instead of a shape or dtype error from inside the backbone.
+state of another batch size, a NaN), instead of a shape or dtype error from inside the backbone. Below them,
+the batch helpers the policy's entry points share.
 """
 
 import torch
@@ -14,7 +15,7 @@ from .configuration_ebvla import EBVLAConfig
 def validate_observation(batch: dict[str, Tensor], config: EBVLAConfig) -> None:
     """Raises a ValueError naming the key when a camera or the state is missing, misshapen, non-finite, of the
     wrong dtype, or of another batch size than the rest of the observation."""
-    resizes = config.backbone == "vlm" or config.resize_shape is not None
+    resizes = config.backbone == "vlm" or config.resnet.resize_shape is not None
     for key, feature in config.image_features.items():
         if key not in batch:
             raise ValueError(
@@ -66,3 +67,30 @@ def validate_actions(batch: dict[str, Tensor], config: EBVLAConfig) -> None:
 def _check_finite(tensor: Tensor, key: str) -> None:
     if tensor.is_floating_point() and not torch.isfinite(tensor).all():
         raise ValueError(f"`{key}` contains NaN or infinite values.")
+
+
+def batch_size_of(batch: dict[str, Tensor]) -> int:
+    """B, read from the first tensor of the batch that has a batch dimension."""
+    return next(v.shape[0] for v in batch.values() if isinstance(v, Tensor) and v.ndim > 0)
+
+
+def repeat_observations(batch: dict[str, Tensor], n: int) -> dict[str, Tensor]:
+    """Each observation repeated n times in a row, (B, ...) -> (B * n, ...); per-observation lists likewise.
+
+    Tensors made under `torch.inference_mode` (lerobot-eval) come back as normal tensors autograd can use.
+    """
+    batch_size = batch_size_of(batch)
+
+    def repeat(value):
+        if isinstance(value, Tensor) and value.ndim > 0 and value.shape[0] == batch_size:
+            return value.clone().repeat_interleave(n, dim=0)
+        if isinstance(value, list | tuple) and len(value) == batch_size:
+            return [item for item in value for _ in range(n)]
+        return value.clone() if isinstance(value, Tensor) else value
+
+    return {key: repeat(value) for key, value in batch.items()}
+
+
+def without_inference_tensors(batch: dict[str, Tensor]) -> dict[str, Tensor]:
+    """Clones tensors made under `torch.inference_mode` (lerobot-eval), which autograd cannot record."""
+    return {k: v.clone() if isinstance(v, Tensor) and v.is_inference() else v for k, v in batch.items()}

@@ -15,22 +15,25 @@ from collections import OrderedDict, deque
 from collections.abc import Callable
 from pathlib import Path
 
-import draccus
 import torch
-from huggingface_hub.constants import CONFIG_NAME, SAFETENSORS_SINGLE_FILE
+from huggingface_hub.constants import SAFETENSORS_SINGLE_FILE
 from lerobot.configs import PreTrainedConfig
 from lerobot.policies.pretrained import PreTrainedPolicy
-from lerobot.utils.constants import ACTION, OBS_STATE
 from safetensors import SafetensorError
 from torch import Tensor, nn
-from torch.nn.attention import SDPBackend, sdpa_kernel
 from torch.utils.hooks import RemovableHandle
 
 from .backbone_resnet import EBVLAResNetBackbone
 from .compile_ebvla import CHUNK_GRAPH_MODE, compiled_context, compiled_energy_fn, refinement_graphs
-from .configuration_ebvla import EBVLAConfig
-from .energy_head import ContextKV, EBVLAEnergyHead
-from .inputs_ebvla import validate_actions, validate_observation
+from .configuration_ebvla import EBVLAConfig, load_saved_config
+from .energy_head import ContextKV, EBVLAEnergyHead, pooled_context
+from .inputs_ebvla import (
+    batch_size_of,
+    repeat_observations,
+    validate_actions,
+    validate_observation,
+    without_inference_tensors,
+)
 from .mcmc import (
     EnergyFn,
     RefinementResult,
@@ -43,17 +46,9 @@ from .rtc_ebvla import rtc_prefix
 from .runtime.readout import EnergyReadout
 from .runtime.response import EnergyOODResponse, respond_to_energy
 from .runtime.threshold import OODDecision
-from .training_signal import (
-    EBVLAContextEnergy,
-    contrastive_in_bf16,
-    data_gradient_penalty,
-    energy_margin_loss,
-    graded_corruption,
-)
+from .training_signal import EBVLAContextEnergy, compute_loss
 
 logger = logging.getLogger(__name__)
-
-ACTION_IS_PAD = "action_is_pad"
 
 
 # hook(policy, batch, readout, decision), called after each refined chunk the policy returns.
@@ -69,13 +64,13 @@ class EBVLAPolicy(PreTrainedPolicy):
     def __init__(self, config: EBVLAConfig, dataset_meta=None, **kwargs):
         super().__init__(config)
         config.validate_features()
-        if config.backbone == "resnet" and config.task_instructions == []:
+        if config.backbone == "resnet" and config.resnet.task_instructions == []:
             if dataset_meta is None:
                 raise ValueError(
-                    "`task_instructions=[]` asks for the training dataset's tasks, but no `dataset_meta` was "
+                    "`resnet.task_instructions=[]` asks for the training dataset's tasks, but no `dataset_meta` was "
                     "given: pass the dataset's metadata or list the instructions."
                 )
-            config.task_instructions = [str(task) for task in dataset_meta.tasks.index]
+            config.resnet.task_instructions = [str(task) for task in dataset_meta.tasks.index]
         self.config = config
         self.model = EBVLA(config)
         # Set by `configure_ood_response` from the checkpoint's ood_calibration.json (`runtime/response.py`).
@@ -99,8 +94,8 @@ class EBVLAPolicy(PreTrainedPolicy):
         `ood_calibration.json`, if there is one.
         """
         if config is None:
-            config = _load_saved_config(pretrained_name_or_path, **kwargs)
-        config.load_pretrained_backbone = False
+            config = load_saved_config(pretrained_name_or_path, **kwargs)
+        config.vlm.load_pretrained_backbone = False
         try:
             policy = super().from_pretrained(pretrained_name_or_path, config=config, strict=strict, **kwargs)
         except SafetensorError as e:
@@ -136,7 +131,7 @@ class EBVLAPolicy(PreTrainedPolicy):
         """Saves config and weights so that a save that fails midway leaves the previous files intact.
 
         Everything is written to a temporary folder beside `save_directory` first, then moved into place.
-        Every fp32 tensor that bf16 holds exactly is stored in bf16: with `frozen_weights_dtype="bfloat16"`
+        Every fp32 tensor that bf16 holds exactly is stored in bf16: with `vlm.frozen_weights_dtype="bfloat16"`
         that is all the frozen backbone weights, which halves a full-size checkpoint and loses nothing
         (loading casts them back to the parameters' dtype).
         """
@@ -202,9 +197,9 @@ class EBVLAPolicy(PreTrainedPolicy):
         # lerobot-eval runs under inference_mode, but refinement differentiates the energy w.r.t. a.
         with torch.inference_mode(False):
             prefix = rtc_prefix(
-                self.config, _batch_size(batch), inference_delay, prev_chunk_left_over, execution_horizon
+                self.config, batch_size_of(batch), inference_delay, prev_chunk_left_over, execution_horizon
             )
-            refine_batch = _without_inference_tensors(batch)
+            refine_batch = without_inference_tensors(batch)
             generated = self.model.generate_actions(
                 refine_batch, generator=generator, prefix=prefix, return_context_features=needs_features
             )
@@ -254,7 +249,7 @@ class EBVLAPolicy(PreTrainedPolicy):
                 f"`candidates` must be (B, N, {expected[0]}, {expected[1]}). Got {tuple(candidates.shape)}."
             )
         with torch.inference_mode(False), torch.no_grad():
-            batch = _without_inference_tensors(batch)
+            batch = without_inference_tensors(batch)
             b, n = candidates.shape[:2]
             kv = self.model.encode_context(batch)  # the head scores the n candidates of a context together
             energies = self.model.head(candidates.clone().flatten(0, 1), kv).mean(dim=-1)
@@ -283,7 +278,7 @@ class EBVLAPolicy(PreTrainedPolicy):
         if n_samples < 1:
             raise ValueError(f"`n_samples` must be >= 1, got {n_samples}.")
         cfg = self.config
-        batch_size = _batch_size(batch)
+        batch_size = batch_size_of(batch)
         shape = (batch_size, n_samples, cfg.chunk_size, cfg.action_dim)
         device = next(self.parameters()).device
         samples = cfg.init_action_std * torch.randn(shape, device=device, generator=generator)
@@ -302,14 +297,14 @@ class EBVLAPolicy(PreTrainedPolicy):
         observation's embedding for the feature baselines (Mahalanobis, k-NN) and the context distance."""
         validate_observation(batch, self.config)
         with torch.inference_mode(False), torch.no_grad():
-            contexts = self.model.backbone(_without_inference_tensors(batch))
+            contexts = self.model.backbone(without_inference_tensors(batch))
         return pooled_context(contexts)
 
     def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict]:
         """Training loss (Eq. 4) and logged metrics for a pre-processed batch with actions."""
         validate_observation(batch, self.config)
         validate_actions(batch, self.config)
-        return self.model.compute_loss(batch)
+        return compute_loss(self.model, batch)
 
 
 class EBVLA(nn.Module):
@@ -327,27 +322,17 @@ class EBVLA(nn.Module):
         self.config = config
         self.backbone = make_backbone(config)
         self.head = EBVLAEnergyHead(config, self.backbone.context_dim)
-        # Training draws K, alpha, a^(0) and eps from a generator seeded by (mcmc_seed, train_steps). Both are
-        # saved with the weights, so a run resumed from a checkpoint draws what an uninterrupted one would,
-        # whatever else consumed the global RNG in between.
+        # Training draws K, alpha, a^(0) and eps from a generator seeded by these two buffers (saved with the
+        # weights, so a resumed run draws what an uninterrupted one would): `training_signal.training_generator`.
         self.register_buffer("mcmc_seed", torch.randint(0, 2**62, ()))
         self.register_buffer("train_steps", torch.zeros((), dtype=torch.long))
         # Built last, so that the backbone's and head's initial weights do not depend on it.
         self.context_energy = None
         self.observation_encoder = None
-        if config.energy_ood_margin_weight > 0 and config.energy_ood_margin_on != "head":
+        if config.joint_energy.has_context_energy:
             self.context_energy = EBVLAContextEnergy(self.backbone.context_dim)
         if config.context_energy_on_own_encoder:
             self.observation_encoder = make_backbone(config)
-
-    def training_generator(self, device: torch.device) -> torch.Generator:
-        """A generator for one training step; ranks of a multi-process run get different streams."""
-        rank = torch.distributed.get_rank() if torch.distributed.is_initialized() else 0
-        seed = (
-            int(self.mcmc_seed) * 6364136223846793005 + int(self.train_steps) * 1442695040888963407 + rank
-        ) % 2**63
-        self.train_steps += 1
-        return torch.Generator(device=device).manual_seed(seed)
 
     def encode_context(
         self, batch: dict[str, Tensor], return_features: bool = False
@@ -358,7 +343,7 @@ class EBVLA(nn.Module):
         kv = self.head.context_kv(contexts)
         return (kv, pooled_context(contexts)) if return_features else kv
 
-    def _refine(
+    def refine(
         self,
         kv: ContextKV,
         initial_actions: Tensor,
@@ -388,7 +373,7 @@ class EBVLA(nn.Module):
             noise=noise,
         )
 
-    def _initial_actions(
+    def initial_actions(
         self, batch_size: int, reference: Tensor, generator: torch.Generator | None
     ) -> Tensor:
         """a^(0) on `reference`'s device, always fp32: the whole refinement (a, eps, updates) stays fp32 in a
@@ -403,7 +388,7 @@ class EBVLA(nn.Module):
 
     def context_energy_of(self, batch: dict[str, Tensor], features: Tensor | None) -> Tensor | None:
         """(B,) E_c of the joint energy E(a, C) + E_c(C) (None without one): of `features`, the pooled context of
-        the policy's own backbone pass, or of the observation encoder's (`energy_ood_margin_on="observation"`)."""
+        the policy's own backbone pass, or of the observation encoder's (`joint_energy.target="observation"`)."""
         if self.context_energy is None:
             return None
         if self.observation_encoder is not None:
@@ -446,7 +431,7 @@ class EBVLA(nn.Module):
         step_sizes = [cfg.inference_step_size] * cfg.inference_mcmc_steps
 
         def chain(kv, initial, noise, prefix) -> tuple[RefinementResult, Tensor]:
-            result = self._refine(
+            result = self.refine(
                 kv,
                 initial,
                 step_sizes,
@@ -511,7 +496,7 @@ class EBVLA(nn.Module):
 
         `context_energy`: E_c(C) of each observation, added to its chunks' final energies (the joint energy)."""
         batch_size = kv[0][0].shape[0]
-        initial = self._initial_actions(batch_size * chains, kv[0][0], generator)
+        initial = self.initial_actions(batch_size * chains, kv[0][0], generator)
         if prefix is not None:
             actions = prefix.actions.to(initial.device).repeat_interleave(chains, dim=0)
             prefix = dataclasses.replace(prefix, actions=actions)
@@ -576,232 +561,6 @@ class EBVLA(nn.Module):
         chains[unsure] = cfg.num_restarts
         return actions, EnergyReadout(initial, final, chains=chains, context_energy=readout.context_energy)
 
-    def compute_loss(
-        self, batch: dict[str, Tensor], generator: torch.Generator | None = None
-    ) -> tuple[Tensor, dict]:
-        """Training: K ~ U[K_min, K_max] steps with alpha ~ U[alpha_min, alpha_max], L1 on a^(K) (Eq. 4).
-
-        Without a `generator`, the randomness comes from `training_generator`.
-
-        Only the last step is differentiated (second order, through grad_a E); the earlier ones see a detached
-        context, so they build no graph into the backbone.
-        """
-        cfg = self.config
-        target = batch[ACTION]
-        # The joint energy's margin reads the pooled context of this same backbone pass.
-        if self.context_energy is not None and self.observation_encoder is None:
-            kv, clean_features = self.encode_context(batch, return_features=True)
-        else:
-            kv, clean_features = self.encode_context(batch), None
-        device = target.device
-        if generator is None:
-            generator = self.training_generator(device)
-        step_sizes = sample_training_step_sizes(cfg, generator)
-        num_steps = len(step_sizes)
-
-        # a^(0) and the refinement are fp32 even in a bf16 policy; the L1 loss is taken in float32.
-        actions = self._initial_actions(target.shape[0], kv[0][0], generator)
-        initial_energy = None
-        if num_steps > 1:
-            detached_kv = [(k.detach(), v.detach()) for k, v in kv]
-            warmup = self._refine(detached_kv, actions, step_sizes[:-1], generator)
-            actions, initial_energy = warmup.actions, warmup.step_energies[0]
-        # CPU (and fused GPU) attention kernels have no double backward; the math kernel does.
-        with sdpa_kernel(SDPBackend.MATH):
-            last = self._refine(
-                kv,
-                actions,
-                step_sizes[-1:],
-                generator,
-                create_graph=True,
-                straight_through_clip=cfg.train_straight_through_clip,
-            )
-        if initial_energy is None:
-            initial_energy = last.step_energies[0]
-
-        l1 = (last.actions.float() - target.float()).abs()  # (B, H, d_a)
-        if ACTION_IS_PAD in batch:
-            valid = (~batch[ACTION_IS_PAD]).unsqueeze(-1).to(l1.dtype)  # (B, H, 1)
-            loss = (l1 * valid).sum() / (valid.sum() * l1.shape[-1]).clamp(min=1)
-        else:
-            loss = l1.mean()
-        info = {
-            "l1_loss": loss.item(),
-            "mcmc_steps": num_steps,
-            "initial_energy": initial_energy.mean().item(),
-            "last_step_energy": last.step_energies[-1].mean().item(),
-        }
-        if cfg.energy_contrastive_weight > 0:
-            contrastive = self.contrastive_energy_loss(kv, target, generator)
-            loss = loss + cfg.energy_contrastive_weight * contrastive
-            info["contrastive_loss"] = contrastive.item()
-        if self.context_energy is not None:
-            margin_loss, gap = self.context_margin_loss(batch, generator, clean_features)
-            loss = loss + cfg.energy_ood_margin_weight * margin_loss
-            info["ood_margin_loss"], info["ood_energy_gap"] = margin_loss.item(), gap
-        elif cfg.energy_ood_margin_weight > 0:
-            chunk = target if cfg.energy_ood_margin_chunk == "expert" else last.actions.detach()
-            margin_loss, gap = self.ood_margin_loss(batch, kv, chunk, generator, step_sizes)
-            loss = loss + cfg.energy_ood_margin_weight * margin_loss
-            info["ood_margin_loss"], info["ood_energy_gap"] = margin_loss.item(), gap
-        return loss, info
-
-    def context_margin_loss(
-        self, batch: dict[str, Tensor], generator: torch.Generator, clean_features: Tensor | None = None
-    ) -> tuple[Tensor, float]:
-        """The margin on the context energy E_c of the joint energy E(a, C) + E_c(C), on the pooled backbone
-        contexts of the batch (`clean_features` where the caller's backbone pass has them) and of its corrupted
-        copy, plus E_c(C)^2 on the data (the hinge leaves E_c's level free), plus the gradient penalty on E_c at
-        the real images where `energy_ood_gradient_penalty` > 0 (the training log's `ood_margin_loss` is the sum).
-
-        `energy_ood_margin_on="context"` detaches both contexts: the backbone and head train as without the
-        term. "context_backbone" lets the margin's gradient into the backbone. "observation" reads the contexts
-        of the observation encoder, which the margin alone trains.
-        """
-        cfg = self.config
-        corrupted_batch, margin = self._corrupted_copy(batch, generator)
-        if self.observation_encoder is not None:
-            penalized = cfg.energy_ood_gradient_penalty > 0
-            images = {key: batch[key].detach().requires_grad_(penalized) for key in cfg.image_features}
-            clean_features = pooled_context(self.observation_encoder({**batch, **images}))
-            corrupted_features = pooled_context(self.observation_encoder(corrupted_batch))
-            loss, gap, clean = self._context_margin(clean_features, corrupted_features, margin)
-            if penalized:
-                penalty = data_gradient_penalty(clean, list(images.values()))
-                loss = loss + cfg.energy_ood_gradient_penalty * penalty
-            return loss, gap
-        through_backbone = cfg.energy_ood_margin_on == "context_backbone"
-        with torch.set_grad_enabled(through_backbone):
-            if clean_features is None:
-                clean_features = pooled_context(self.backbone(batch))
-            corrupted_features = pooled_context(self.backbone(corrupted_batch))
-        if not through_backbone:
-            clean_features = clean_features.detach()
-        loss, gap, _ = self._context_margin(clean_features, corrupted_features, margin)
-        return loss, gap
-
-    def _corrupted_copy(
-        self, batch: dict[str, Tensor], generator: torch.Generator
-    ) -> tuple[dict[str, Tensor], float | Tensor]:
-        """The batch's corrupted copy and the margin each corrupted observation must clear: m, or s m at
-        strength s (`energy_ood_corruption_strength`)."""
-        cfg = self.config
-        corrupted_batch, strengths = graded_corruption(
-            batch,
-            list(cfg.image_features),
-            cfg.energy_ood_corruptions,
-            generator,
-            state_key=OBS_STATE,
-            strength_range=cfg.energy_ood_corruption_strength,
-        )
-        margin = cfg.energy_ood_margin if strengths is None else cfg.energy_ood_margin * strengths.float()
-        return corrupted_batch, margin
-
-    def _context_margin(
-        self, clean_features: Tensor, corrupted_features: Tensor, margin: float | Tensor
-    ) -> tuple[Tensor, float, Tensor]:
-        """The margin's loss, its mean gap and the clean observations' E_c(C), (B,)."""
-        clean, shifted = self.context_energy(clean_features), self.context_energy(corrupted_features)
-        loss = energy_margin_loss(clean, shifted, margin) + clean.float().pow(2).mean()
-        return loss, (shifted - clean).mean().item(), clean
-
-    def ood_margin_loss(
-        self,
-        batch: dict[str, Tensor],
-        kv: ContextKV,
-        chunk: Tensor,
-        generator: torch.Generator,
-        step_sizes: list[float],
-    ) -> tuple[Tensor, float]:
-        """`training_signal.energy_margin_loss` under corrupted copies of the batch's observations, and the mean
-        energy gap it acts on.
-
-        `energy_ood_margin_chunk="expert"`: E(a*, C~) against E(a*, C), `chunk` being a*. "refined": the energy
-        of the chunk refined under C~ (the same a^(0) and step sizes as the training chain, no graph) against
-        that of the training chain's own refined chunk `chunk` under C, so that min_a E(a, C~) rises.
-        """
-        cfg = self.config
-        corrupted_batch, margin = self._corrupted_copy(batch, generator)
-        corrupted_kv = self.encode_context(corrupted_batch)
-        corrupted_chunk = chunk
-        if cfg.energy_ood_margin_chunk == "refined":
-            initial = self._initial_actions(chunk.shape[0], kv[0][0], generator)
-            detached_kv = [(k.detach(), v.detach()) for k, v in corrupted_kv]
-            corrupted_chunk = self._refine(detached_kv, initial, step_sizes, generator).actions.detach()
-        clean = self.head(chunk, kv).mean(dim=-1)
-        shifted = self.head(corrupted_chunk, corrupted_kv).mean(dim=-1)
-        loss = energy_margin_loss(clean, shifted, margin)
-        return loss, (shifted - clean).mean().item()
-
-    def contrastive_energy_loss(self, kv: ContextKV, target: Tensor, generator: torch.Generator) -> Tensor:
-        """InfoNCE over chunks: under each context C_i, the expert chunk a*_i must have the lowest energy.
-
-        Candidates for C_i are a*_i (the positive), other observations' expert chunks a*_j (a mismatched
-        action for this context; `energy_contrastive_mismatched` of them, all B - 1 by default) and noisy
-        copies a*_i + sigma n (a nearby worse action), so that E(a, C) ranks how well a chunk fits its context
-        rather than only shaping the descent direction.
-        """
-        cfg = self.config
-        batch_size = target.shape[0]
-        mismatched = batch_size - 1
-        if cfg.energy_contrastive_mismatched is not None:
-            mismatched = min(mismatched, cfg.energy_contrastive_mismatched)
-        anchors = batch_size
-        if cfg.energy_contrastive_anchors is not None:
-            anchors = min(anchors, cfg.energy_contrastive_anchors)
-        noise = torch.randn(
-            (anchors, cfg.energy_contrastive_negatives, *target.shape[1:]),
-            generator=generator,
-            device=target.device,
-            dtype=target.dtype,
-        )
-        noisy = (
-            target[:anchors].unsqueeze(1) + cfg.energy_contrastive_noise_std * noise
-        )  # (A, N_noisy, H, d_a)
-        # Row i: a*_i first (the positive), then a*_{i+1}, ..., a*_{i+M} (mismatched; the batch is shuffled, so
-        # these are random other observations), then the noisy copies.
-        rows = torch.arange(batch_size, device=target.device)
-        order = (rows[:anchors, None] + rows[None, : 1 + mismatched]) % batch_size  # (A, 1 + M)
-        candidates = torch.cat([target[order], noisy], dim=1)  # (A, 1 + M + N_noisy, H, d_a)
-        num_candidates = candidates.shape[1]
-        anchor_kv = kv if anchors == batch_size else [(k[:anchors], v[:anchors]) for k, v in kv]
-        device_type = target.device.type
-        with torch.autocast(device_type, torch.bfloat16, enabled=contrastive_in_bf16(cfg, device_type)):
-            energies = self.head(candidates.flatten(0, 1), anchor_kv).mean(dim=-1)
-        logits = -energies.view(anchors, num_candidates).float() / cfg.energy_contrastive_temperature
-        return nn.functional.cross_entropy(
-            logits, torch.zeros(anchors, dtype=torch.long, device=target.device)
-        )
-
-
-def sample_training_step_sizes(config: EBVLAConfig, generator: torch.Generator) -> list[float]:
-    """The step sizes alpha^(k) of one training chain: K ~ U{K_min..K_max} of them, alpha ~ U[alpha_min, alpha_max]
-    drawn once for the chain ("per_chain") or for every step ("per_mcmc_step")."""
-    k_min, k_max = config.train_mcmc_steps_range
-    device = generator.device
-    num_steps = int(torch.randint(k_min, k_max + 1, (1,), generator=generator, device=device).item())
-    num_alphas = 1 if config.train_step_size_sampling == "per_chain" else num_steps
-    alpha_min, alpha_max = config.train_step_size_range
-    alphas = alpha_min + (alpha_max - alpha_min) * torch.rand(num_alphas, generator=generator, device=device)
-    return alphas.expand(num_steps).tolist()
-
-
-def _load_saved_config(pretrained_name_or_path: str | Path, **kwargs) -> PreTrainedConfig:
-    """The saved config; a value its checks reject is reported with the file and the field, which draccus's
-    own "Couldn't instantiate class" message leaves out."""
-    try:
-        return PreTrainedConfig.from_pretrained(pretrained_name_or_path, **kwargs)
-    except draccus.utils.ParsingError as e:
-        if not isinstance(e.__cause__, ValueError | TypeError):
-            raise
-        raise ValueError(f"{CONFIG_NAME} of {pretrained_name_or_path}: {e.__cause__}") from e
-
-
-def pooled_context(contexts: list[Tensor]) -> Tensor:
-    """(B, D) the last block's context C_L averaged over its tokens, in fp32: the observation's embedding that
-    the context distance and the feature baselines compare (`EBVLAPolicy.context_features`)."""
-    return contexts[-1].float().mean(dim=1)
-
 
 def make_backbone(config: EBVLAConfig) -> nn.Module:
     """The backbone named by `config.backbone`: its `forward(batch)` returns the context C_i of each block."""
@@ -810,29 +569,3 @@ def make_backbone(config: EBVLAConfig) -> nn.Module:
     from .backbone_vlm import EBVLAVisionLanguageBackbone  # transformers/timm/peft are only needed here
 
     return EBVLAVisionLanguageBackbone(config)
-
-
-def _batch_size(batch: dict[str, Tensor]) -> int:
-    return next(v.shape[0] for v in batch.values() if isinstance(v, Tensor) and v.ndim > 0)
-
-
-def repeat_observations(batch: dict[str, Tensor], n: int) -> dict[str, Tensor]:
-    """Each observation repeated n times in a row, (B, ...) -> (B * n, ...); per-observation lists likewise.
-
-    Tensors made under `torch.inference_mode` (lerobot-eval) come back as normal tensors autograd can use.
-    """
-    batch_size = _batch_size(batch)
-
-    def repeat(value):
-        if isinstance(value, Tensor) and value.ndim > 0 and value.shape[0] == batch_size:
-            return value.clone().repeat_interleave(n, dim=0)
-        if isinstance(value, list | tuple) and len(value) == batch_size:
-            return [item for item in value for _ in range(n)]
-        return value.clone() if isinstance(value, Tensor) else value
-
-    return {key: repeat(value) for key, value in batch.items()}
-
-
-def _without_inference_tensors(batch: dict[str, Tensor]) -> dict[str, Tensor]:
-    """Clones tensors made under `torch.inference_mode` (lerobot-eval), which autograd cannot record."""
-    return {k: v.clone() if isinstance(v, Tensor) and v.is_inference() else v for k, v in batch.items()}

@@ -44,7 +44,7 @@ class EBVLATokenizerProcessorStep(TokenizerProcessorStep):
         elif self.tokenizer_name is not None:
             from .backbone_vlm import fetching  # the same one-line error as the backbone's when offline
 
-            with fetching("vlm_model_name", self.tokenizer_name, "tokenizer"):
+            with fetching("vlm.model_name", self.tokenizer_name, "tokenizer"):
                 self.input_tokenizer = AutoTokenizer.from_pretrained(self.tokenizer_name)
         if self.input_tokenizer is not None and self.input_tokenizer.pad_token is None:
             self.input_tokenizer.pad_token = self.input_tokenizer.eos_token
@@ -107,7 +107,7 @@ def make_ebvla_pre_post_processors(
     2. Add a batch dimension to unbatched observations.
     3. With the VLM backbone only: tokenize the task instruction (`task`, must be non-empty) into
        `observation.language.tokens` and `observation.language.attention_mask`, padded to
-       `tokenizer_max_length`, with the language model's tokenizer (`EBVLATokenizerProcessorStep`; it saves
+       `vlm.tokenizer_max_length`, with the language model's tokenizer (`EBVLATokenizerProcessorStep`; it saves
        the tokenizer's files with the processor, so reloading needs no network).
     4. Move tensors to `config.device`.
     5. Normalize state and action (mean/std by default) with the dataset statistics.
@@ -128,8 +128,8 @@ def make_ebvla_pre_post_processors(
     if config.backbone == "vlm":
         input_steps.append(
             EBVLATokenizerProcessorStep(
-                tokenizer_name=config.vlm_model_name,
-                max_length=config.tokenizer_max_length,
+                tokenizer_name=config.vlm.model_name,
+                max_length=config.vlm.tokenizer_max_length,
                 padding_side="right",
                 padding="max_length",
             )

@@ -1,5 +1,6 @@
-"""Training signals beyond the paper's Eq. 4: outlier exposure for the energy (issue 32), and where the
-contrastive term's head pass runs in bf16.
+"""The training loss: the paper's Eq. 4 (`compute_loss`) and the signals beyond it, the contrastive ranking
+(`contrastive_energy_loss`) and outlier exposure for the energy (issue 32: `ood_margin_loss` on the head,
+`context_margin_loss` on the joint energy's E_c).
 
 Outlier exposure: the expert chunk must cost more under a corrupted context.
 
@@ -22,10 +23,15 @@ by 5 in 8 steps while the gap stayed at 0.
 import functools
 
 import torch
+from lerobot.utils.constants import ACTION, OBS_STATE
 from torch import Tensor, nn
+from torch.nn.attention import SDPBackend, sdpa_kernel
 
-from .configuration_ebvla import OOD_CORRUPTIONS as CORRUPTIONS
 from .configuration_ebvla import EBVLAConfig
+from .configuration_groups import OOD_CORRUPTIONS as CORRUPTIONS
+from .energy_head import ContextKV, pooled_context
+
+ACTION_IS_PAD = "action_is_pad"
 
 # Range of |log g| of "channel_gain"'s per-channel gains g (the sign drawn per channel): g in [0.30, 0.67] or
 # [1.5, 3.3]. Gains near 1 would look like the data, and a hinge on corruptions indistinguishable from the data is
@@ -271,7 +277,7 @@ def data_gradient_penalty(energy: Tensor, images: list[Tensor]) -> Tensor:
 
 class EBVLAContextEnergy(nn.Module):
     """E_c(C): a scalar energy of the pooled context, added to the head's final energy (a joint energy
-    E(a, C) + E_c(C), `energy_ood_margin_on="context"`, `"context_backbone"` or `"observation"`). It has no
+    E(a, C) + E_c(C), `joint_energy.target="context"`, `"context_backbone"` or `"observation"`). It has no
     gradient in a, so the MCMC refinement and its energy-scaled steps are those of the head alone."""
 
     def __init__(self, dim: int):
@@ -284,10 +290,10 @@ class EBVLAContextEnergy(nn.Module):
 
 
 def contrastive_in_bf16(config: EBVLAConfig, device_type: str) -> bool:
-    """Whether the contrastive term's head pass runs under bf16 autocast (`energy_contrastive_dtype`)."""
-    if config.energy_contrastive_dtype == "auto":
+    """Whether the contrastive term's head pass runs under bf16 autocast (`contrastive.dtype`)."""
+    if config.contrastive.dtype == "auto":
         return native_bf16(device_type)
-    return config.energy_contrastive_dtype == "bfloat16"
+    return config.contrastive.dtype == "bfloat16"
 
 
 @functools.cache
@@ -301,3 +307,233 @@ def native_bf16(device_type: str) -> bool:
         probes = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
         return any(getattr(torch.cpu, probe, lambda: False)() for probe in probes)
     return False
+
+
+# The training loss. `model` is the core `modeling_ebvla.EBVLA` (backbone, head, optional joint energy); these
+# functions take it rather than living on it, so that the network's module holds the network and this one
+# everything training adds to Eq. 4.
+
+
+def training_generator(model: nn.Module, device: torch.device) -> torch.Generator:
+    """A generator for one training step of `model`, seeded by its saved `mcmc_seed` and `train_steps` buffers (a
+    resumed run draws what an uninterrupted one would); ranks of a multi-process run get different streams."""
+    rank = torch.distributed.get_rank() if torch.distributed.is_initialized() else 0
+    seed = (
+        int(model.mcmc_seed) * 6364136223846793005 + int(model.train_steps) * 1442695040888963407 + rank
+    ) % 2**63
+    model.train_steps += 1
+    return torch.Generator(device=device).manual_seed(seed)
+
+
+def sample_training_step_sizes(config: EBVLAConfig, generator: torch.Generator) -> list[float]:
+    """The step sizes alpha^(k) of one training chain: K ~ U{K_min..K_max} of them, alpha ~ U[alpha_min, alpha_max]
+    drawn once for the chain ("per_chain") or for every step ("per_mcmc_step")."""
+    k_min, k_max = config.train_mcmc_steps_range
+    device = generator.device
+    num_steps = int(torch.randint(k_min, k_max + 1, (1,), generator=generator, device=device).item())
+    num_alphas = 1 if config.train_step_size_sampling == "per_chain" else num_steps
+    alpha_min, alpha_max = config.train_step_size_range
+    alphas = alpha_min + (alpha_max - alpha_min) * torch.rand(num_alphas, generator=generator, device=device)
+    return alphas.expand(num_steps).tolist()
+
+
+def compute_loss(
+    model: nn.Module, batch: dict[str, Tensor], generator: torch.Generator | None = None
+) -> tuple[Tensor, dict]:
+    """Training: K ~ U[K_min, K_max] steps with alpha ~ U[alpha_min, alpha_max], L1 on a^(K) (Eq. 4), plus the
+    opt-in terms of `model.config` (the contrastive ranking, the joint energy's margin).
+
+    Without a `generator`, the randomness comes from `training_generator`. Only the last step is
+    differentiated (second order, through grad_a E); the earlier ones see a detached context, so they build no
+    graph into the backbone.
+    """
+    cfg = model.config
+    target = batch[ACTION]
+    # The joint energy's margin reads the pooled context of this same backbone pass.
+    if model.context_energy is not None and model.observation_encoder is None:
+        kv, clean_features = model.encode_context(batch, return_features=True)
+    else:
+        kv, clean_features = model.encode_context(batch), None
+    if generator is None:
+        generator = training_generator(model, target.device)
+    step_sizes = sample_training_step_sizes(cfg, generator)
+    num_steps = len(step_sizes)
+
+    # a^(0) and the refinement are fp32 even in a bf16 policy; the L1 loss is taken in float32.
+    actions = model.initial_actions(target.shape[0], kv[0][0], generator)
+    initial_energy = None
+    if num_steps > 1:
+        detached_kv = [(k.detach(), v.detach()) for k, v in kv]
+        warmup = model.refine(detached_kv, actions, step_sizes[:-1], generator)
+        actions, initial_energy = warmup.actions, warmup.step_energies[0]
+    # CPU (and fused GPU) attention kernels have no double backward; the math kernel does.
+    with sdpa_kernel(SDPBackend.MATH):
+        last = model.refine(
+            kv,
+            actions,
+            step_sizes[-1:],
+            generator,
+            create_graph=True,
+            straight_through_clip=cfg.train_straight_through_clip,
+        )
+    if initial_energy is None:
+        initial_energy = last.step_energies[0]
+
+    l1 = (last.actions.float() - target.float()).abs()  # (B, H, d_a)
+    if ACTION_IS_PAD in batch:
+        valid = (~batch[ACTION_IS_PAD]).unsqueeze(-1).to(l1.dtype)  # (B, H, 1)
+        loss = (l1 * valid).sum() / (valid.sum() * l1.shape[-1]).clamp(min=1)
+    else:
+        loss = l1.mean()
+    info = {
+        "l1_loss": loss.item(),
+        "mcmc_steps": num_steps,
+        "initial_energy": initial_energy.mean().item(),
+        "last_step_energy": last.step_energies[-1].mean().item(),
+    }
+    if cfg.contrastive.weight > 0:
+        contrastive = contrastive_energy_loss(model, kv, target, generator)
+        loss = loss + cfg.contrastive.weight * contrastive
+        info["contrastive_loss"] = contrastive.item()
+    if model.context_energy is not None:
+        margin_loss, gap = context_margin_loss(model, batch, generator, clean_features)
+        loss = loss + cfg.joint_energy.weight * margin_loss
+        info["ood_margin_loss"], info["ood_energy_gap"] = margin_loss.item(), gap
+    elif cfg.joint_energy.weight > 0:
+        chunk = target if cfg.joint_energy.chunk == "expert" else last.actions.detach()
+        margin_loss, gap = ood_margin_loss(model, batch, kv, chunk, generator, step_sizes)
+        loss = loss + cfg.joint_energy.weight * margin_loss
+        info["ood_margin_loss"], info["ood_energy_gap"] = margin_loss.item(), gap
+    return loss, info
+
+
+def context_margin_loss(
+    model: nn.Module,
+    batch: dict[str, Tensor],
+    generator: torch.Generator,
+    clean_features: Tensor | None = None,
+) -> tuple[Tensor, float]:
+    """The margin on the context energy E_c of the joint energy E(a, C) + E_c(C), on the pooled backbone
+    contexts of the batch (`clean_features` where the caller's backbone pass has them) and of its corrupted
+    copy, plus E_c(C)^2 on the data (the hinge leaves E_c's level free), plus the gradient penalty on E_c at
+    the real images where `joint_energy.gradient_penalty` > 0 (the training log's `ood_margin_loss` is the sum).
+
+    `joint_energy.target="context"` detaches both contexts: the backbone and head train as without the
+    term. "context_backbone" lets the margin's gradient into the backbone. "observation" reads the contexts
+    of the observation encoder, which the margin alone trains.
+    """
+    cfg = model.config
+    corrupted_batch, margin = _corrupted_copy(cfg, batch, generator)
+    if model.observation_encoder is not None:
+        penalized = cfg.joint_energy.gradient_penalty > 0
+        images = {key: batch[key].detach().requires_grad_(penalized) for key in cfg.image_features}
+        clean_features = pooled_context(model.observation_encoder({**batch, **images}))
+        corrupted_features = pooled_context(model.observation_encoder(corrupted_batch))
+        loss, gap, clean = _context_margin(model.context_energy, clean_features, corrupted_features, margin)
+        if penalized:
+            penalty = data_gradient_penalty(clean, list(images.values()))
+            loss = loss + cfg.joint_energy.gradient_penalty * penalty
+        return loss, gap
+    through_backbone = cfg.joint_energy.target == "context_backbone"
+    with torch.set_grad_enabled(through_backbone):
+        if clean_features is None:
+            clean_features = pooled_context(model.backbone(batch))
+        corrupted_features = pooled_context(model.backbone(corrupted_batch))
+    if not through_backbone:
+        clean_features = clean_features.detach()
+    loss, gap, _ = _context_margin(model.context_energy, clean_features, corrupted_features, margin)
+    return loss, gap
+
+
+def _corrupted_copy(
+    cfg: EBVLAConfig, batch: dict[str, Tensor], generator: torch.Generator
+) -> tuple[dict[str, Tensor], float | Tensor]:
+    """The batch's corrupted copy and the margin each corrupted observation must clear: m, or s m at
+    strength s (`joint_energy.corruption_strength`)."""
+    corrupted_batch, strengths = graded_corruption(
+        batch,
+        list(cfg.image_features),
+        cfg.joint_energy.corruptions,
+        generator,
+        state_key=OBS_STATE,
+        strength_range=cfg.joint_energy.corruption_strength,
+    )
+    margin = cfg.joint_energy.margin if strengths is None else cfg.joint_energy.margin * strengths.float()
+    return corrupted_batch, margin
+
+
+def _context_margin(
+    context_energy: nn.Module, clean_features: Tensor, corrupted_features: Tensor, margin: float | Tensor
+) -> tuple[Tensor, float, Tensor]:
+    """The margin's loss, its mean gap and the clean observations' E_c(C), (B,)."""
+    clean, shifted = context_energy(clean_features), context_energy(corrupted_features)
+    loss = energy_margin_loss(clean, shifted, margin) + clean.float().pow(2).mean()
+    return loss, (shifted - clean).mean().item(), clean
+
+
+def ood_margin_loss(
+    model: nn.Module,
+    batch: dict[str, Tensor],
+    kv: ContextKV,
+    chunk: Tensor,
+    generator: torch.Generator,
+    step_sizes: list[float],
+) -> tuple[Tensor, float]:
+    """`energy_margin_loss` on the head's energy under corrupted copies of the batch's observations, and the mean
+    energy gap it acts on.
+
+    `joint_energy.chunk="expert"`: E(a*, C~) against E(a*, C), `chunk` being a*. "refined": the energy
+    of the chunk refined under C~ (the same a^(0) and step sizes as the training chain, no graph) against
+    that of the training chain's own refined chunk `chunk` under C, so that min_a E(a, C~) rises.
+    """
+    cfg = model.config
+    corrupted_batch, margin = _corrupted_copy(cfg, batch, generator)
+    corrupted_kv = model.encode_context(corrupted_batch)
+    corrupted_chunk = chunk
+    if cfg.joint_energy.chunk == "refined":
+        initial = model.initial_actions(chunk.shape[0], kv[0][0], generator)
+        detached_kv = [(k.detach(), v.detach()) for k, v in corrupted_kv]
+        corrupted_chunk = model.refine(detached_kv, initial, step_sizes, generator).actions.detach()
+    clean = model.head(chunk, kv).mean(dim=-1)
+    shifted = model.head(corrupted_chunk, corrupted_kv).mean(dim=-1)
+    loss = energy_margin_loss(clean, shifted, margin)
+    return loss, (shifted - clean).mean().item()
+
+
+def contrastive_energy_loss(
+    model: nn.Module, kv: ContextKV, target: Tensor, generator: torch.Generator
+) -> Tensor:
+    """InfoNCE over chunks: under each context C_i, the expert chunk a*_i must have the lowest energy.
+
+    Candidates for C_i are a*_i (the positive), other observations' expert chunks a*_j (a mismatched
+    action for this context; `contrastive.mismatched` of them, all B - 1 by default) and noisy
+    copies a*_i + sigma n (a nearby worse action), so that E(a, C) ranks how well a chunk fits its context
+    rather than only shaping the descent direction.
+    """
+    cfg = model.config
+    batch_size = target.shape[0]
+    mismatched = batch_size - 1
+    if cfg.contrastive.mismatched is not None:
+        mismatched = min(mismatched, cfg.contrastive.mismatched)
+    anchors = batch_size
+    if cfg.contrastive.anchors is not None:
+        anchors = min(anchors, cfg.contrastive.anchors)
+    noise = torch.randn(
+        (anchors, cfg.contrastive.negatives, *target.shape[1:]),
+        generator=generator,
+        device=target.device,
+        dtype=target.dtype,
+    )
+    noisy = target[:anchors].unsqueeze(1) + cfg.contrastive.noise_std * noise  # (A, N_noisy, H, d_a)
+    # Row i: a*_i first (the positive), then a*_{i+1}, ..., a*_{i+M} (mismatched; the batch is shuffled, so
+    # these are random other observations), then the noisy copies.
+    rows = torch.arange(batch_size, device=target.device)
+    order = (rows[:anchors, None] + rows[None, : 1 + mismatched]) % batch_size  # (A, 1 + M)
+    candidates = torch.cat([target[order], noisy], dim=1)  # (A, 1 + M + N_noisy, H, d_a)
+    num_candidates = candidates.shape[1]
+    anchor_kv = kv if anchors == batch_size else [(k[:anchors], v[:anchors]) for k, v in kv]
+    device_type = target.device.type
+    with torch.autocast(device_type, torch.bfloat16, enabled=contrastive_in_bf16(cfg, device_type)):
+        energies = model.head(candidates.flatten(0, 1), anchor_kv).mean(dim=-1)
+    logits = -energies.view(anchors, num_candidates).float() / cfg.contrastive.temperature
+    return nn.functional.cross_entropy(logits, torch.zeros(anchors, dtype=torch.long, device=target.device))

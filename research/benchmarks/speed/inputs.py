@@ -8,6 +8,7 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from torch import Tensor, nn
 
 from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
+from lerobot_policy_ebvla.configuration_groups import ResNetBackboneConfig
 
 # Context tokens per head block of the paper's VLM: K_a latents + the state token + K_t = 2 x 256 vision tokens.
 VLM_CONTEXT_TOKENS = 64 + 1 + 512
@@ -50,7 +51,7 @@ class Scene:
         return features
 
     def encoder_fields(self) -> dict:
-        """The image-encoder fields, spelled the same in `EBVLAConfig` and `DiffusionConfig`."""
+        """The image-encoder fields, spelled the same in `EBVLAConfig.resnet` and `DiffusionConfig`."""
         return {
             "vision_backbone": "resnet18",
             "pretrained_backbone_weights": None,
@@ -87,7 +88,7 @@ def make_ebvla(scene: Scene, head: dict, device: str) -> EBVLAPolicy:
         output_features={ACTION: PolicyFeature(FeatureType.ACTION, (scene.action_dim,))},
         chunk_size=scene.chunk,
         n_action_steps=scene.chunk,
-        **scene.encoder_fields(),
+        resnet=ResNetBackboneConfig(**scene.encoder_fields()),
         **head,
     )
     return EBVLAPolicy(config).to(device)

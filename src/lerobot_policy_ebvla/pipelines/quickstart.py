@@ -63,7 +63,7 @@ class QuickstartConfig:
     output_dir: Path = Path("outputs/ebvla_quickstart")
     # Expert episodes recorded per task.
     record_episodes: int = 10
-    # Side of the square images stored in the dataset (the policy resizes them to `policy.resize_shape`). The
+    # Side of the square images stored in the dataset (the policy resizes them to `policy.resnet.resize_shape`). The
     # light policy's own 64 px: LeRobot's loader decodes every stored frame of a sample's action chunk, so
     # frames stored at the size the policy sees halve the loader's time (research/docs/benchmarks_history.md, section 7).
     image_size: int = 64
@@ -106,7 +106,11 @@ class QuickstartConfig:
                 raise ValueError(f"`{name}` must be >= 1, got {getattr(self, name)}.")
         # The config's own rule, checked now rather than after recording and before training.
         self.policy.validate_light_backbone_image(
-            *(self.policy.crop_shape or self.policy.resize_shape or (self.image_size, self.image_size))
+            *(
+                self.policy.resnet.crop_shape
+                or self.policy.resnet.resize_shape
+                or (self.image_size, self.image_size)
+            )
         )
         if self.policy.backbone != "resnet":
             raise ValueError(
@@ -309,9 +313,9 @@ def run(cfg: QuickstartConfig) -> dict:
     start = time.perf_counter()
     p = cfg.policy
     banner(
-        f"2/4 Training ebvla for {cfg.steps} steps of batch {cfg.batch_size} ({p.vision_backbone_stages}-stage "
-        f"{p.vision_backbone} at {p.resize_shape} px, energy head D={p.dim_model}, {p.n_heads} heads, "
-        f"L={p.n_blocks}; state dropout {p.state_dropout}, contrastive weight {p.energy_contrastive_weight})"
+        f"2/4 Training ebvla for {cfg.steps} steps of batch {cfg.batch_size} ({p.resnet.vision_backbone_stages}-stage "
+        f"{p.resnet.vision_backbone} at {p.resnet.resize_shape} px, energy head D={p.dim_model}, {p.n_heads} heads, "
+        f"L={p.n_blocks}; state dropout {p.resnet.state_dropout}, contrastive weight {p.contrastive.weight})"
     )
     with single_column_delta_queries():
         train(train_config(cfg, root, repo_id, train_dir))

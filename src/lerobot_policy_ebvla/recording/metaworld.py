@@ -8,7 +8,7 @@ exactly the features LeRobot's `metaworld` env gives a policy (`observation.imag
 
 Images are rendered at 480x480 (as in evaluation) and stored resized to `image_size` with antialiased bilinear
 interpolation; the policy must resize evaluation frames the same way (EB-VLA's light backbone:
-`--policy.resize_shape=[128,128]` for the default `image_size`).
+`--policy.resnet.resize_shape=[128,128]` for the default `image_size`).
 
 Every attempted episode (task, seed, success, length) is logged and written to
 `<root>/meta/recording_report.json`. Failed expert episodes are left out unless `keep_failed`.
@@ -87,7 +87,7 @@ def dataset_features(env_cfg: MetaworldEBVLAEnv, image_size: int, use_videos: bo
 def resize_image(image: np.ndarray, size: int) -> np.ndarray:
     """Resizes an (H, W, 3) uint8 frame to (size, size, 3) with antialiased bilinear interpolation.
 
-    This is torchvision's resize, the one LeRobot's image encoders (and EB-VLA's `resize_shape`) apply to
+    This is torchvision's resize, the one LeRobot's image encoders (and EB-VLA's `resnet.resize_shape`) apply to
     evaluation frames.
     """
     if image.shape[:2] == (size, size):

@@ -35,7 +35,7 @@ from .threshold import ArrayLike, as_array, exceeds, mean_std_threshold
 
 FAILURE_ALARM_FILENAME = "failure_alarm.json"
 # The energy each slope is of: the refined chunk's (Slope Final), the initial sample's (Slope Start), or the
-# joint energy's context term E_c(C) (Slope Context; only a policy trained with `energy_ood_margin_on` has it).
+# joint energy's context term E_c(C) (Slope Context; only a policy trained with a joint energy, `joint_energy.target`, has it).
 SLOPE_ENERGIES = {"final": "final_energy", "start": "initial_energy", "context": "context_energy"}
 
 
@@ -165,7 +165,7 @@ class EnergyFailureMonitor(ReadoutMonitor):
         if energies is None:
             raise ValueError(
                 f"The failure alarm checks the slope of `{field}`, which this readout does not have (only a "
-                "policy trained with a joint energy, `energy_ood_margin_on`, reports `context_energy`)."
+                "policy trained with a joint energy, `joint_energy.target`, reports `context_energy`)."
             )
         values = as_array(energies)
         self._histories.append([float(value) for value in values])

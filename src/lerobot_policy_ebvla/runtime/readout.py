@@ -30,7 +30,7 @@ class EnergyReadout:
         chains: (B,) how many MCMC chains were refined for each observation: `num_restarts`, or with
             `restart_energy_threshold` 1, and `num_restarts` where the first chunk's energy was above it.
         context_energy: E_c(C), (B,), the joint energy's context term, already inside `final_energy`; None
-            without a joint energy (it has one with `energy_ood_margin_on` "context", "context_backbone" or
+            without a joint energy (it has one with `joint_energy.target` "context", "context_backbone" or
             "observation"). Recorded apart because its rise under a shift can be small beside the spread of
             the head's part (docs/energy_study.md, section 8.8).
         chunk_index: The chunk's 0-based index in its episode: the policy counts the chunks it refined since

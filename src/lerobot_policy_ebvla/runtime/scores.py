@@ -84,7 +84,7 @@ INPUT_SOURCES = {
     ),
     "context_energy": (
         "each chunk's context energy E_c(C) (`EnergyReadout.context_energy`, (B,)), which only a policy trained "
-        "with a joint energy (`energy_ood_margin_on`) reports"
+        "with a joint energy (`joint_energy.target`) reports"
     ),
 }
 # The head's energy is the final energy less E_c (`ChunkInputs.head_energy`): missing exactly where E_c is.
@@ -360,7 +360,7 @@ class ContextPhaseEnergy(PhaseZScore):
     """The joint energy's context term against the vanilla E_c at the same chunk index,
     z_t = (E_c,t - mu_v[t]) / sigma_v[t], aggregated over the rollout: one-sided, high above the vanilla band.
 
-    The matched test for an E_c trained flat at the data (`energy_ood_gradient_penalty`), under which every shift
+    The matched test for an E_c trained flat at the data (`joint_energy.gradient_penalty`), under which every shift
     of the sweep raises E_c in every scene; the two-sided form then reads the rollouts of low-E_c scenes that a
     mild shift lifts into the band's middle as typical (research/docs/energy_study.md, section 8.12).
     """

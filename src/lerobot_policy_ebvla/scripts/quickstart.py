@@ -23,37 +23,18 @@ Example:
     ebvla-quickstart --task=push-v3 --steps=3000 --batch_size=32 --policy.device=cuda --output_dir=outputs/qs_gpu
     ebvla-quickstart --policy.dim_model=256 --policy.n_blocks=4 --perturbation=light_dim --perturbation_severity=5
 
-Every `--policy.*` field of `EBVLAConfig` can be set; the light policy's values (`LIGHT_POLICY`) are the
+Every `--policy.*` field of `EBVLAConfig` can be set (a group's as `--policy.<group>.<field>`, e.g.
+`--policy.joint_energy.weight=0.1`); the light policy's values (`LIGHT_POLICY`) are the
 defaults of the ones it changes.
 """
 
-import dataclasses
-import json
 import os
 import sys
 
 import draccus
 
 from lerobot_policy_ebvla.pipelines.quickstart import QuickstartConfig, quiet_in_process_noise, run
-from lerobot_policy_ebvla.presets import LIGHT_POLICY
-
-
-def preset_flags(preset: dict, prefix: str) -> list[str]:
-    """The command-line flags of a preset, a nested config's fields (a dataclass) as `--policy.monitor.score=...`."""
-    flags = []
-    for name, value in preset.items():
-        if dataclasses.is_dataclass(value):
-            flags += preset_flags(
-                {
-                    f.name: getattr(value, f.name)
-                    for f in dataclasses.fields(value)
-                    if getattr(value, f.name) is not None
-                },
-                f"{prefix}.{name}",
-            )
-        else:
-            flags.append(f"{prefix}.{name}={json.dumps(value)}")
-    return flags
+from lerobot_policy_ebvla.presets import LIGHT_POLICY, command_line_flags
 
 
 def parse_config(args: list[str]) -> QuickstartConfig:
@@ -63,7 +44,7 @@ def parse_config(args: list[str]) -> QuickstartConfig:
     `default_factory` once any `--policy.*` flag is given; `LIGHT_POLICY` therefore goes first on the
     command line, where the user's own flags override it.
     """
-    defaults = preset_flags(LIGHT_POLICY, "--policy")
+    defaults = command_line_flags(LIGHT_POLICY)
     if "--help" in args or "-h" in args:
         # argparse type-checks flags when printing help; `LIGHT_POLICY` is not needed for that.
         defaults = []
