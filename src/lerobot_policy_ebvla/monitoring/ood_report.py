@@ -65,7 +65,6 @@ from .scores import (
     episode_chunk_scores,
     registered_rollout_scores,
 )
-from .window_report import window_values_of
 
 logger = logging.getLogger(__name__)
 
@@ -357,12 +356,6 @@ def write_ood_report(cfg: OODReportConfig) -> str:
         # is fitted on them, as a new rollout's would be.
         score = SCORES[saved_score].fit(vanilla_rollouts(calibration_set, cfg.aggregation, cfg.knn_k))
         calibration = dataclasses.replace(fits[saved_score], score=score)
-        # The held-out vanilla rollouts' window values against that fit are the window test's reference; vanilla
-        # rollouts that are also the calibration's (in-sample) score lower than new ones would.
-        if cfg.calibration and not in_sample:
-            reference = window_values_of(calibration, vanilla)
-            reference = reference[np.isfinite(reference).all(axis=1)]
-            calibration = dataclasses.replace(calibration, window_reference=reference)
         path = calibration.save(cfg.calibrate_to, overwrite=cfg.overwrite_calibration)
         logger.info(f"Saved the OOD calibration ({saved_score}, T = {calibration.threshold:.3f}) to {path}")
     return report
