@@ -24,8 +24,8 @@ from lerobot_policy_ebvla.monitoring.baselines import (
     vanilla_rollouts,
 )
 from lerobot_policy_ebvla.monitoring.metrics import BinaryRates, markdown_table, marked_auroc, percent
+from lerobot_policy_ebvla.monitoring.ood_sections import successes
 from lerobot_policy_ebvla.monitoring.records import Episode
-from lerobot_policy_ebvla.monitoring.score_summary import successes
 from lerobot_policy_ebvla.monitoring.scores import episode_scores
 from lerobot_policy_ebvla.runtime.calibration import OODCalibration
 from lerobot_policy_ebvla.runtime.scores import SCORES
