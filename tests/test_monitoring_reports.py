@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 
-from lerobot_policy_ebvla.monitoring.baselines import fit_score_reference
 from lerobot_policy_ebvla.monitoring.protocol import check_held_out
 from lerobot_policy_ebvla.monitoring.records import (
     ENERGY_RECORDS_FILENAME,
@@ -19,7 +18,6 @@ from lerobot_policy_ebvla.monitoring.scores import episode_scores
 from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
 from lerobot_policy_ebvla.runtime.failure_alarm import FAILURE_ALARM_FILENAME, FailureAlarm
 from lerobot_policy_ebvla.scripts import failure_report, landscape, ood_report
-from research.tests.conftest import load_benchmark
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -283,81 +281,6 @@ def test_ood_report_prints_table_iii_on_the_first_chunks_calibrated_on_their_fir
 def test_ood_report_leaves_the_first_chunk_table_iii_out_when_asked(record_dirs, tmp_path, capsys):
     ood_report.main([*ood_args(*record_dirs, tmp_path / "out"), "--table_iii_first_chunks=0"])
     assert "first 3 chunks:" not in capsys.readouterr().out
-
-
-def test_ood_report_saves_a_phase_energy_calibration_when_asked(record_dirs, tmp_path):
-    load_benchmark("research_scores")  # a research score, registered by its module
-    checkpoint = tmp_path / "pretrained_model"
-    checkpoint.mkdir()
-    ood_report.main(
-        [*ood_args(*record_dirs, tmp_path / "out"), f"--calibrate_to={checkpoint}", "--score=phase_energy"]
-    )
-    calibration = OODCalibration.load(checkpoint)
-    expected = fit_score_reference(load_episodes([record_dirs[0]]), features=False).phase.statistics
-    assert calibration.score.name == "phase_energy" and calibration.score.phase == expected
-    assert calibration.n_rollouts == 12 and abs(calibration.mu_v) < 1.0  # z-scores of vanilla rollouts
-
-
-def calibrated(record_dirs, tmp_path, score: str) -> OODCalibration:
-    """The calibration `ebvla-ood-report --calibrate_to --score=<score>` saves from the fixture's records."""
-    checkpoint = tmp_path / "pretrained_model"
-    checkpoint.mkdir()
-    ood_report.main(
-        [*ood_args(*record_dirs, tmp_path / "out"), f"--calibrate_to={checkpoint}", f"--score={score}"]
-    )
-    return OODCalibration.load(checkpoint)
-
-
-def test_ood_report_saves_the_held_out_vanilla_rollouts_as_the_window_tests_reference(record_dirs, tmp_path):
-    load_benchmark("research_scores")  # a research score, registered by its module
-    saved = np.array(calibrated(record_dirs, tmp_path, "phase_energy_two_sided").window_reference)
-    calibration_set, vanilla = load_episodes([record_dirs[0]]), load_episodes([record_dirs[1]])
-    reference = fit_score_reference(calibration_set, features=False)
-    signed = episode_scores(vanilla, "phase_energy", reference=reference)  # the mean z of each rollout
-    # The --vanilla rollouts against the calibration's fit, not the calibration rollouts: |a| and a.
-    assert (
-        saved.shape == (12, 2)
-        and np.allclose(saved[:, 1], signed)
-        and np.allclose(saved[:, 0], np.abs(signed))
-    )
-
-
-def test_ood_report_saves_no_window_reference_from_in_sample_vanilla(record_dirs, tmp_path):
-    checkpoint = tmp_path / "pretrained_model"
-    checkpoint.mkdir()
-    _, vanilla, ood = record_dirs
-    args = [
-        f"--vanilla=[{vanilla}]",
-        f"--ood=[{ood}]",
-        f"--output_dir={tmp_path / 'out'}",
-        "--in_sample=true",
-    ]
-    ood_report.main([*args, f"--calibrate_to={checkpoint}", "--score=final_energy"])
-    assert OODCalibration.load(checkpoint).window_reference is None
-
-
-def test_ood_report_saves_a_context_distance_calibration_when_asked(record_dirs, tmp_path):
-    load_benchmark("research_scores")  # a research score, registered by its module
-    calibration = calibrated(record_dirs, tmp_path, "context_distance")
-    episodes = load_episodes([record_dirs[0]])
-    reference = fit_score_reference(episodes)
-    assert calibration.score.name == "context_distance" and calibration.n_rollouts == 12
-    np.testing.assert_allclose(calibration.score.context.mean, reference.features.statistics.mean)
-    np.testing.assert_allclose(calibration.score.context.precision, reference.features.statistics.precision)
-    # mu_v is that of the report's context_distance score: the calibration rollouts leave-one-episode-out.
-    context_distance = episode_scores(episodes, "context_distance", reference=reference)
-    assert calibration.mu_v == pytest.approx(context_distance.mean())
-
-
-def test_ood_report_refuses_a_context_distance_calibration_without_context_features(tmp_path):
-    load_benchmark("research_scores")  # a research score, registered by its module
-    dirs = (
-        write(tmp_path, "vanilla_a", rollouts(6, 5.0, seed=10)),
-        write(tmp_path, "vanilla_b", rollouts(6, 5.0, seed=11)),
-        write(tmp_path, "camera", rollouts(6, 6.0, "camera", 1.0, seed=1)),
-    )
-    with pytest.raises(ValueError, match="record_context_features"):
-        ood_report.main([*ood_args(*dirs, tmp_path / "out"), "--score=context_distance"])
 
 
 def test_ood_report_refuses_to_calibrate_a_score_the_policy_cannot_compute(record_dirs, tmp_path):

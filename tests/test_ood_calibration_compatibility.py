@@ -67,3 +67,13 @@ def test_a_saved_calibration_of_a_research_score_says_how_to_register_it(name, m
         UnregisteredScoreError, match=rf"score '{name}', which is not registered.*research_scores"
     ):
         OODCalibration.load(folder)
+
+
+def test_a_calibration_saved_with_a_window_reference_loads_without_it(tmp_path):
+    # `ebvla-ood-report --calibrate_to` saved the window test's reference until that test moved to the research.
+    calibration = OODCalibration.fit([4.0, 5.0, 6.0])
+    path = calibration.save(tmp_path)
+    payload = json.loads(path.read_text())
+    assert "window_reference" not in payload
+    path.write_text(json.dumps(payload | {"window_reference": [[4.0, -4.0], [5.5, 5.5]]}))
+    assert OODCalibration.load(tmp_path) == calibration

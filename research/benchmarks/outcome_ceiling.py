@@ -31,11 +31,11 @@ from pathlib import Path
 
 import numpy as np
 import research_scores  # noqa: F401  (registers the research scores in the package's SCORES)
+from window_report import score_sets
 from window_typicality import conditions_in, episodes_in
 
 from lerobot_policy_ebvla.monitoring.metrics import auroc, format_auroc, markdown_table
 from lerobot_policy_ebvla.monitoring.ood_sections import condition_failure_rates
-from lerobot_policy_ebvla.monitoring.window_report import score_sets
 
 FIRST_CHUNKS = 3
 N_BOOTSTRAP = 1000

@@ -36,10 +36,10 @@ from pathlib import Path
 import numpy as np
 import research_scores  # noqa: F401  (registers the research scores in the package's SCORES)
 from scipy import stats
+from window_report import score_sets
 from window_typicality import conditions_in, episodes_in
 
 from lerobot_policy_ebvla.monitoring.metrics import auroc, markdown_table, marked_auroc
-from lerobot_policy_ebvla.monitoring.window_report import score_sets
 from lerobot_policy_ebvla.runtime.statistics import MIN_SIGMA, PHASE_SIGMA_FLOOR
 
 DEFAULT_SCORE = "context_energy_two_sided"

@@ -1,15 +1,15 @@
-"""The window typicality test (`runtime.window`) on sweeps of recorded rollouts, one section per run.
+"""The window typicality test (`window_monitor.py`) on sweeps of recorded rollouts, one section per run.
 
 A run is a sweep folder of `metaworld_perturbation_sweep.py` records (`calibration/`, `vanilla/`, one folder per
 condition; `vanilla_extra/` left out), optionally with a folder of fresh rollouts:
 
 - `NAME=SWEEP`: the sweep's vanilla rollouts are split in episode order, the first half the test's reference
-  (scored against the calibration's fit, as `ebvla-ood-report --calibrate_to` records them), the second half the
+  (scored against the calibration's fit, `window_report.window_values_of`), the second half the
   held-out vanilla whose windows are the false alarms; the conditions are the sweep's.
 - `NAME=SWEEP,FRESH`: every sweep vanilla rollout is the reference; FRESH's `vanilla/` is the held-out vanilla;
   the conditions are the sweep's and FRESH's other folders (fresh rollouts of some of them, named `fresh <c>`).
   With M reference rollouts the test's false-alarm rate is alpha over draws of the reference, not for each
-  one: 20 gave 1-42% on eight training seeds, 40 gave 4-7% on five (docs/monitoring.md).
+  one: 20 gave 1-42% on eight training seeds, 40 gave 4-7% on five (research/docs/window_test.md).
 
 Every score is over each episode's first `--first_chunks` chunks (3: what a monitor has seen early on).
 
@@ -22,14 +22,10 @@ from pathlib import Path
 
 import research_scores  # noqa: F401  (registers the research scores in the package's SCORES)
 from score_summaries import NOT_CONDITIONS
+from window_monitor import DEFAULT_WINDOW, DEFAULT_WINDOW_FALSE_ALARM_RATE, WindowTypicalityTest
+from window_report import DEFAULT_MAX_WINDOWS, score_sets, window_table
 
 from lerobot_policy_ebvla.monitoring.records import load_episodes
-from lerobot_policy_ebvla.monitoring.window_report import DEFAULT_MAX_WINDOWS, score_sets, window_table
-from lerobot_policy_ebvla.runtime.window import (
-    DEFAULT_WINDOW,
-    DEFAULT_WINDOW_FALSE_ALARM_RATE,
-    WindowTypicalityTest,
-)
 
 
 def episodes_in(folder: Path) -> dict:

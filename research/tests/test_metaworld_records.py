@@ -12,6 +12,8 @@ from lerobot_policy_ebvla.monitoring.ood_report import OODReportConfig, write_oo
 from lerobot_policy_ebvla.runtime.statistics import DEFAULT_KNN_K
 from research.tests.conftest import RESULTS, load_benchmark
 
+summaries = load_benchmark("score_summaries")
+
 # The committed reports were written with the research scores beside the package's.
 load_benchmark("research_scores")
 
@@ -21,7 +23,8 @@ DISTRACTOR30 = RESULTS / "metaworld_sweep_distractor30" / "records"
 def records_report(records: Path, output_dir: Path, **options) -> str:
     """The OOD report of a sweep's committed records: its `calibration` and `vanilla` folders against every
     other folder but `vanilla_extra` (more vanilla rollouts, not a perturbation), with few bootstrap resamples,
-    the first 1 and 3 chunks and no first-chunks Table III unless `options` say otherwise."""
+    the first 1 and 3 chunks and no first-chunks Table III unless `options` say otherwise; the score summary
+    (`score_summaries.py`) follows the report."""
     conditions = sorted(
         p for p in records.iterdir() if p.name not in ("calibration", "vanilla", "vanilla_extra")
     )
@@ -32,7 +35,7 @@ def records_report(records: Path, output_dir: Path, **options) -> str:
         "output_dir": output_dir,
     }
     defaults = {"n_bootstrap": 10, "first_chunks": [1, 3], "table_iii_first_chunks": 0}
-    return write_ood_report(OODReportConfig(**(sets | defaults | options)))
+    return summaries.report_with_summary(OODReportConfig(**(sets | defaults | options)))
 
 
 def test_with_30_rollouts_a_side_no_score_flagged_the_distractor_at_the_5th_neighbour(tmp_path):

@@ -12,10 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lerobot_policy_ebvla.monitoring.ood_report import (
-    OODReportConfig,
-    write_ood_report,
-)
+from lerobot_policy_ebvla.monitoring.ood_report import OODReportConfig
 from lerobot_policy_ebvla.runtime import SCORES, EnergyOODMonitor, OODCalibration, VanillaRollouts
 from lerobot_policy_ebvla.runtime.readout import EnergyReadout
 from lerobot_policy_ebvla.runtime.scores import (
@@ -176,7 +173,10 @@ def report(record_dirs, out, **options) -> tuple[str, OODCalibration]:
         calibrate_to=out / "pretrained_model",
         **options,
     )
-    return write_ood_report(cfg), OODCalibration.load(out / "pretrained_model")
+    # The package's report with the research's score summary after it.
+    return load_benchmark("score_summaries").report_with_summary(cfg), OODCalibration.load(
+        out / "pretrained_model"
+    )
 
 
 def test_the_report_sets_each_two_sided_score_beside_its_one_sided_form(record_dirs, tmp_path):

@@ -1,24 +1,30 @@
-"""The window typicality test: ranks against a reference, the exact law of their mean, the monitor, its analysis."""
+"""research/benchmarks/window_monitor.py and window_report.py: the window typicality test, ranks against a
+reference, the monitor, its analysis."""
 
 import math
 
 import numpy as np
 import pytest
 
-from lerobot_policy_ebvla.monitoring.window_report import WindowRates, window_indices
+from lerobot_policy_ebvla.monitoring.baselines import fit_score_reference
+from lerobot_policy_ebvla.monitoring.records import EnergyRecord
+from lerobot_policy_ebvla.monitoring.scores import episode_scores
 from lerobot_policy_ebvla.runtime import OODCalibration, PhaseStatistics
 from lerobot_policy_ebvla.runtime.readout import EnergyReadout
-from lerobot_policy_ebvla.runtime.scores import FinalEnergy
-from lerobot_policy_ebvla.runtime.window import (
-    HIGH_SCORES,
-    SHIFTED,
-    TOO_TYPICAL,
-    WindowTypicalityMonitor,
-    WindowTypicalityTest,
-)
+from lerobot_policy_ebvla.runtime.scores import FinalEnergy, HeadEnergyTwoSided
 from research.tests.conftest import load_benchmark
 
 research_scores = load_benchmark("research_scores")
+window_monitor = load_benchmark("window_monitor")
+window_report = load_benchmark("window_report")
+HIGH_SCORES, SHIFTED, TOO_TYPICAL = (
+    window_monitor.HIGH_SCORES,
+    window_monitor.SHIFTED,
+    window_monitor.TOO_TYPICAL,
+)
+WindowTypicalityMonitor = window_monitor.WindowTypicalityMonitor
+WindowTypicalityTest = window_monitor.WindowTypicalityTest
+WindowRates, window_indices = window_report.WindowRates, window_report.window_indices
 ContextEnergyTwoSided = research_scores.ContextEnergyTwoSided
 FinalEnergyTwoSided = research_scores.FinalEnergyTwoSided
 PhaseEnergyDeviation = research_scores.PhaseEnergyDeviation
@@ -93,20 +99,30 @@ def test_a_two_sided_scores_window_also_tests_its_signed_aggregate_at_half_the_r
 def test_the_two_sided_scores_give_the_window_their_signed_aggregate():
     phase = PhaseStatistics((0.0,), (1.0,))
     aggregates = np.array([[-1.5], [2.0]])
-    two_sided = [FinalEnergyTwoSided(0.0, 1.0), PhaseEnergyTwoSided(phase), ContextEnergyTwoSided(phase)]
+    two_sided = [
+        FinalEnergyTwoSided(0.0, 1.0),
+        PhaseEnergyTwoSided(phase),
+        ContextEnergyTwoSided(phase),
+        HeadEnergyTwoSided(phase),
+    ]
     for score in two_sided:
-        assert np.allclose(score.window_values(aggregates), [[1.5, -1.5], [2.0, 2.0]]), score.name
+        values = window_monitor.score_window_values(score, aggregates)
+        assert np.allclose(values, [[1.5, -1.5], [2.0, 2.0]]), score.name
     for score in (FinalEnergy(), PhaseEnergyDeviation(phase)):
-        assert np.allclose(score.window_values(aggregates), [[-1.5], [2.0]]), score.name
+        assert np.allclose(window_monitor.score_window_values(score, aggregates), [[-1.5], [2.0]]), score.name
 
 
-def calibration_with_reference(reference=None):
-    reference = np.linspace(4.0, 6.0, 40)[:, None] if reference is None else reference
-    return OODCalibration.fit(np.linspace(4.0, 6.0, 20), window_reference=reference)
+def test_a_rollouts_window_values_aggregate_its_chunks_as_the_calibration_does():
+    calibration = OODCalibration.fit([1.0, 2.0], aggregation="max", score=FinalEnergyTwoSided(0.0, 1.0))
+    # The max of the chunks' signed z, 2.0, then |a| and a.
+    assert np.allclose(window_monitor.window_values(calibration, [[-3.0], [2.0], [1.0]]), [2.0, 2.0])
+
+
+REFERENCE = np.linspace(4.0, 6.0, 40)[:, None]
 
 
 def test_the_monitor_decides_once_it_has_a_window_and_then_on_the_last_rollouts():
-    monitor = WindowTypicalityMonitor(calibration_with_reference(), window=3)
+    monitor = WindowTypicalityMonitor(OODCalibration.fit(np.linspace(4.0, 6.0, 20)), REFERENCE, window=3)
     assert monitor.add_values([5.0]) is None and monitor.add_values([5.1]) is None
     first = monitor.add_values([4.9])
     assert first.rollout_values == ((5.0,), (5.1,), (4.9,)) and not first.is_atypical
@@ -118,40 +134,49 @@ def test_the_monitor_decides_once_it_has_a_window_and_then_on_the_last_rollouts(
 
 
 def test_the_monitor_scores_a_rollout_as_the_calibration_does():
-    monitor = WindowTypicalityMonitor(calibration_with_reference(), window=1)
+    monitor = WindowTypicalityMonitor(OODCalibration.fit(np.linspace(4.0, 6.0, 20)), REFERENCE, window=1)
     decision = monitor.add_rollout(EnergyReadout.of_arrays([4.0, 5.0, 6.0]))  # the final energy's mean
     assert decision.rollout_values == ((5.0,),)
 
 
-def test_the_monitor_needs_a_calibration_with_a_window_reference():
-    with pytest.raises(ValueError, match=r"no `window_reference`.*ebvla-ood-report --calibrate_to"):
-        WindowTypicalityMonitor(OODCalibration.fit([4.0, 5.0, 6.0]))
-
-
-def test_the_window_reference_is_saved_with_the_calibration_and_read_back(tmp_path):
-    calibration_with_reference([[4.0, -4.0], [5.5, 5.5], [6.0, -6.0]]).save(tmp_path)
-    monitor = WindowTypicalityMonitor.from_pretrained(tmp_path, window=2, false_alarm_rate=0.1)
-    assert monitor.calibration.window_reference == ((4.0, -4.0), (5.5, 5.5), (6.0, -6.0))
+def test_the_monitor_reads_the_calibration_from_a_checkpoint_and_takes_its_reference(tmp_path):
+    OODCalibration.fit([1.0, 2.0, 4.0]).save(tmp_path)
+    reference = [[4.0, -4.0], [5.5, 5.5], [6.0, -6.0]]
+    monitor = WindowTypicalityMonitor.from_pretrained(tmp_path, reference, window=2, false_alarm_rate=0.1)
+    assert monitor.calibration.mu_v == pytest.approx(7 / 3) and monitor.test.reference == tuple(
+        map(tuple, reference)
+    )
     assert monitor.test.window == 2 and monitor.test.false_alarm_rate == 0.1
-    (tmp_path / "without").mkdir()
-    OODCalibration.fit([1.0, 2.0]).save(tmp_path / "without")
-    assert OODCalibration.load(tmp_path / "without").window_reference is None
 
 
-def test_a_calibration_takes_a_flat_reference_as_one_value_per_rollout():
-    calibration = OODCalibration.fit([1.0, 2.0], window_reference=[1.0, 2.0, 3.0])
-    assert calibration.window_reference == ((1.0,), (2.0,), (3.0,))
+def test_the_window_reference_is_the_held_out_vanilla_rollouts_scored_against_the_calibration(tmp_path):
+    rng = np.random.default_rng(5)
 
+    def episodes(n, seed):
+        return {
+            (f"run{seed}", i): [
+                EnergyRecord(
+                    i, chunk, 8 * chunk, 7.0, 5.0 + chunk + rng.normal(0, 0.3), True, "reach", seed + i
+                )
+                for chunk in range(4)
+            ]
+            for i in range(n)
+        }
 
-def test_a_calibration_refuses_non_finite_or_ragged_window_references():
-    with pytest.raises(ValueError, match="`window_reference` must be finite"):
-        OODCalibration.fit([1.0, 2.0], window_reference=[[1.0], [math.nan]])
-    with pytest.raises(
-        ValueError, match=r"one row of window values per vanilla rollout; got shape \(2, 2, 1\)"
-    ):
-        OODCalibration(1.0, 0.5, window_reference=[[[1.0], [2.0]], [[1.0], [2.0]]])
-    with pytest.raises(ValueError, match="`window_reference` must be rows of numbers of one length"):
-        OODCalibration(1.0, 0.5, window_reference=[[1.0, 2.0], [1.0]])
+    calibration_set, vanilla = episodes(8, 0), episodes(6, 100)
+    calibration, scored = window_report.score_sets(
+        calibration_set, {"vanilla": vanilla}, "phase_energy_two_sided", None
+    )
+    reference = fit_score_reference(calibration_set, features=False)
+    signed = episode_scores(vanilla, "phase_energy", reference=reference)  # each rollout's mean z
+    # The held-out rollouts against the calibration's fit, not the calibration rollouts: |a| and a.
+    values = scored["vanilla"].values
+    assert (
+        values.shape == (6, 2)
+        and np.allclose(values[:, 1], signed)
+        and np.allclose(values[:, 0], np.abs(signed))
+    )
+    assert calibration.n_rollouts == 8
 
 
 def test_window_indices_are_every_window_or_distinct_draws():

@@ -8,14 +8,12 @@ Everything here studies rollouts; it imports the policy and `runtime/`, and neit
 - `metrics`: accuracy, balanced accuracy, TPR, FPR, F1, AUROC with bootstrap intervals, ROC curves.
 - `protocol`: the held-out check: calibration and report sets share no record file and no seed.
 - `ood`: Table III, the energy threshold of Eq. 5 evaluated on vanilla and perturbed rollouts;
-  `ood_report` builds `ebvla-ood-report`'s report from it.
+  `ood_report` builds `ebvla-ood-report`'s report from it (`score_ood_report`, then `write_scored_report`).
 - `baselines`: the post-hoc scores the energy is compared with (initial energy, restart spread,
   Mahalanobis and k-NN distances of the context).
 - `failure`: energy-slope failure prediction and Table IV, in-sample or held out, and the one-check alarm
   chosen on calibration (`select_check_step`, `failure_alarm`); `failure_report` builds
   `ebvla-failure-report`'s report and saves that alarm with `--calibrate_to`.
-- `window_report`: the window typicality test (`runtime.window`) on recorded rollouts: how often windows of
-  n rollouts alarm, beside each condition's per-rollout figures.
 - `landscape`: the energy around a refined action chunk (Fig. 2).
 - `plots`: every figure (the only module that imports matplotlib).
 - `vision`: does the policy see? Its chunk and energy with real against blanked cameras.

@@ -5,10 +5,11 @@ record files and writes `ood_report.md`, the figures `roc_curve.png`, `roc_basel
 `energy_histogram.png`, and on request the checkpoint's `ood_calibration.json`. Its sections: the protocol and
 calibration, energy vs success drop per condition, AUROC with bootstrap 95% intervals per score, the same
 AUROCs over each episode's first k chunks beside the whole episode's, each score's AUROC of failed against
-successful rollouts, a summary of every score (pooled AUROC, its worst and inverted conditions, the conditions
-that cut success, failed vs successful, and the alarm rate at T = mu_v + k sigma_v beside each AUROC), Table III
-per condition in the paper's layout with every score's balanced accuracy beside it, and Table III again over the
-first k chunks. Each two-sided score sits beside its one-sided form.
+successful rollouts, Table III per condition in the paper's layout with every score's balanced accuracy beside
+it, and Table III again over the first k chunks. Each two-sided score sits beside its one-sided form.
+
+`score_ood_report` is its first half, the rollouts and their scores (`OODScores`), and `write_scored_report` the
+second: an analysis that needs another section (the research's score summary) scores once and adds it.
 
 With context features, the scores include the combinations of the final energy and the context distance
 (`baselines.COMBINED_SCORES`), rollout scores standardized on the calibration rollouts aggregated the same way
@@ -31,19 +32,17 @@ from .baselines import (
     COMBINED_FROM,
     COMBINED_SCORES,
     FEATURE_SCORES,
+    ScoreReference,
     available_scores,
     fit_score_reference,
     recorded_inputs,
     registered_scores,
     vanilla_rollouts,
 )
-from .metrics import (
-    percent,
-)
-from .ood import (
-    TABLE_III_MULTIPLIERS,
-)
+from .metrics import percent
+from .ood import TABLE_III_MULTIPLIERS
 from .ood_sections import (
+    ALL_CONDITIONS,
     auroc_table,
     calibration_table,
     conformal_note,
@@ -55,17 +54,12 @@ from .ood_sections import (
 )
 from .protocol import check_held_out
 from .records import load_episodes, resolve_record_files
-from .score_summary import (
-    ALL_CONDITIONS,
-    summary_section,
-)
 from .scores import (
     aggregate_episodes,
     combined_rollout_scores,
     episode_chunk_scores,
     registered_rollout_scores,
 )
-from .window_report import window_values_of
 
 logger = logging.getLogger(__name__)
 
@@ -124,8 +118,6 @@ class OODReportConfig:
     # Table III once more over each episode's first k chunks, thresholds from the calibration rollouts' first
     # k chunks; 0 leaves it out.
     table_iii_first_chunks: int = 3
-    # The score summary's early window: every score over each episode's first k chunks beside the whole episode.
-    summary_first_chunks: int = 3
     # Write ood_calibration.json (`score`, fitted on `calibration`) into this pretrained_model folder.
     calibrate_to: Path | None = None
     # The chunk score the saved calibration is of (a name of `runtime.scores.SCORES`, and a row of the report).
@@ -148,8 +140,6 @@ class OODReportConfig:
             )
         if self.score is not None and self.score not in SCORES:
             raise ValueError(f"`score` must be one of {tuple(SCORES)}, got {self.score!r}.")
-        if self.summary_first_chunks < 1:
-            raise ValueError(f"`summary_first_chunks` must be >= 1, got {self.summary_first_chunks}.")
         if any(k < 1 for k in self.first_chunks) or self.table_iii_first_chunks < 0:
             raise ValueError(
                 f"`first_chunks` must be >= 1 and `table_iii_first_chunks` >= 0, got {self.first_chunks} "
@@ -166,7 +156,7 @@ def _condition_name(perturbation: str, severity: float) -> str:
 
 
 @dataclass
-class _Scored:
+class ScoredSets:
     """Every score of the held-out rollouts over the same chunks: negatives, and positives per condition."""
 
     negatives: dict[str, np.ndarray]
@@ -189,20 +179,75 @@ def _conditions(ood: dict) -> dict[str, dict]:
     return conditions
 
 
-def write_ood_report(cfg: OODReportConfig) -> str:
-    """Builds the report, writes it and the figures to `cfg.output_dir`, and returns its markdown.
+@dataclass
+class OODScores:
+    """A report's rollouts and every score of them (`score_ood_report`): what each section is built from.
+
+    Each chunk is scored once (`*_chunks`: by score name, each episode's chunk scores, or a registered score's
+    fitted score and chunk components); `at(k)` aggregates them over each episode's first k chunks (None: the
+    whole episode), `fit(name, k)` fits the threshold statistics on the calibration rollouts aggregated alike.
+    """
+
+    cfg: OODReportConfig
+    calibration_set: dict
+    vanilla: dict
+    ood: dict
+    conditions: dict[str, dict]
+    names: list[str]
+    reference: ScoreReference
+    saved_score: str
+    in_sample: bool
+    n_calibration_files: int
+    n_failed_left_out: int
+    calibration_chunks: dict
+    vanilla_chunks: dict
+    condition_chunks: dict[str, dict]
+    _scored: dict = field(default_factory=dict, repr=False)
+
+    def scores(self, chunks: dict, name: str, first_chunks: int | None = None) -> np.ndarray:
+        """The rollout scores of one set (its chunk scores by name), over whole episodes or first chunks."""
+        if name in self.reference.registered:
+            return registered_rollout_scores(chunks[name], self.cfg.aggregation, first_chunks)
+        if name in COMBINED_SCORES:
+            # Standardized on the calibration rollouts aggregated over the same chunks.
+            return combined_rollout_scores(
+                name,
+                {n: self.scores(chunks, n, first_chunks) for n in COMBINED_FROM},
+                {n: self.scores(self.calibration_chunks, n, first_chunks) for n in COMBINED_FROM},
+            )
+        return aggregate_episodes(chunks[name], self.cfg.aggregation, first_chunks)
+
+    def fit(self, name: str, first_chunks: int | None = None) -> OODCalibration:
+        """The threshold statistics of a score on the calibration rollouts' scores over the same chunks."""
+        return OODCalibration.fit(
+            self.scores(self.calibration_chunks, name, first_chunks),
+            k=self.cfg.k,
+            aggregation=self.cfg.aggregation,
+            false_alarm_rate=self.cfg.false_alarm_rate,
+            rule=self.cfg.threshold_rule,
+        )
+
+    def at(self, first_chunks: int | None = None) -> ScoredSets:
+        """Every score of the held-out rollouts over each episode's first k chunks (None: whole episodes)."""
+        if first_chunks not in self._scored:
+            self._scored[first_chunks] = ScoredSets(
+                {name: self.scores(self.vanilla_chunks, name, first_chunks) for name in self.names},
+                {
+                    c: {name: self.scores(chunks, name, first_chunks) for name in self.names}
+                    for c, chunks in self.condition_chunks.items()
+                },
+            )
+        return self._scored[first_chunks]
+
+
+def score_ood_report(cfg: OODReportConfig) -> OODScores:
+    """Loads the report's rollouts, fits the reference scores on the calibration rollouts and scores every chunk.
 
     Raises:
-        ValueError: An invalid option, a refused in-sample report (`monitoring.protocol`), or perturbed
-            rollouts in a vanilla set.
-        FileExistsError: `calibrate_to` holds a calibration and `overwrite_calibration` is False.
+        ValueError: An invalid option, a refused in-sample report (`monitoring.protocol`), perturbed rollouts in
+            a vanilla set, or a `--score` the records lack an input of.
     """
     cfg.validate()
-    calibration_file = cfg.calibrate_to / OOD_CALIBRATION_FILENAME if cfg.calibrate_to else None
-    if calibration_file is not None and calibration_file.exists() and not cfg.overwrite_calibration:
-        raise FileExistsError(
-            f"{calibration_file} exists; pass `--overwrite_calibration=true` to replace it."
-        )
     vanilla = load_episodes(cfg.vanilla)
     ood = load_episodes(cfg.ood)
     calibration_set = load_episodes(cfg.calibration) if cfg.calibration else None
@@ -255,85 +300,81 @@ def write_ood_report(cfg: OODReportConfig) -> str:
         c: {name: {key: chunks[key] for key in episodes} for name, chunks in ood_chunks.items()}
         for c, episodes in conditions.items()
     }
+    return OODScores(
+        cfg,
+        calibration_set,
+        vanilla,
+        ood,
+        conditions,
+        names,
+        reference,
+        saved_score,
+        in_sample,
+        n_calibration_files,
+        n_failed_left_out,
+        calibration_chunks,
+        vanilla_chunks,
+        condition_chunks,
+    )
 
-    def scores(chunks: dict, name: str, first_chunks: int | None = None) -> np.ndarray:
-        """The rollout scores of one set (its chunk scores by name), over whole episodes or first chunks."""
-        if name in reference.registered:
-            return registered_rollout_scores(chunks[name], cfg.aggregation, first_chunks)
-        if name in COMBINED_SCORES:
-            # Standardized on the calibration rollouts aggregated over the same chunks.
-            return combined_rollout_scores(
-                name,
-                {n: scores(chunks, n, first_chunks) for n in COMBINED_FROM},
-                {n: scores(calibration_chunks, n, first_chunks) for n in COMBINED_FROM},
-            )
-        return aggregate_episodes(chunks[name], cfg.aggregation, first_chunks)
 
-    def fit(name: str, first_chunks: int | None = None) -> OODCalibration:
-        calibration_scores = scores(calibration_chunks, name, first_chunks)
-        return OODCalibration.fit(
-            calibration_scores,
-            k=cfg.k,
-            aggregation=cfg.aggregation,
-            false_alarm_rate=cfg.false_alarm_rate,
-            rule=cfg.threshold_rule,
+def write_ood_report(cfg: OODReportConfig) -> str:
+    """Builds the report, writes it and the figures to `cfg.output_dir`, and returns its markdown.
+
+    Raises:
+        ValueError: An invalid option, a refused in-sample report (`monitoring.protocol`), or perturbed
+            rollouts in a vanilla set.
+        FileExistsError: `calibrate_to` holds a calibration and `overwrite_calibration` is False.
+    """
+    cfg.validate()
+    calibration_file = cfg.calibrate_to / OOD_CALIBRATION_FILENAME if cfg.calibrate_to else None
+    if calibration_file is not None and calibration_file.exists() and not cfg.overwrite_calibration:
+        raise FileExistsError(
+            f"{calibration_file} exists; pass `--overwrite_calibration=true` to replace it."
         )
+    return write_scored_report(score_ood_report(cfg))
 
-    scored: dict[int | None, _Scored] = {}
-    for first_chunks in [
-        None,
-        *cfg.first_chunks,
-        cfg.table_iii_first_chunks or None,
-        cfg.summary_first_chunks,
-    ]:
-        if first_chunks not in scored:
-            scored[first_chunks] = _Scored(
-                {name: scores(vanilla_chunks, name, first_chunks) for name in names},
-                {
-                    c: {name: scores(chunks, name, first_chunks) for name in names}
-                    for c, chunks in condition_chunks.items()
-                },
-            )
-    fits = {name: fit(name) for name in names}
-    negatives, positives = scored[None].negatives, scored[None].positives
 
-    label = "IN-SAMPLE (calibration and report sets overlap: optimistic)" if in_sample else "held-out"
+def write_scored_report(scored: OODScores) -> str:
+    """`write_ood_report` from its scores: the report's sections, figures and the saved calibration."""
+    cfg, names, vanilla, conditions = scored.cfg, scored.names, scored.vanilla, scored.conditions
+    by_length = {k: scored.at(k) for k in [None, *cfg.first_chunks, cfg.table_iii_first_chunks or None]}
+    fits = {name: scored.fit(name) for name in names}
+    negatives, positives = by_length[None].negatives, by_length[None].positives
+
+    label = "IN-SAMPLE (calibration and report sets overlap: optimistic)" if scored.in_sample else "held-out"
+    fitted_on_calibration = [
+        *(FEATURE_SCORES if scored.reference.features else ()),
+        *scored.reference.registered,
+    ]
     sections = [
         f"# Energy-based OOD detection ({label})",
-        f"Calibration: {len(calibration_set)} vanilla rollouts from {n_calibration_files} record file(s)"
+        f"Calibration: {len(scored.calibration_set)} vanilla rollouts from {scored.n_calibration_files} record "
+        "file(s)"
         + (
-            f" (successful only: {n_failed_left_out} failed left out). "
+            f" (successful only: {scored.n_failed_left_out} failed left out). "
             if cfg.calibration_successes_only
             else ". "
         )
-        + f"Report: {len(vanilla)} held-out vanilla rollouts (negatives), {len(ood)} perturbed rollouts "
+        + f"Report: {len(vanilla)} held-out vanilla rollouts (negatives), {len(scored.ood)} perturbed rollouts "
         f"(positives). Rollout score: {cfg.aggregation} of the chunk scores. Thresholds: T = mu + k sigma "
         f"(Eq. 5) and the conformal threshold at false-alarm rate alpha = {percent(cfg.false_alarm_rate)}. "
         f"Scores: {', '.join(names)}. Held out changes only what is fitted on the calibration rollouts: the "
         "thresholds and the reference scores (phase_energy"
-        + "".join(f", {name}" for name in [*(FEATURE_SCORES if reference.features else ()), *registered])
+        + "".join(f", {name}" for name in fitted_on_calibration)
         + "); an AUROC of the final energy needs no threshold. A calibration rollout's own reference scores "
         "are computed leave-one-episode-out.",
         "## Calibration\n\n"
         + calibration_table(fits, negatives, cfg)
         + conformal_note(fits, cfg)
-        + _saved_score_note(cfg, saved_score),
+        + _saved_score_note(cfg, scored.saved_score),
         "## Energy vs success drop (final energy)\n\n"
         + success_table(vanilla, conditions, fits, negatives, positives, cfg),
         "## AUROC [bootstrap 95% interval] by score\n\n"
         + auroc_table(conditions, names, negatives, positives, cfg),
-        first_chunks_section(scored, vanilla, conditions, names, cfg),
-        outcome_section(scored, vanilla, ood, names, cfg),
-        summary_section(
-            scored,
-            {None: fits, cfg.summary_first_chunks: {n: fit(n, cfg.summary_first_chunks) for n in names}},
-            vanilla,
-            ood,
-            conditions,
-            names,
-            cfg,
-        ),
-        *table_iii_sections("Table III", fits, scored[None], vanilla, conditions, names, cfg),
+        first_chunks_section(by_length, vanilla, conditions, names, cfg),
+        outcome_section(by_length, vanilla, scored.ood, names, cfg),
+        *table_iii_sections("Table III", fits, by_length[None], vanilla, conditions, names, cfg),
     ]
     if cfg.table_iii_first_chunks:
         k = cfg.table_iii_first_chunks
@@ -342,29 +383,25 @@ def write_ood_report(cfg: OODReportConfig) -> str:
             f"first {k} chunks (an episode shorter than {k} uses all its chunks); mu_v, sigma_v and the "
             f"conformal threshold from the calibration rollouts' first {k} chunks."
         )
-        first_fits = {name: fit(name, k) for name in names}
+        first_fits = {name: scored.fit(name, k) for name in names}
         sections += table_iii_sections(
-            f"Table III, first {k} chunks", first_fits, scored[k], vanilla, conditions, names, cfg
+            f"Table III, first {k} chunks", first_fits, by_length[k], vanilla, conditions, names, cfg
         )
     report = "\n\n".join(sections) + "\n"
 
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
     (cfg.output_dir / "ood_report.md").write_text(report, encoding="utf-8")
-    figures(cfg, fits, scores(calibration_chunks, "final_energy"), negatives, positives, names)
+    calibration_scores = scored.scores(scored.calibration_chunks, "final_energy")
+    figures(cfg, fits, calibration_scores, negatives, positives, names)
     if cfg.calibrate_to is not None:
         # The run-time monitor scores chunks against a score fitted on every calibration rollout; mu_v and
         # sigma_v are the report's: the calibration rollouts' scores, leave-one-episode-out where the score
         # is fitted on them, as a new rollout's would be.
-        score = SCORES[saved_score].fit(vanilla_rollouts(calibration_set, cfg.aggregation, cfg.knn_k))
-        calibration = dataclasses.replace(fits[saved_score], score=score)
-        # The held-out vanilla rollouts' window values against that fit are the window test's reference; vanilla
-        # rollouts that are also the calibration's (in-sample) score lower than new ones would.
-        if cfg.calibration and not in_sample:
-            reference = window_values_of(calibration, vanilla)
-            reference = reference[np.isfinite(reference).all(axis=1)]
-            calibration = dataclasses.replace(calibration, window_reference=reference)
+        saved = scored.saved_score
+        score = SCORES[saved].fit(vanilla_rollouts(scored.calibration_set, cfg.aggregation, cfg.knn_k))
+        calibration = dataclasses.replace(fits[saved], score=score)
         path = calibration.save(cfg.calibrate_to, overwrite=cfg.overwrite_calibration)
-        logger.info(f"Saved the OOD calibration ({saved_score}, T = {calibration.threshold:.3f}) to {path}")
+        logger.info(f"Saved the OOD calibration ({saved}, T = {calibration.threshold:.3f}) to {path}")
     return report
 
 

@@ -1,7 +1,7 @@
 """The sections and figures of the OOD report (`ood_report.write_ood_report`), each from the scored rollouts.
 
 Every function takes the report's configuration (`OODReportConfig`), the fitted calibrations by score name and the
-rollout scores of the held-out sets (`_Scored` in `ood_report.py`: negatives, and positives per condition), and
+rollout scores of the held-out sets (`ScoredSets` in `ood_report.py`: negatives, and positives per condition), and
 returns one markdown section (or writes the figures).
 """
 
@@ -9,10 +9,31 @@ import math
 
 import numpy as np
 
-from .metrics import BinaryRates, auroc, markdown_table, percent, roc_curve
+from .metrics import BinaryRates, auroc, format_auroc, markdown_table, percent, roc_curve
 from .ood import format_balanced_accuracy_table, format_table_iii, ood_detection_table
 from .plots import plot_roc, plot_score_histograms
-from .score_summary import ALL_CONDITIONS, auroc_interval, chunks_label, success_rate, successes
+
+ALL_CONDITIONS = "all perturbations"
+
+
+def success_rate(episodes: dict) -> float:
+    return float(np.mean([e[0].success for e in episodes.values()])) if episodes else float("nan")
+
+
+def successes(episodes: dict) -> str:
+    n_success = sum(e[0].success for e in episodes.values())
+    return f"{n_success}/{len(episodes)} ({percent(success_rate(episodes))})"
+
+
+def auroc_interval(negatives: np.ndarray, positives: np.ndarray, cfg) -> str:
+    """AUROC [bootstrap 95% interval] with the report config's resamples and seed."""
+    return format_auroc(negatives, positives, cfg.n_bootstrap, cfg.seed)
+
+
+def chunks_label(first_chunks: int | None) -> str:
+    if first_chunks is None:
+        return "whole episode"
+    return f"first {first_chunks} chunk{'s' if first_chunks > 1 else ''}"
 
 
 def first_chunks_section(scored, vanilla, conditions, names, cfg) -> str:

@@ -15,8 +15,6 @@
   (`from_pretrained`, `update(policy.last_energy)`, `reset`).
 - `failure_alarm`: `FailureAlarm`, the energy-slope failure predictor as one check at a step chosen on
   calibration (`failure_alarm.json` beside the weights), and `EnergyFailureMonitor`, which feeds it each chunk.
-- `window`: `WindowTypicalityMonitor`, the opt-in two-sided test of the last n rollouts' scores together
-  (a batch typicality test: it also flags rollouts that are all *more* typical than vanilla's).
 - `history`: the per-environment history both monitors keep, and `ReadoutMonitor`, their one shape.
 - `checkpoint_files`: the one way a calibration is saved beside a checkpoint and loaded back (local or Hub).
 - `response`: what the policy does with a flagged chunk (`EBVLAConfig.monitor.response`: continue, hold, or raise
@@ -33,7 +31,6 @@ from .response import EnergyOODError, EnergyOODResponse, HoldAction, respond_to_
 from .scores import SCORES, ChunkInputs, ChunkScore, VanillaRollouts, rollout_score
 from .statistics import PhaseStatistics
 from .threshold import MeanStd, OODDecision, conformal_threshold, exceeds, mean_std_threshold
-from .window import WindowDecision, WindowTypicalityMonitor, WindowTypicalityTest
 
 __all__ = [
     "FAILURE_ALARM_FILENAME",
@@ -54,9 +51,6 @@ __all__ = [
     "OODDecision",
     "PhaseStatistics",
     "VanillaRollouts",
-    "WindowDecision",
-    "WindowTypicalityMonitor",
-    "WindowTypicalityTest",
     "conformal_threshold",
     "exceeds",
     "mean_std_threshold",

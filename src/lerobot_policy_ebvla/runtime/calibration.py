@@ -34,10 +34,8 @@ from .scores import (
     ChunkScore,
     FinalEnergy,
     VanillaRollouts,
-    rollout_aggregates,
     score_rollout,
 )
-from .statistics import float64
 from .threshold import ArrayLike, MeanStd, conformal_threshold, mean_std_threshold
 
 OOD_CALIBRATION_FILENAME = "ood_calibration.json"
@@ -70,10 +68,6 @@ class OODCalibration(CheckpointJSON):
         rule: Which threshold the monitor applies: "mean_std" (Eq. 5, the paper's, default) or "conformal".
         score: The chunk score the statistics are of, with what it was fitted on (a `ChunkScore` of
             `scores.SCORES`; the final energy, the paper's, by default).
-        window_reference: The window test's reference (`window.WindowTypicalityMonitor`): for each vanilla
-            rollout kept out of the fit (the report's held-out `--vanilla` rollouts), its `window_values`
-            against the fit, M rows of m values (the score; a two-sided score's signed aggregate too); None
-            when not recorded.
     """
 
     mu_v: float
@@ -85,7 +79,6 @@ class OODCalibration(CheckpointJSON):
     conformal_threshold: float | None = None
     rule: str = "mean_std"
     score: ChunkScore = field(default_factory=FinalEnergy)
-    window_reference: tuple[tuple[float, ...], ...] | None = None
 
     filename = OOD_CALIBRATION_FILENAME
     what = "OOD calibration"
@@ -104,19 +97,6 @@ class OODCalibration(CheckpointJSON):
             raise ValueError(
                 "`rule='conformal'` needs a `conformal_threshold` (fit with `false_alarm_rate`)."
             )
-        if self.window_reference is not None:
-            try:
-                reference = float64(self.window_reference)
-            except (TypeError, ValueError) as e:
-                raise ValueError(f"`window_reference` must be rows of numbers of one length: {e}") from e
-            # One value per rollout (the score alone) may come as a flat list.
-            reference = reference[:, None] if reference.ndim == 1 else reference
-            if reference.ndim != 2 or not np.isfinite(reference).all():
-                raise ValueError(
-                    "`window_reference` must be finite, one row of window values per vanilla rollout; got shape "
-                    f"{reference.shape}."
-                )
-            object.__setattr__(self, "window_reference", tuple(tuple(map(float, row)) for row in reference))
         if SCORES.get(getattr(self.score, "name", None)) is not type(self.score):
             raise ValueError(
                 f"`score` must be a `ChunkScore` registered in `SCORES` ({', '.join(SCORES)}), got {self.score!r}."
@@ -132,7 +112,6 @@ class OODCalibration(CheckpointJSON):
         false_alarm_rate: float | None = None,
         rule: str = "mean_std",
         score: ChunkScore | None = None,
-        window_reference: ArrayLike | None = None,
     ) -> "OODCalibration":
         """Estimates mu_v and sigma_v, and with `false_alarm_rate` the conformal threshold, from vanilla scores.
 
@@ -143,8 +122,6 @@ class OODCalibration(CheckpointJSON):
             vanilla_scores: The vanilla rollouts' scores, each aggregated from its chunks' `score` with
                 `aggregation`.
             score: The fitted chunk score `vanilla_scores` were computed with; the final energy when None.
-            window_reference: Held-out vanilla rollouts' window values, (M, m), or (M,) for m = 1 (see the
-                class).
 
         Raises:
             ValueError: No finite score to fit on.
@@ -163,7 +140,6 @@ class OODCalibration(CheckpointJSON):
             conformal_threshold=conformal,
             rule=rule,
             score=FinalEnergy() if score is None else score,
-            window_reference=window_reference,
         )
 
     @classmethod
@@ -239,11 +215,6 @@ class OODCalibration(CheckpointJSON):
         """
         return score_rollout(self.score, components, self.aggregation)
 
-    def window_values(self, components: ArrayLike) -> np.ndarray:
-        """(m,) what the window test compares of a rollout, from its chunks' `chunk_components` in chunk order:
-        each column aggregated, then the score's `window_values` (the rollout score first)."""
-        return self.score.window_values(rollout_aggregates(self.score, components, self.aggregation))[0]
-
     @property
     def threshold(self) -> float:
         """The threshold of `rule`: mu_v + k * sigma_v, or the conformal quantile."""
@@ -274,9 +245,12 @@ class OODCalibration(CheckpointJSON):
     @classmethod
     def from_json(cls, payload: dict[str, Any], path: Path) -> "OODCalibration":
         """Files written before the conformal fields existed read with `rule="mean_std"`, before the phase
-        energy with `score="final_energy"`; v0.1.0 wrote every score's fields, null where unused."""
+        energy with `score="final_energy"`; v0.1.0 wrote every score's fields, null where unused. A
+        `window_reference` (held-out vanilla rollouts' values for the window test, written by
+        `ebvla-ood-report --calibrate_to` before that test moved to the research code) is ignored."""
         payload = dict(payload)
         payload.pop("threshold", None)
+        payload.pop("window_reference", None)
         if payload.get("conformal_threshold") == "inf":
             payload["conformal_threshold"] = math.inf
         name = payload.pop("score", FinalEnergy.name)

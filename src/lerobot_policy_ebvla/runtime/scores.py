@@ -240,11 +240,6 @@ class ChunkScore(Protocol):
         """(R,) scores from (R, n_components) components, each aggregated over a rollout (or one chunk's)."""
         return aggregates[:, 0]
 
-    def window_values(self, aggregates: np.ndarray) -> np.ndarray:
-        """(R, m) what the window test (`window.py`) compares per rollout, from (R, n_components) aggregates: the
-        score itself, (R, 1), unless the score says otherwise."""
-        return self.combine(aggregates)[:, None]
-
     def to_json(self) -> dict[str, Any]:
         """The JSON fields (`json_fields`) and the statistics of each side file, by its JSON field."""
         return {}
@@ -299,17 +294,10 @@ def statistics_pair(fields: dict[str, Any], mean: str, std: str, score: str, kin
 
 
 class AbsoluteOfAggregate:
-    """A two-sided score |a|, a the rollout's one aggregated (signed) component.
-
-    The window test compares a as well as |a|: a small shift the same way on every rollout (issue 32's mild noise
-    raises E_c a little on each) hides inside vanilla's spread of |a| but not of a.
-    """
+    """A two-sided score |a|, a the rollout's one aggregated (signed) component."""
 
     def combine(self, aggregates: np.ndarray) -> np.ndarray:
         return np.abs(aggregates[:, 0])
-
-    def window_values(self, aggregates: np.ndarray) -> np.ndarray:
-        return np.stack([np.abs(aggregates[:, 0]), aggregates[:, 0]], axis=1)
 
 
 @dataclass(frozen=True)

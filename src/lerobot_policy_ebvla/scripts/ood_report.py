@@ -8,10 +8,8 @@ Calibrate on one set of vanilla rollouts, report on others:
 
 Prints and writes `ood_report.md` (the protocol, the calibration, energy vs success drop per condition,
 AUROC with bootstrap 95% intervals per score, the same over each episode's first k chunks (`--first_chunks`),
-each score's AUROC of failed against successful rollouts, the score summary (pooled AUROC, worst and
-inverted conditions, the alarm rate at T beside each AUROC; `--summary_first_chunks`), Table III per condition
-in the paper's layout with every score's balanced accuracy beside it, and Table III over the first chunks
-(`--table_iii_first_chunks`)) and the figures `roc_curve.png`, `roc_baselines.png` and `energy_histogram.png`.
+each score's AUROC of failed against successful rollouts, Table III per condition in the paper's layout with
+every score's balanced accuracy beside it, and Table III over the first chunks (`--table_iii_first_chunks`)) and the figures `roc_curve.png`, `roc_baselines.png` and `energy_histogram.png`.
 `--calibrate_to` saves the calibration of `--score`, a name of `runtime.scores.SCORES` and a row of the report:
 without it `context_knn`, the best held out on the MetaWorld sweep (`phase_energy_two_sided` for records
 without context features); `--score=final_energy` is the paper's score, `--score=context_distance` and

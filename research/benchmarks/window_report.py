@@ -1,11 +1,11 @@
-"""The window typicality test (`runtime.window`) on recorded rollouts: how often windows of n rollouts alarm.
+"""The window typicality test (`window_monitor`) on recorded rollouts: how often windows of n rollouts alarm.
 
 One run is a calibration set, a reference set (vanilla rollouts scored against the calibration's fit, the
 test's reference), held-out vanilla rollouts (the false alarms) and conditions. Every window of n rollouts of a
 set (all C(N, n) of them, or `max_windows` drawn without repeats when there are more) is tested, and the share
 that is atypical is the set's window alarm rate. Beside it, per rollout: the score's AUROC against the held-out
 vanilla and its alarm rate at the shipped T = mu_v + k sigma_v, so a condition the per-rollout score misses or
-inverts can be read against what the window makes of it. `research/benchmarks/window_typicality.py` is the command.
+inverts can be read against what the window makes of it. `window_typicality.py` beside it is the command.
 """
 
 import itertools
@@ -14,21 +14,21 @@ from collections.abc import Hashable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
+from window_monitor import SHIFTED, TOO_TYPICAL, WindowTypicalityTest, window_values
 
-from ..runtime.calibration import OODCalibration
-from ..runtime.scores import SCORES
-from ..runtime.window import SHIFTED, TOO_TYPICAL, WindowTypicalityTest
-from .baselines import (
+from lerobot_policy_ebvla.monitoring.baselines import (
     episode_readout,
     every_chunk_has,
     fit_score_reference,
     registered_scores,
     vanilla_rollouts,
 )
-from .metrics import BinaryRates, markdown_table, marked_auroc, percent
-from .records import Episode
-from .score_summary import successes
-from .scores import episode_scores
+from lerobot_policy_ebvla.monitoring.metrics import BinaryRates, markdown_table, marked_auroc, percent
+from lerobot_policy_ebvla.monitoring.ood_sections import successes
+from lerobot_policy_ebvla.monitoring.records import Episode
+from lerobot_policy_ebvla.monitoring.scores import episode_scores
+from lerobot_policy_ebvla.runtime.calibration import OODCalibration
+from lerobot_policy_ebvla.runtime.scores import SCORES
 
 # At most this many windows of a set are tested; C(40, 8) is 77 million.
 DEFAULT_MAX_WINDOWS = 5000
@@ -50,7 +50,7 @@ def window_indices(n_rollouts: int, window: int, max_windows: int, seed: int = 0
 @dataclass(frozen=True)
 class WindowRates:
     """How many windows of a set were tested, the share alarmed, and the shares alarmed as too typical and as
-    shifted (`runtime.window`'s sides)."""
+    shifted (`window_monitor`'s sides)."""
 
     n_windows: int
     alarmed: float
@@ -79,11 +79,12 @@ class WindowRates:
 def window_values_of(
     calibration: OODCalibration, episodes: Mapping[Hashable, Episode], first_chunks: int | None = None
 ) -> np.ndarray:
-    """(M, m): each episode's `OODCalibration.window_values` against the calibration's fitted score, over its
-    first k chunks (None: the whole episode), in `episodes` order."""
+    """(M, m): each episode's `window_monitor.window_values` against the calibration's fitted score, over its
+    first k chunks (None: the whole episode), in `episodes` order: with held-out vanilla episodes, the window
+    test's reference."""
     return np.stack(
         [
-            calibration.window_values(calibration.chunk_components(episode_readout(episode))[:first_chunks])
+            window_values(calibration, calibration.chunk_components(episode_readout(episode))[:first_chunks])
             for episode in episodes.values()
         ]
     )

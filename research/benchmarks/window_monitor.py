@@ -1,12 +1,12 @@
-"""The window typicality test: whether the last n rollouts, taken together, look like vanilla's.
+"""The window typicality test: whether the last n rollouts, taken together, look like vanilla's (a study tool).
 
 A per-rollout score cannot flag a shift that makes rollouts *more* typical than vanilla's own, or one that moves
 every rollout a little the same way inside vanilla's spread. Issue 32's mild shifts (a light from another side,
 sensor noise, a slight blur) do both to the joint energy's context term, and the two-sided context-energy score
 then alarms on none of those rollouts (against 2% of vanilla's): one rollout near the centre, or a little above
 it, is normal; n in a row are not. Over a window of rollouts run under the same conditions this is a batch
-typicality test (Nalisnick et al. 2019), two-sided: each of the rollouts' window values (`OODCalibration.window_values`:
-the calibration's rollout score, and for a two-sided score |a| also its signed aggregate a) against the M
+typicality test (Nalisnick et al. 2019), two-sided: each of the rollouts' window values (`window_values`: the
+calibration's rollout score, and for a two-sided score |a| also its signed aggregate a) against the M
 reference rows, vanilla rollouts scored against the calibration but not used to fit it, by the Mann-Whitney U
 test (scipy's, exact for a window of at most 8), each of the m values at alpha / m (Bonferroni). A value's
 statistic, as the share of (window, reference) pairs in which the window's is higher, is the window's AUROC
@@ -20,7 +20,10 @@ share one reference, which adds 1/(12 M) to the variance of their mean (with M =
 on 6.6% of vanilla windows at alpha = 5%). Held-out reference rollouts, not the calibration rollouts'
 leave-one-out scores: those sit above fresh vanilla's (AUROC 0.49-0.66 on five training seeds). And enough of
 them: the false-alarm rate is alpha over draws of the reference, not for each reference; on eight training seeds
-20 reference rollouts gave 0-29% on held-out vanilla windows of 8, 40 gave 2-5% (docs/monitoring.md).
+20 reference rollouts gave 0-29% on held-out vanilla windows of 8, 40 gave 2-5% (research/docs/window_test.md).
+
+The package's calibration (`OODCalibration`) knows nothing of the window: the reference is what this module's
+callers pass, e.g. `window_report.window_values_of(calibration, held_out_vanilla)`.
 """
 
 from collections import deque
@@ -30,10 +33,11 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import mannwhitneyu
 
-from .calibration import OODCalibration
-from .readout import EnergyReadout
-from .statistics import float64
-from .threshold import ArrayLike
+from lerobot_policy_ebvla.runtime.calibration import OODCalibration
+from lerobot_policy_ebvla.runtime.readout import EnergyReadout
+from lerobot_policy_ebvla.runtime.scores import AbsoluteOfAggregate, ChunkScore, rollout_aggregates
+from lerobot_policy_ebvla.runtime.statistics import float64
+from lerobot_policy_ebvla.runtime.threshold import ArrayLike
 
 # Rollouts per window unless told: chosen on issue 32's development seeds, where windows of 8 alarm on 2-4% of
 # fresh vanilla windows and on 57-92% of those of the mild shifts that hide from the per-rollout score.
@@ -41,6 +45,24 @@ DEFAULT_WINDOW = 8
 DEFAULT_WINDOW_FALSE_ALARM_RATE = 0.05
 # Which way a window left the reference: its scores above vanilla's, below them, or its signed aggregate moved.
 HIGH_SCORES, TOO_TYPICAL, SHIFTED = "high_scores", "too_typical", "shifted"
+
+
+def score_window_values(score: ChunkScore, aggregates: np.ndarray) -> np.ndarray:
+    """(R, m) what the window test compares per rollout, from (R, n_components) aggregates: the score itself,
+    (R, 1); for a two-sided score |a| (`AbsoluteOfAggregate`) also its signed aggregate a, (R, 2): a small
+    shift the same way on every rollout (issue 32's mild noise raises E_c a little on each) hides inside
+    vanilla's spread of |a| but not of a."""
+    if isinstance(score, AbsoluteOfAggregate):
+        return np.stack([np.abs(aggregates[:, 0]), aggregates[:, 0]], axis=1)
+    return score.combine(aggregates)[:, None]
+
+
+def window_values(calibration: OODCalibration, components: ArrayLike) -> np.ndarray:
+    """(m,) what the window test compares of a rollout, from its chunks' `calibration.chunk_components` in chunk
+    order: each column aggregated with the calibration's aggregation, then `score_window_values` (the rollout
+    score first)."""
+    aggregates = rollout_aggregates(calibration.score, components, calibration.aggregation)
+    return score_window_values(calibration.score, aggregates)[0]
 
 
 @dataclass(frozen=True)
@@ -87,7 +109,7 @@ class WindowTypicalityTest:
 
     Args:
         reference: (M, m) window values of vanilla rollouts, each scored against the calibration without being
-            in its fit (`OODCalibration.window_reference`), as nested tuples or an array.
+            in its fit (`window_report.window_values_of`), as nested tuples or an array.
         window: n, the rollouts a decision is on.
         false_alarm_rate: alpha, the chance that a window of n vanilla rollouts is called atypical (over draws
             of the reference as well as of the window).
@@ -145,7 +167,8 @@ class WindowTypicalityMonitor:
     before it can say anything, and then says it of the conditions, not of one rollout.
 
     Example:
-        monitor = WindowTypicalityMonitor.from_pretrained("outputs/.../pretrained_model", window=8)
+        reference = window_report.window_values_of(calibration, held_out_vanilla_episodes)
+        monitor = WindowTypicalityMonitor.from_pretrained("outputs/.../pretrained_model", reference, window=8)
         for episode in episodes:
             ...  # run it, keeping each chunk's final energy (and E_c, for a context-energy calibration)
             decision = monitor.add_rollout(EnergyReadout.of_arrays(chunk_energies, context_energy=chunk_context_energies))
@@ -156,27 +179,28 @@ class WindowTypicalityMonitor:
     def __init__(
         self,
         calibration: OODCalibration,
+        reference: ArrayLike,
         window: int = DEFAULT_WINDOW,
         false_alarm_rate: float = DEFAULT_WINDOW_FALSE_ALARM_RATE,
     ):
-        if calibration.window_reference is None:
-            raise ValueError(
-                "The calibration has no `window_reference` (held-out vanilla rollouts) for a window test; save it "
-                "again with `ebvla-ood-report --calibrate_to=...`, which records the --vanilla rollouts' values."
-            )
+        """`reference`: (M, m) held-out vanilla rollouts' `window_values` against `calibration` (see
+        `WindowTypicalityTest`)."""
         self.calibration = calibration
-        self.test = WindowTypicalityTest(calibration.window_reference, window, false_alarm_rate)
+        self.test = WindowTypicalityTest(reference, window, false_alarm_rate)
         self._values: deque[np.ndarray] = deque(maxlen=window)
 
     @classmethod
     def from_pretrained(
         cls,
         pretrained_name_or_path: str | Path,
+        reference: ArrayLike,
         window: int = DEFAULT_WINDOW,
         false_alarm_rate: float = DEFAULT_WINDOW_FALSE_ALARM_RATE,
     ) -> "WindowTypicalityMonitor":
-        """Builds the monitor from a checkpoint's `ood_calibration.json`."""
-        return cls(OODCalibration.from_pretrained(pretrained_name_or_path), window, false_alarm_rate)
+        """Builds the monitor from a checkpoint's `ood_calibration.json` and the window's reference."""
+        return cls(
+            OODCalibration.from_pretrained(pretrained_name_or_path), reference, window, false_alarm_rate
+        )
 
     @property
     def n_rollouts(self) -> int:
@@ -184,7 +208,7 @@ class WindowTypicalityMonitor:
         return len(self._values)
 
     def add_values(self, window_values: ArrayLike) -> WindowDecision | None:
-        """Adds one finished rollout's window values ((m,), `OODCalibration.window_values`); the decision on the
+        """Adds one finished rollout's window values ((m,), `window_values`); the decision on the
         last n, or None while there are fewer."""
         self._values.append(np.atleast_1d(float64(window_values)))
         if len(self._values) < self.test.window:
@@ -195,7 +219,7 @@ class WindowTypicalityMonitor:
         """Adds one finished rollout from a readout of its chunks in order (`EnergyReadout.of_arrays`), as
         `EnergyOODMonitor.check_rollout` takes it."""
         components = self.calibration.chunk_components(readout)
-        return self.add_values(self.calibration.window_values(components))
+        return self.add_values(window_values(self.calibration, components))
 
     def reset(self) -> None:
         """Forgets the window; call it when the conditions change on purpose (a new scene, a new task)."""

@@ -2,38 +2,31 @@
 
 A joint-energy policy's per-rollout monitor (`context_energy_two_sided` here) scores each rollout on its own; under a mild
 shift it can pass every rollout while each one sits a little off vanilla's, all the same way. The window test
-(`WindowTypicalityMonitor`) looks at the last n rollouts together. This script builds the calibration that
-`ebvla-ood-report --calibrate_to` would save (the score fitted on the calibration rollouts, the held-out vanilla
-rollouts as the window's reference), then feeds the test rollouts to the monitor one by one, as a deployment
-would, and prints each window's decision.
+(`window_monitor.WindowTypicalityMonitor`) looks at the last n rollouts together. This script builds the
+calibration that `ebvla-ood-report --calibrate_to` would save (the score fitted on the calibration rollouts) and
+the window's reference (the held-out vanilla rollouts scored against it), then feeds the test rollouts to the
+monitor one by one, as a deployment would, and prints each window's decision.
 
 The defaults are records committed with the repository (MetaWorld, light preset, training seed 12000): 24 fresh
 rollouts under sensor noise of severity 3, which the per-rollout default scores as *more* typical than vanilla
 (AUROC 0.33). Point the three folders at your own `ebvla-eval` records (with `context_energy`, from a policy
 trained with `joint_energy.target`) to do the same.
 
-    python examples/window_monitor_on_records.py --window=8
+    python research/benchmarks/window_monitor_on_records.py --window=8
 """
 
-import dataclasses
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import draccus
+import research_scores  # noqa: F401  (registers the research scores, `context_energy_two_sided` among them)
+from window_monitor import WindowTypicalityMonitor
+from window_report import score_sets
 
 from lerobot_policy_ebvla.monitoring.records import load_episodes
-from lerobot_policy_ebvla.monitoring.window_report import score_sets
-from lerobot_policy_ebvla.runtime import EnergyReadout, WindowTypicalityMonitor
+from lerobot_policy_ebvla.runtime import EnergyReadout
 
-RECORDS = (
-    Path(__file__).resolve().parents[1] / "research/results/metaworld_sweep_margin_full/seed12000/observation"
-)
-
-# The window test reads a research score (`context_energy_two_sided`): its module, beside the research benchmarks,
-# registers it in the package's `SCORES`.
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-import research_scores  # noqa: E402, F401
+RECORDS = Path(__file__).resolve().parents[1] / "results/metaworld_sweep_margin_full/seed12000/observation"
 
 
 @dataclass
@@ -53,10 +46,10 @@ class WindowExampleConfig:
 
 def main(cfg: WindowExampleConfig) -> None:
     calibration_episodes, vanilla = load_episodes([cfg.calibration]), load_episodes([cfg.vanilla])
-    fitted, scored = score_sets(calibration_episodes, {"vanilla": vanilla}, cfg.score, cfg.first_chunks)
-    calibration = dataclasses.replace(fitted, window_reference=scored["vanilla"].values)
-    # calibration.save(checkpoint) would write it beside the weights; from_pretrained(checkpoint) reads it back.
-    monitor = WindowTypicalityMonitor(calibration, cfg.window, cfg.false_alarm_rate)
+    calibration, scored = score_sets(calibration_episodes, {"vanilla": vanilla}, cfg.score, cfg.first_chunks)
+    # calibration.save(checkpoint) would write it beside the weights; from_pretrained(checkpoint, reference) reads
+    # it back.
+    monitor = WindowTypicalityMonitor(calibration, scored["vanilla"].values, cfg.window, cfg.false_alarm_rate)
 
     rollouts = load_episodes([cfg.rollouts])
     ordered = sorted(rollouts.values(), key=lambda chunks: chunks[0].episode_index)
