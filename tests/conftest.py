@@ -1,5 +1,7 @@
 """Shared fixtures: tiny policies and a tiny LeRobotDataset written locally (the Hub is not needed)."""
 
+import os
+
 import numpy as np
 import pytest
 import torch
@@ -7,6 +9,13 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 
 from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
 from lerobot_policy_ebvla.presets import ebvla_config
+
+# Under pytest-xdist the suite runs as two worker processes, one per core of our 2-core CI. torch's default of one
+# intra-op thread per core would put four busy threads on two cores, whose OpenMP barriers then wait on each other
+# (training steps several times slower). One thread per worker, and for the programs a test launches.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    torch.set_num_threads(1)
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 TINY_HEAD = {"dim_model": 32, "n_heads": 2, "n_blocks": 2}
 IMAGE_SHAPE = (3, 64, 64)
