@@ -17,6 +17,15 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     torch.set_num_threads(1)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+# The longest files first: with one file per worker (`--dist loadfile`), the camera-reading learning test (minutes on
+# one thread) would otherwise start late and leave the other worker idle at the end.
+SLOW_FILES_FIRST = ("test_learning.py", "test_checkpoints.py")
+
+
+def pytest_collection_modifyitems(items):
+    items.sort(key=lambda item: item.path.name not in SLOW_FILES_FIRST)  # stable: the rest keep their order
+
+
 TINY_HEAD = {"dim_model": 32, "n_heads": 2, "n_blocks": 2}
 IMAGE_SHAPE = (3, 64, 64)
 

@@ -173,7 +173,9 @@ def test_the_policy_core_imports_nothing_from_the_analysis():
 
 def test_no_library_module_benchmark_or_example_imports_a_cli():
     users = [(m, p) for m, p in MODULES.items() if part_of(m) != "scripts"]
-    users += [(p.stem, p) for folder in ("research/benchmarks", "examples") for p in (ROOT / folder).rglob("*.py")]
+    users += [
+        (p.stem, p) for folder in ("research/benchmarks", "examples") for p in (ROOT / folder).rglob("*.py")
+    ]
     wrong = []
     for name, path in users:
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):

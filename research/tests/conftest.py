@@ -2,8 +2,16 @@
 committed records' folder. The package's tiny policies and batches come from `tests/conftest.py`."""
 
 import importlib.util
+import os
 import sys
 from pathlib import Path
+
+import torch
+
+# Two xdist workers on two cores: one torch thread each, and for the programs a test launches (tests/conftest.py).
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    torch.set_num_threads(1)
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 ROOT = Path(__file__).resolve().parents[2]
 BENCHMARKS = ROOT / "research" / "benchmarks"

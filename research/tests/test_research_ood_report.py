@@ -10,22 +10,14 @@ from lerobot_policy_ebvla.monitoring.scores import episode_scores
 from lerobot_policy_ebvla.runtime.calibration import OODCalibration
 from lerobot_policy_ebvla.scripts import ood_report
 from research.tests.conftest import load_benchmark
+from tests import test_monitoring_reports as package_reports
 from tests.test_monitoring_reports import ood_args, rollouts, write
 
 
 @pytest.fixture
 def record_dirs(tmp_path):
-    """Calibration and held-out vanilla rollouts with context features, and perturbed ones at two severities (as
-    tests/test_monitoring_reports.py's fixture of that name)."""
-    calibration = write(tmp_path, "vanilla_a", rollouts(12, 5.0, seed=10, features=True))
-    vanilla = write(tmp_path, "vanilla_b", rollouts(12, 5.0, seed=11, features=True))
-    ood = write(
-        tmp_path,
-        "camera",
-        rollouts(10, 6.0, "camera", 1.0, seed=1, features=True)
-        + rollouts(10, 7.0, "camera", 2.0, seed=2, fail_every=2, features=True),
-    )
-    return calibration, vanilla, ood
+    """The records of tests/test_monitoring_reports.py's fixture of that name."""
+    return package_reports.record_dirs.__wrapped__(tmp_path)
 
 
 def test_ood_report_saves_a_phase_energy_calibration_when_asked(record_dirs, tmp_path):
