@@ -331,3 +331,71 @@ def test_compiled_vlm_chunk_gives_the_eager_actions_and_energies(tmp_path):
     batch[OBS_LANGUAGE_ATTENTION_MASK] = torch.arange(8).expand(BATCH_SIZE, 8) < 5
     for got, expected in zip(chunk(compiled_vlm, batch), chunk(eager_vlm, batch), strict=True):
         torch.testing.assert_close(got, expected, **TOL)
+
+
+# `train_compile_mode`: the backbone pass and the warm-up MCMC steps of a training step, compiled.
+
+
+def training_step(policy: EBVLAPolicy, batch: dict) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """One training step's loss and the gradient of every trainable weight."""
+    policy.train()
+    policy.zero_grad(set_to_none=True)
+    loss, _ = policy.forward(batch)
+    loss.backward()
+    return loss.detach(), {n: p.grad.clone() for n, p in policy.named_parameters() if p.grad is not None}
+
+
+@pytest.mark.parametrize("mode", ["default", "reduce-overhead"])
+def test_a_compiled_training_step_gives_the_eager_loss_and_gradients(monkeypatch, mode):
+    """Two steps (K, alpha, a^(0) and the noise drawn from the same saved seeds), traced through `aot_eager`;
+    "reduce-overhead" keeps its CUDA-graph path here (static parameters, outputs copied out)."""
+    modes = aot_eager_compiles(monkeypatch)
+    clear_compiled()
+    monkeypatch.setattr(compile_ebvla, "effective_compile_mode", lambda mode, device_type: mode)
+    eager_policy, compiled_policy = make_policy(), make_policy(train_compile_mode=mode)
+    try:
+        for seed in (21, 22):
+            batch = tiny_batch(eager_policy.config, batch_size=BATCH_SIZE, seed=seed)
+            eager_loss, eager_grads = training_step(eager_policy, batch)
+            compiled_loss, compiled_grads = training_step(compiled_policy, batch)
+            torch.testing.assert_close(compiled_loss, eager_loss, **TOL)
+            assert compiled_grads.keys() == eager_grads.keys() and eager_grads
+            torch.testing.assert_close(compiled_grads, eager_grads, **TOL)
+    finally:  # no later test may get the aot_eager graphs
+        compile_ebvla.compiled_head_energy.cache_clear()
+        compile_ebvla.compiled_context_encoder.cache_clear()
+    # The context encoder and the warm-up steps' energy, each built once ("default" is torch.compile's None).
+    assert modes == [None if mode == "default" else mode] * 2
+
+
+def test_a_compiled_training_step_refuses_a_bf16_policy_on_the_cpu():
+    policy = make_policy(train_compile_mode="default").to(torch.bfloat16)
+    batch = tiny_batch(policy.config, batch_size=BATCH_SIZE)
+    batch = {k: v.to(torch.bfloat16) if v.is_floating_point() else v for k, v in batch.items()}
+    with pytest.raises(ValueError, match="`train_compile_mode='default'` is not supported for a bf16 policy"):
+        policy.train().forward(batch)
+
+
+def test_training_refuses_the_chunk_graph_mode():
+    with pytest.raises(ValueError, match="`train_compile_mode` must be one of"):
+        tiny_config(train_compile_mode="chunk-graph")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(
+    os.environ.get("EBVLA_TEST_INDUCTOR") != "1",
+    reason="inductor compiles the tiny VLM's forward and backward for ~2 min on CPU; opt in",
+)
+def test_compiled_vlm_training_step_gives_the_eager_loss_and_gradients(tmp_path):
+    """The LoRA language model's backward runs through inductor's generated kernels, as on a GPU."""
+    lm_path = write_tiny_language_model(tmp_path / "tiny_lm")
+    eager_vlm, compiled_vlm = vlm_policy(lm_path), vlm_policy(lm_path, train_compile_mode="default")
+    g = torch.Generator().manual_seed(0)
+    batch = tiny_batch(eager_vlm.config, batch_size=BATCH_SIZE)
+    batch[OBS_LANGUAGE_TOKENS] = torch.randint(0, 128, (BATCH_SIZE, 8), generator=g)
+    batch[OBS_LANGUAGE_ATTENTION_MASK] = torch.arange(8).expand(BATCH_SIZE, 8) < 5
+    eager_loss, eager_grads = training_step(eager_vlm, batch)
+    compiled_loss, compiled_grads = training_step(compiled_vlm, batch)
+    torch.testing.assert_close(compiled_loss, eager_loss, **TOL)
+    assert any("lora_" in name for name in eager_grads)
+    torch.testing.assert_close(compiled_grads, eager_grads, **TOL)

@@ -39,7 +39,7 @@ from vlm_size_table import full_size_config
 
 from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy
 from lerobot_policy_ebvla.compile_ebvla import CHUNK_GRAPH_MODE, refinement_graphs
-from lerobot_policy_ebvla.configuration_ebvla import COMPILE_MODES
+from lerobot_policy_ebvla.configuration_ebvla import COMPILE_MODES, TRAIN_COMPILE_MODES
 from lerobot_policy_ebvla.energy_head import ContextKV
 
 # Fields of the `vlm` group, then top-level fields, of the tiny VLM.
@@ -215,6 +215,54 @@ def train_configuration(policy, optimizer, batch: dict, args, device: torch.devi
     return row
 
 
+def train_curve_configuration(
+    policy, start_state: dict, batch: dict, mode: str, args, device: torch.device, eager_losses: dict
+) -> dict:
+    """`--curve-steps` training steps in `train_compile_mode=mode` from `start_state` (weights and the training
+    draws' seed: every mode sees the same K, alpha, a^(0) and noise) on one fixed batch, with a fresh AdamW. Each
+    step is timed; the first (which compiles) is reported apart. Against the eager curve of the same batch size
+    (measured first), the largest absolute and relative loss differences over the steps."""
+    policy.load_state_dict(start_state)
+    policy.config.train_compile_mode = mode
+    policy.train()
+    optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=1e-4)
+
+    def train_step():
+        optimizer.zero_grad(set_to_none=True)
+        loss, _ = policy.forward(batch)
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+
+    losses: list[float] = []
+    reset_peak(device)
+    step_times = [timed(train_step, device) for _ in range(args.curve_steps)]
+    optimizer.zero_grad(set_to_none=True)
+    steady = step_times[min(5, len(step_times) - 1) :]  # the first steps compile (and capture)
+    row = {
+        "train_compile_mode": mode,
+        "curve_steps": args.curve_steps,
+        "first_step_s": round(step_times[0], 1),
+        "train_step_ms_median_after_5": round(1e3 * statistics.median(steady), 1),
+        "train_step_ms_min": round(1e3 * min(steady), 1),
+        "train_peak_GiB": round(peak_gib(device), 2),
+        "losses": [round(value, 5) for value in losses],
+    }
+    batch_size = batch[ACTION].shape[0]
+    if mode == "off":
+        eager_losses[batch_size] = losses
+    elif batch_size in eager_losses:
+        reference = eager_losses[batch_size]
+        diffs = [abs(a - b) for a, b in zip(losses, reference, strict=True)]
+        row["max_abs_loss_diff_vs_eager"] = round(max(diffs), 5)
+        row["max_rel_loss_diff_vs_eager"] = round(
+            max(d / abs(b) for d, b in zip(diffs, reference, strict=True)), 5
+        )
+        row["loss_first_last_eager"] = [round(reference[0], 4), round(reference[-1], 4)]
+    policy.config.train_compile_mode = "off"
+    return row
+
+
 def chunk_configuration(policy: EBVLAPolicy, observation: dict, args, device: torch.device) -> dict:
     """`select_action` on a new chunk in `policy.config.compile_mode`: start-up, timed chunks, comparison."""
     policy.eval()
@@ -286,6 +334,11 @@ TABLE_COLUMNS = {
     "startup_first_chunk_s": "first chunk s",
     "inference_peak_GiB": "inference peak GiB",
     "train_step_ms_mean": "train step ms",
+    "train_compile_mode": "train_compile_mode",
+    "first_step_s": "first step s",
+    "train_step_ms_median_after_5": "train step ms (median after 5)",
+    "max_abs_loss_diff_vs_eager": "max |loss diff|",
+    "max_rel_loss_diff_vs_eager": "max rel. loss diff",
     "train_peak_GiB": "train peak GiB",
     "gpu_busy_fraction": "GPU busy",
     "compiled_vs_eager_max_abs_action_diff": "max |action diff|",
@@ -359,6 +412,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--chunks", type=int, default=10, help="Timed chunks (after the start-up and 2 more)."
     )
     parser.add_argument(
+        "--train-compile-modes",
+        nargs="+",
+        choices=TRAIN_COMPILE_MODES,
+        default=[],
+        help="loss-curve configurations, before every other: `--curve-steps` steps at each training batch size "
+        "in each `train_compile_mode` (eager 'off' always first), from the same weights and draws",
+    )
+    parser.add_argument("--curve-steps", type=int, default=50, help="training steps of each loss curve")
+    parser.add_argument(
         "--train-head-steps",
         type=int,
         default=0,
@@ -397,14 +459,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def configurations(args) -> list[tuple[str, str | None, int]]:
-    """(JSON name, compile mode or None for training, batch size), eager training first, then the chunks in
-    `args.order`."""
+    """(JSON name, compile mode, "train:<mode>" for a loss curve or None for eager training steps, batch size):
+    the loss curves first, then eager training, then the chunks in `args.order`."""
     train_sizes = args.train_batch_sizes or args.batch_sizes
+    curve_modes = (
+        ["off"] + [m for m in args.train_compile_modes if m != "off"] if args.train_compile_modes else []
+    )
+    curves = [(f"traincurve_{mode}_b{b}", f"train:{mode}", b) for b in train_sizes for mode in curve_modes]
     train = [(f"train_b{b}", None, b) for b in train_sizes] if args.train_steps > 0 else []
     pairs = [(mode, b) for mode in args.compile_modes for b in args.batch_sizes]
     if args.order == "batch":
         pairs.sort(key=lambda pair: args.batch_sizes.index(pair[1]))  # stable: modes keep their order
-    return train + [(f"chunk_{mode}_b{b}", mode, b) for mode, b in pairs]
+    return curves + train + [(f"chunk_{mode}_b{b}", mode, b) for mode, b in pairs]
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -442,6 +508,9 @@ def main(argv: list[str] | None = None) -> None:
     build_s = time.perf_counter() - start
     optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=1e-4)
     head_loss = train_head(policy, optimizer, config, args.train_head_steps, device, dtype)
+    # Every loss curve starts here; the chunk configurations then run on the last curve's weights.
+    start_state = {k: v.clone() for k, v in policy.state_dict().items()} if args.train_compile_modes else None
+    eager_losses: dict[int, list[float]] = {}
     common = {
         "device": torch.cuda.get_device_name() if device.type == "cuda" else "cpu",
         "dtype": str(dtype),
@@ -463,9 +532,15 @@ def main(argv: list[str] | None = None) -> None:
         if args.budget_s is not None and time.perf_counter() - started > args.budget_s:
             print(f"Budget of {args.budget_s:.0f} s spent; not started: {name} and later.", flush=True)
             break
+        torch.manual_seed(2)  # the same batch for every mode of a batch size
         batch = make_batch(config, batch_size, device, dtype)
         try:
-            if mode is None:
+            if mode is not None and mode.startswith("train:"):
+                curve_mode = mode.removeprefix("train:")
+                row = train_curve_configuration(
+                    policy, start_state, batch, curve_mode, args, device, eager_losses
+                )
+            elif mode is None:
                 row = train_configuration(policy, optimizer, batch, args, device)
             else:
                 policy.config.compile_mode = mode
@@ -474,7 +549,7 @@ def main(argv: list[str] | None = None) -> None:
         except Exception as error:  # noqa: BLE001 -- one failing mode must not cost a device call the others
             traceback.print_exc()
             row = {"error": f"{type(error).__name__}: {error}"[:2000]}
-            policy.config.compile_mode = "off"
+            policy.config.compile_mode = policy.config.train_compile_mode = "off"
         row = {"configuration": name, "compile_mode": mode, "batch_size": batch_size, **row, **common}
         print(json.dumps(row), flush=True)
         if args.out_dir is not None:

@@ -8,7 +8,7 @@ Two parts of a chunk's inference are compiled, each built once per process and m
   detached so that no weight gradient is computed.
 
 The sampling loop around them (`mcmc.refine_actions`: noise, clip, step, clamp, RTC guidance) and the
-final-energy forward stay eager; training is never compiled. Shapes are static: each batch size (times
+final-energy forward stay eager. Shapes are static: each batch size (times
 `num_restarts` for the energy) compiles on its first chunk. The graph modes ("reduce-overhead",
 "max-autotune") replay CUDA graphs on a CUDA device and run their no-graph form elsewhere
 (`effective_compile_mode`). A replay reuses its output buffers, so everything the compiled code returns is copied
@@ -20,6 +20,10 @@ eager sampling loop and the autograd call cost more host time than the step's GP
 Langevin noise drawn beforehand and the final energy, in one CUDA graph per input shape (`RefinementGraphs`),
 replayed once per chunk. Capturing takes a few eager chains, not a compilation. Without CUDA the same chain runs
 eagerly from the same pre-drawn noise, and the context is compiled as "default".
+
+`train_compile_mode` compiles the same two parts in a training step (`training_signal.compute_loss`): the backbone
+pass, forward and backward, and the energy of the K - 1 warm-up MCMC steps, whose context is detached. The last
+step, which is differentiated through grad_a E (second order), stays eager: AOTAutograd has no double backward.
 """
 
 import dataclasses
@@ -108,10 +112,12 @@ def compiled_context_encoder(mode: str = "default"):
 
 
 def compiled_context(
-    model: nn.Module, batch: dict[str, Tensor], return_features: bool = False
+    model: nn.Module, batch: dict[str, Tensor], return_features: bool = False, compile_mode: str | None = None
 ) -> ContextKV | tuple[ContextKV, Tensor]:
-    """`model.encode_context` compiled in `model.config.compile_mode`, its outputs copied out."""
-    mode = compiled_part_mode(model.config.compile_mode, model.head.energy_out.weight.device.type)
+    """`model.encode_context` compiled in `compile_mode` (default: `model.config.compile_mode`), its outputs copied
+    out. In training the copies carry the gradient into the compiled backward."""
+    compile_mode = model.config.compile_mode if compile_mode is None else compile_mode
+    mode = compiled_part_mode(compile_mode, model.head.energy_out.weight.device.type)
     encoded = compiled_context_encoder(mode)(model, batch, return_features)
     kv, features = encoded if return_features else (encoded, None)
     # A CUDA-graph replay reuses its output buffers: the next chunk would overwrite this chunk's outputs.
@@ -136,6 +142,22 @@ def compiled_energy_fn(head: EBVLAEnergyHead, kv: ContextKV, compile_mode: str) 
     # A CUDA-graph replay overwrites the buffers of the previous one: the step energies kept in
     # `RefinementResult` (and `last_energy`) must be copies.
     return lambda a: energy(head, params, a, kv).clone()
+
+
+def begin_compiled_training_step(model: nn.Module) -> None:
+    """Starts a training step in `model.config.train_compile_mode`: tells CUDA graphs that the last step's graph
+    outputs are no longer read (this step's replays may reuse their memory), and refuses a bf16 policy on the CPU."""
+    weight = model.head.energy_out.weight
+    if weight.device.type == "cpu" and weight.dtype == torch.bfloat16:
+        # Seen on torch 2.11 (2026-11-27): inductor's C++ kernels for the tiny VLM's bf16 training step crashed
+        # the process (a segmentation fault), which would lose a user's run with no message.
+        raise ValueError(
+            f"`train_compile_mode={model.config.train_compile_mode!r}` is not supported for a bf16 policy on the "
+            "CPU (inductor crashed compiling its training step): train in float32, on CUDA, or with "
+            "`train_compile_mode='off'`."
+        )
+    if compiled_part_mode(model.config.train_compile_mode, weight.device.type) in CUDA_GRAPH_MODES:
+        torch.compiler.cudagraph_mark_step_begin()
 
 
 # A refinement chain to capture: (kv, a^(0), noise, prefix) -> (its result, the final energies E(a^(K), C), (B,)).

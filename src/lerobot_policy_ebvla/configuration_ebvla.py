@@ -44,6 +44,8 @@ COMPILE_MODES = (
     "max-autotune-no-cudagraphs",
     "chunk-graph",
 )
+# A chunk graph records inference's whole refinement; training compiles its parts in the other modes.
+TRAIN_COMPILE_MODES = tuple(mode for mode in COMPILE_MODES if mode != "chunk-graph")
 
 
 @PreTrainedConfig.register_subclass("ebvla")
@@ -85,6 +87,11 @@ class EBVLAConfig(PreTrainedConfig):
         train_straight_through_clip: In training, differentiate the element-wise gradient clip c as the
             identity (the forward values stay clipped). The paper's hard clip passes no learning signal
             through any gradient entry it clips. Inference is unchanged.
+        train_compile_mode: torch.compile a training step's backbone pass (forward and backward) and its
+            K - 1 warm-up MCMC steps in this mode (`compile_ebvla.py`); the last, second-order step stays eager.
+            "off" (the default) trains eagerly; the modes are `compile_mode`'s but "chunk-graph" (inference
+            only). Losses equal eager training up to float rounding (tests/test_compile_mode.py); each batch
+            shape compiles on its first step. Gains: research/docs/vlm_gpu.md.
         contrastive: The contrastive term beyond the paper (`ContrastiveConfig`; off by default).
         joint_energy: The energy's margin on corrupted observations and the joint energy E(a, C) + E_c(C)
             (`JointEnergyConfig`; off by default).
@@ -99,8 +106,8 @@ class EBVLAConfig(PreTrainedConfig):
         early_stop_tol: Stop refining once no action moves more than this in one step. None (the paper)
             runs all K_inf steps.
         compile_mode: torch.compile the inference chain of every chunk (`compile_ebvla.py`): the context
-            encoding and the energy's forward and grad_a backward at each MCMC step; training is never
-            compiled. "off" (the default) runs eagerly; "default" (inductor), "max-autotune" and
+            encoding and the energy's forward and grad_a backward at each MCMC step (training: `train_compile_mode`).
+            "off" (the default) runs eagerly; "default" (inductor), "max-autotune" and
             "max-autotune-no-cudagraphs" are torch.compile's modes; "reduce-overhead" and "max-autotune"
             replay CUDA graphs on a CUDA device and run their no-graph form elsewhere, with a warning.
             "chunk-graph" encodes the context as "reduce-overhead" and captures each chunk's whole refinement
@@ -183,6 +190,7 @@ class EBVLAConfig(PreTrainedConfig):
     # Training signal beyond the paper (off by default).
     train_step_size_sampling: str = "per_chain"
     train_straight_through_clip: bool = False
+    train_compile_mode: str = "off"
     contrastive: ContrastiveConfig = field(default_factory=ContrastiveConfig)
     joint_energy: JointEnergyConfig = field(default_factory=JointEnergyConfig)
 
@@ -283,6 +291,7 @@ class EBVLAConfig(PreTrainedConfig):
         if self.early_stop_tol is not None and self.early_stop_tol <= 0:
             raise ValueError(f"`early_stop_tol` must be > 0 or None. Got {self.early_stop_tol}.")
         check_one_of(self, "", "compile_mode", COMPILE_MODES)
+        check_one_of(self, "", "train_compile_mode", TRAIN_COMPILE_MODES)
         if self.rtc_config is not None and self.rtc_config.execution_horizon < 1:
             raise ValueError(
                 f"`rtc_config.execution_horizon` must be >= 1. Got {self.rtc_config.execution_horizon}."

@@ -27,6 +27,7 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from torch import Tensor, nn
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
+from .compile_ebvla import begin_compiled_training_step, compiled_context, compiled_energy_fn
 from .configuration_ebvla import EBVLAConfig
 from .configuration_groups import OOD_CORRUPTIONS as CORRUPTIONS
 from .energy_head import ContextKV, pooled_context
@@ -345,15 +346,19 @@ def compute_loss(
 
     Without a `generator`, the randomness comes from `training_generator`. Only the last step is
     differentiated (second order, through grad_a E); the earlier ones see a detached context, so they build no
-    graph into the backbone.
+    graph into the backbone. With `train_compile_mode`, the backbone pass and those earlier steps run compiled
+    (`compile_ebvla.py`) and draw the same numbers from `generator`.
     """
     cfg = model.config
     target = batch[ACTION]
     # The joint energy's margin reads the pooled context of this same backbone pass.
-    if model.context_energy is not None and model.observation_encoder is None:
-        kv, clean_features = model.encode_context(batch, return_features=True)
+    return_features = model.context_energy is not None and model.observation_encoder is None
+    if cfg.train_compile_mode == "off":
+        encoded = model.encode_context(batch, return_features)
     else:
-        kv, clean_features = model.encode_context(batch), None
+        begin_compiled_training_step(model)
+        encoded = compiled_context(model, batch, return_features, cfg.train_compile_mode)
+    kv, clean_features = encoded if return_features else (encoded, None)
     if generator is None:
         generator = training_generator(model, target.device)
     step_sizes = sample_training_step_sizes(cfg, generator)
@@ -364,7 +369,10 @@ def compute_loss(
     initial_energy = None
     if num_steps > 1:
         detached_kv = [(k.detach(), v.detach()) for k, v in kv]
-        warmup = model.refine(detached_kv, actions, step_sizes[:-1], generator)
+        energy_fn = None
+        if cfg.train_compile_mode != "off":
+            energy_fn = compiled_energy_fn(model.head, detached_kv, cfg.train_compile_mode)
+        warmup = model.refine(detached_kv, actions, step_sizes[:-1], generator, energy_fn=energy_fn)
         actions, initial_energy = warmup.actions, warmup.step_energies[0]
     # CPU (and fused GPU) attention kernels have no double backward; the math kernel does.
     with sdpa_kernel(SDPBackend.MATH):
