@@ -15,7 +15,7 @@ cd "$(dirname "$0")/../.."
 export MUJOCO_GL="${MUJOCO_GL:-egl}"
 PY="${PY:-.venv/bin/python}"
 WORK="${WORK:-outputs/libero_cpu}"
-RESULTS="${RESULTS:-benchmarks/results/libero_cpu}"
+RESULTS="${RESULTS:-research/results/libero_cpu}"
 BUDGET_S="${BUDGET_S:-3600}"
 TASKS="${TASKS:-2 3 9}"             # LIBERO-Object tasks: salad dressing, bbq sauce, orange juice
 EPISODES="${EPISODES:-44}"          # expert attempts per task (>= 40 kept)

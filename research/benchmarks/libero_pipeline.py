@@ -93,6 +93,26 @@ EBVLA_CPU = [
     "--policy.push_to_hub=false",
 ]
 RUNS["ebvla_cpu"] = EBVLA_CPU
+# The LIBERO recipe candidates of issue 52 (research/docs/libero_recipe_rule.md: the rule that picks one, written
+# before any was trained). A: the MetaWorld fix as the light preset ships it, E_c on its own encoder, the margin on
+# generic corruptions, E_c flat at the data. B: A with the two corruptions the preset leaves out (random
+# convolutions, shading), LIBERO's failures under lighting being what the preset's list does not cover.
+JOINT_ENERGY_CPU = [
+    "--policy.joint_energy.target=observation",
+    "--policy.joint_energy.weight=0.01",
+    "--policy.joint_energy.gradient_penalty=0.1",
+    "--policy.monitor.score=context_phase_energy",
+]
+RUNS["ebvla_joint_cpu"] = [
+    *EBVLA_CPU,
+    *JOINT_ENERGY_CPU,
+    "--policy.joint_energy.corruptions=[channel_gain,patch_swap,shift,state_noise]",
+]
+RUNS["ebvla_joint_all_cpu"] = [
+    *EBVLA_CPU,
+    *JOINT_ENERGY_CPU,
+    "--policy.joint_energy.corruptions=[channel_gain,patch_swap,shift,state_noise,random_conv,shading]",
+]
 RUNS["diffusion_cpu"] = [
     "--policy.type=diffusion",
     "--policy.pretrained_backbone_weights=null",
