@@ -548,7 +548,9 @@ def save_results(work: Path, results: Path) -> None:
     (resume; `light_checkpoint`), `DONE` markers, eval infos, gzip records with their context features, camera
     checks, reports, timings.
 
-    The frames are not saved: `record` with the same `--placement_seed` makes the same dataset again.
+    Frames stored as images are not saved: `record` with the same `--placement_seed` makes the same dataset
+    again. Pieces recorded as video (`--use_videos`, about 0.6 MB an episode at 128 px) are saved whole, so that
+    the next session trains on them instead of recording them again (about two hours for ten tasks on two cores).
     """
     from lerobot_policy_ebvla.monitoring.records import (
         GZIP_SUFFIX,
@@ -572,6 +574,10 @@ def save_results(work: Path, results: Path) -> None:
         target = results / "recording_reports" / f"{report.parents[1].name}.json"
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(report, target)
+    for report in work.glob("data/*/meta/recording_report.json"):
+        piece, target = report.parents[1], results / "data" / report.parents[1].name
+        if (piece / "videos").is_dir() and not target.exists():
+            shutil.copytree(piece, target)
     for info in work.glob("eval/*/*/task*/eval_info.json"):
         source = records_file_in(info.parent)
         target = results / info.parent.relative_to(work) / "energy_records.jsonl.gz"

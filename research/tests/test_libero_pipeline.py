@@ -337,6 +337,31 @@ def test_saved_results_restore_a_resumable_training_and_skip_finished_jobs(tmp_p
     assert statuses == {"ebvla_cpu/vanilla_heldout/task2": "done before"}
 
 
+def test_pieces_recorded_as_video_are_saved_whole_and_restored_as_recorded(tmp_path, monkeypatch):
+    first = tmp_path / "first"
+    # No kept episode, so that `record` below stops before aggregating the stand-in pieces.
+    write_json(first / "data" / "task0_from0" / "meta" / "recording_report.json", {"n_kept": 0})
+    video = first / "data" / "task0_from0" / "videos" / "observation.images.image" / "chunk-000" / "file-000.mp4"
+    video.parent.mkdir(parents=True)
+    video.write_bytes(b"frames")
+    write_json(first / "data" / "task1_from0" / "meta" / "recording_report.json", {"n_kept": 11})  # images
+    results = tmp_path / "results"
+    pipeline.save_results(first, results)
+    assert (results / "data" / "task0_from0" / video.relative_to(first / "data" / "task0_from0")).exists()
+    assert not (results / "data" / "task1_from0").exists()
+
+    second = tmp_path / "second"
+    pipeline.restore_results(results, second)
+    assert (second / video.relative_to(first)).read_bytes() == b"frames"
+    # Restored with its report, the piece counts as recorded: `record` runs only the other one.
+    commands = []
+    monkeypatch.setattr(pipeline, "run_logged", lambda cmd, log: commands.append(cmd) or 0)
+    with pytest.raises(RuntimeError, match="No task recorded"):
+        pipeline.record(second, [0, 1], 11, 128, jobs=1, use_videos=True)
+    assert [c for c in commands if "--env.task_ids=[0]" in c] == []
+    assert len([c for c in commands if "--env.task_ids=[1]" in c]) == 1
+
+
 def test_record_asks_every_piece_for_video_frames_when_told(tmp_path, monkeypatch):
     """`--use_videos` reaches each recorder process (a dataset that travels in a GPU bundle, research/docs/libero_runs.md)."""
     commands = []
