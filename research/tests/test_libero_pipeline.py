@@ -341,7 +341,9 @@ def test_pieces_recorded_as_video_are_saved_whole_and_restored_as_recorded(tmp_p
     first = tmp_path / "first"
     # No kept episode, so that `record` below stops before aggregating the stand-in pieces.
     write_json(first / "data" / "task0_from0" / "meta" / "recording_report.json", {"n_kept": 0})
-    video = first / "data" / "task0_from0" / "videos" / "observation.images.image" / "chunk-000" / "file-000.mp4"
+    video = (
+        first / "data" / "task0_from0" / "videos" / "observation.images.image" / "chunk-000" / "file-000.mp4"
+    )
     video.parent.mkdir(parents=True)
     video.write_bytes(b"frames")
     write_json(first / "data" / "task1_from0" / "meta" / "recording_report.json", {"n_kept": 11})  # images
