@@ -311,24 +311,33 @@ def test_a_policy_saved_with_compile_refinement_loads(tmp_path, eager):
     torch.testing.assert_close(chunk(loaded.eval(), batch), chunk(eager, batch), atol=0, rtol=0)
 
 
+# Inductor compiles the tiny VLM for 1 minute (a chunk) to 4 (a training step) on a 2-core CPU: opt in.
+inductor_opt_in = pytest.mark.skipif(
+    os.environ.get("EBVLA_TEST_INDUCTOR") != "1", reason="compiles the tiny VLM with inductor; opt in"
+)
+
+
 def vlm_policy(lm_path, **overrides) -> EBVLAPolicy:
     """The tiny VLM of tests/test_backbone_vlm.py."""
     torch.manual_seed(0)
     return EBVLAPolicy(vlm_config(lm_path, **overrides)).eval()
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(
-    os.environ.get("EBVLA_TEST_INDUCTOR") != "1",
-    reason="inductor compiles the tiny VLM for ~1 min on CPU; opt in",
-)
-def test_compiled_vlm_chunk_gives_the_eager_actions_and_energies(tmp_path):
+def vlm_pair(tmp_path, with_action: bool, **compiled) -> tuple[EBVLAPolicy, EBVLAPolicy, dict]:
+    """An eager tiny VLM, the same weights with the `compiled` fields, and a batch with an instruction."""
     lm_path = write_tiny_language_model(tmp_path / "tiny_lm")
-    eager_vlm, compiled_vlm = vlm_policy(lm_path), vlm_policy(lm_path, compile_mode="default")
+    eager_vlm, compiled_vlm = vlm_policy(lm_path), vlm_policy(lm_path, **compiled)
     g = torch.Generator().manual_seed(0)
-    batch = tiny_batch(eager_vlm.config, batch_size=BATCH_SIZE, with_action=False)
+    batch = tiny_batch(eager_vlm.config, batch_size=BATCH_SIZE, with_action=with_action)
     batch[OBS_LANGUAGE_TOKENS] = torch.randint(0, 128, (BATCH_SIZE, 8), generator=g)
     batch[OBS_LANGUAGE_ATTENTION_MASK] = torch.arange(8).expand(BATCH_SIZE, 8) < 5
+    return eager_vlm, compiled_vlm, batch
+
+
+@pytest.mark.slow
+@inductor_opt_in
+def test_compiled_vlm_chunk_gives_the_eager_actions_and_energies(tmp_path):
+    eager_vlm, compiled_vlm, batch = vlm_pair(tmp_path, with_action=False, compile_mode="default")
     for got, expected in zip(chunk(compiled_vlm, batch), chunk(eager_vlm, batch), strict=True):
         torch.testing.assert_close(got, expected, **TOL)
 
@@ -382,18 +391,10 @@ def test_training_refuses_the_chunk_graph_mode():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(
-    os.environ.get("EBVLA_TEST_INDUCTOR") != "1",
-    reason="inductor compiles the tiny VLM's forward and backward for ~2 min on CPU; opt in",
-)
+@inductor_opt_in
 def test_compiled_vlm_training_step_gives_the_eager_loss_and_gradients(tmp_path):
     """The LoRA language model's backward runs through inductor's generated kernels, as on a GPU."""
-    lm_path = write_tiny_language_model(tmp_path / "tiny_lm")
-    eager_vlm, compiled_vlm = vlm_policy(lm_path), vlm_policy(lm_path, train_compile_mode="default")
-    g = torch.Generator().manual_seed(0)
-    batch = tiny_batch(eager_vlm.config, batch_size=BATCH_SIZE)
-    batch[OBS_LANGUAGE_TOKENS] = torch.randint(0, 128, (BATCH_SIZE, 8), generator=g)
-    batch[OBS_LANGUAGE_ATTENTION_MASK] = torch.arange(8).expand(BATCH_SIZE, 8) < 5
+    eager_vlm, compiled_vlm, batch = vlm_pair(tmp_path, with_action=True, train_compile_mode="default")
     eager_loss, eager_grads = training_step(eager_vlm, batch)
     compiled_loss, compiled_grads = training_step(compiled_vlm, batch)
     torch.testing.assert_close(compiled_loss, eager_loss, **TOL)
