@@ -1,0 +1,135 @@
+"""The LIBERO recipe choice rule of research/docs/libero_recipe_rule.md, applied to evaluated runs.
+
+For each run of `libero_pipeline.RUNS` evaluated on tasks 2, 3 and 9 (`research/benchmarks/libero_cpu.sh`), from its
+records alone: held-out vanilla success, and over each rollout's first 3 chunks the AUROC of its saved monitor
+score under each of the 13 shift conditions (held-out vanilla against the condition), the balanced accuracy at the
+shipped threshold (T = mu_v + 1 sigma_v on the calibration rollouts) and that threshold's alarm rate on held-out
+vanilla. Then the rule: eligible runs (success >= 90 %), the highest minimum AUROC, ties within 0.03 broken by the
+balanced accuracy, then by the lower alarm rate.
+
+    python research/benchmarks/libero_recipe_choice.py --results=research/results/libero_cpu \\
+        --runs ebvla_cpu ebvla_joint_cpu ebvla_joint_all_cpu
+"""
+
+import argparse
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lerobot_policy_ebvla.monitoring.metrics import auroc
+from lerobot_policy_ebvla.monitoring.ood_report import ALL_CONDITIONS, OODReportConfig, score_ood_report
+from lerobot_policy_ebvla.monitoring.records import group_by_episode, read_energy_records, records_file_in
+
+SHIFTS = [f"{p}{s}" for p in ("pose", "distance", "rotation", "fov") for s in (5, 3, 1)] + ["light_dim5"]
+FIRST_CHUNKS = 3
+MIN_SUCCESS = 0.9
+TIE = 0.03
+
+
+@dataclass
+class RunCriteria:
+    run: str
+    score: str
+    heldout_success: tuple[int, int]
+    auroc_per_condition: dict[str, float]
+    min_auroc: float
+    balanced_accuracy: float
+    heldout_alarm_rate: float
+
+    @property
+    def eligible(self) -> bool:
+        wins, total = self.heldout_success
+        return total > 0 and wins / total >= MIN_SUCCESS
+
+
+def heldout_success(run_dir: Path) -> tuple[int, int]:
+    outcomes = []
+    for task in sorted((run_dir / "vanilla_heldout").glob("task*")):
+        episodes = group_by_episode(read_energy_records(records_file_in(task)))
+        outcomes += [episode[0].success for episode in episodes.values()]
+    return sum(outcomes), len(outcomes)
+
+
+def run_criteria(results: Path, run: str, score: str, output_dir: Path) -> RunCriteria:
+    """The rule's three criteria for one evaluated run, its monitor scoring `score`."""
+    run_dir = results / "eval" / run
+    cfg = OODReportConfig(
+        calibration=[str(run_dir / "vanilla_calib" / "task*")],
+        vanilla=[str(run_dir / "vanilla_heldout" / "task*")],
+        ood=[str(run_dir / shift / "task*") for shift in SHIFTS],
+        score=score,
+        output_dir=output_dir,
+        first_chunks=[FIRST_CHUNKS],
+    )
+    scored = score_ood_report(cfg)
+    sets = scored.at(FIRST_CHUNKS)
+    threshold = scored.fit(score, FIRST_CHUNKS).threshold
+    negatives = sets.negatives[score]
+    per_condition = {
+        condition: float(auroc(negatives, positives[score]))
+        for condition, positives in sets.positives.items()
+        if condition != ALL_CONDITIONS
+    }
+    shifted = sets.positives[ALL_CONDITIONS][score]
+    alarm_rate = float(np.mean(negatives > threshold))
+    balanced = 0.5 * (float(np.mean(shifted > threshold)) + 1.0 - alarm_rate)
+    return RunCriteria(
+        run,
+        score,
+        heldout_success(run_dir),
+        per_condition,
+        min(per_condition.values()),
+        balanced,
+        alarm_rate,
+    )
+
+
+def choose(criteria: list[RunCriteria]) -> RunCriteria | None:
+    """The rule: among eligible runs, the highest minimum AUROC; within `TIE` of it, the higher balanced accuracy,
+    then the lower held-out alarm rate. None when no run is eligible."""
+    eligible = [c for c in criteria if c.eligible]
+    if not eligible:
+        return None
+    best = max(c.min_auroc for c in eligible)
+    tied = [c for c in eligible if c.min_auroc >= best - TIE]
+    return max(tied, key=lambda c: (c.balanced_accuracy, -c.heldout_alarm_rate))
+
+
+def monitor_score(results: Path, run: str) -> str:
+    """The score the run's checkpoint saved (`monitor.score`), "final_energy" for one saved before it existed."""
+    config = results / "train" / run / "last" / "pretrained_model" / "config.json"
+    saved = json.loads(config.read_text()) if config.exists() else {}
+    return saved.get("monitor", {}).get("score", "final_energy")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--results", type=Path, required=True)
+    parser.add_argument("--runs", nargs="+", required=True)
+    parser.add_argument("--output_dir", type=Path, default=Path("outputs/libero_recipe_choice"))
+    args = parser.parse_args(argv)
+    criteria = [
+        run_criteria(args.results, run, monitor_score(args.results, run), args.output_dir / run)
+        for run in args.runs
+    ]
+    chosen = choose(criteria)
+    print("| run | score | held-out success | min AUROC (condition) | bal. acc. at T | held-out alarms |")
+    print("|---|---|---:|---|---:|---:|")
+    for c in criteria:
+        worst = min(c.auroc_per_condition, key=c.auroc_per_condition.get)
+        print(
+            f"| {c.run} | {c.score} | {c.heldout_success[0]}/{c.heldout_success[1]} | {c.min_auroc:.3f} ({worst}) "
+            f"| {100 * c.balanced_accuracy:.1f}% | {100 * c.heldout_alarm_rate:.1f}% |"
+        )
+    print(f"\nchosen: {chosen.run if chosen else 'none eligible'}")
+    args.output_dir.mkdir(parents=True, exist_ok=True)
+    payload = {"criteria": [asdict(c) for c in criteria], "chosen": chosen.run if chosen else None}
+    (args.output_dir / "choice.json").write_text(json.dumps(payload, indent=1))
+
+
+if __name__ == "__main__":
+    main()
