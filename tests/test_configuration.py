@@ -1,6 +1,7 @@
 """EBVLAConfig: the paper's Table V defaults, validation and save/load."""
 
 import dataclasses
+import json
 import math
 from operator import attrgetter
 
@@ -8,6 +9,7 @@ import pytest
 from lerobot.configs import PreTrainedConfig
 
 from lerobot_policy_ebvla import EBVLAConfig
+from lerobot_policy_ebvla.monitoring.ood_report import checkpoint_monitor_score
 from lerobot_policy_ebvla.presets import ebvla_config
 
 from .conftest import tiny_config
@@ -132,3 +134,29 @@ def test_save_and_load_keep_every_field(tmp_path):
     assert isinstance(loaded, EBVLAConfig)
     for f in dataclasses.fields(config):
         assert getattr(loaded, f.name) == getattr(config, f.name), f.name
+
+
+# The monitor score: decided by the training signal when the config is made, and saved with the checkpoint.
+
+OWN_ENCODER = {"target": "observation", "weight": 0.01}
+
+
+def test_the_monitor_score_follows_the_training_signal():
+    assert tiny_config().monitor.score == "final_energy"
+    assert tiny_config(joint_energy=OWN_ENCODER).monitor.score == "context_phase_energy"
+    # A joint energy read off the policy's own backbone has no E_c to monitor with: the paper's energy.
+    assert tiny_config(joint_energy={"target": "context", "weight": 0.01}).monitor.score == "final_energy"
+
+
+def test_a_named_monitor_score_is_kept_and_saved(tmp_path):
+    config = tiny_config(joint_energy=OWN_ENCODER, monitor={"score": "final_energy"})
+    assert config.monitor.score == "final_energy"
+    config.save_pretrained(tmp_path)
+    assert json.loads((tmp_path / "config.json").read_text())["monitor"]["score"] == "final_energy"
+    assert checkpoint_monitor_score(tmp_path) == "final_energy"
+    assert checkpoint_monitor_score(None) == "final_energy"
+
+
+def test_an_energy_only_score_without_its_encoder_is_refused():
+    with pytest.raises(ValueError, match="reads the joint energy's context term E_c on its own encoder"):
+        tiny_config(monitor={"score": "context_phase_energy"})

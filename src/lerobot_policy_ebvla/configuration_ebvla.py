@@ -300,6 +300,10 @@ class EBVLAConfig(PreTrainedConfig):
     def _validate_deployment(self) -> None:
         if isinstance(self.monitor, dict):  # a nested config given as a mapping (a preset, a test)
             self.monitor = MonitorConfig(**self.monitor)
+        if self.monitor.score is None:  # decided here, by the training signal, and saved with the checkpoint
+            self.monitor.score = (
+                "context_phase_energy" if self.context_energy_on_own_encoder else "final_energy"
+            )
         if self.monitor.score in CONTEXT_ENERGY_SCORES and not self.context_energy_on_own_encoder:
             raise ValueError(
                 f"`monitor.score={self.monitor.score!r}` reads the joint energy's context term E_c on its own "

@@ -362,13 +362,15 @@ class MonitorConfig:
 
     Args:
         score: The chunk score `ebvla-ood-report --calibrate_to` calibrates and saves with the checkpoint (one
-            of `runtime.scores.SCORES`'s package scores): "final_energy" (the paper's, the default),
+            of `runtime.scores.SCORES`'s package scores): "final_energy" (the paper's),
             "context_phase_energy" (a joint energy's context term E_c against the vanilla E_c at each chunk
             index: the light preset's, which trains E_c on its own encoder and flat at the data),
             "head_energy_two_sided" (the failure score: |z| of E - E_c at each chunk index) or "context_knn"
             (the pooled context's distance to its nearest vanilla context, the feature baseline). The two E_c
             scores need the joint energy on its own encoder (`joint_energy.target="observation"` with
-            `joint_energy.weight` > 0).
+            `joint_energy.weight` > 0). None (the default) is decided by the training signal when the policy's
+            config is made, and saved: "context_phase_energy" for a policy that trains E_c on its own encoder
+            (an energy-only monitor, no features stored), "final_energy" otherwise.
         response: What the policy does with a refined chunk whose score exceeds the OOD threshold T of the
             checkpoint's `ood_calibration.json` (see `runtime/response.py`): "continue" executes it and logs a
             warning (the default; without a calibration nothing is checked), "hold" executes `hold_action`
@@ -380,13 +382,13 @@ class MonitorConfig:
         threshold_k: Multiplier k of T = mu_v + k * sigma_v (Eq. 5); None uses the calibration's own k.
     """
 
-    score: str = "final_energy"
+    score: str | None = None
     response: str = "continue"
     hold_action: str | None = None
     threshold_k: float | None = None
 
     def __post_init__(self):
-        if self.score not in MONITOR_SCORES:
+        if self.score is not None and self.score not in MONITOR_SCORES:
             raise ValueError(f"`monitor.score` must be one of {MONITOR_SCORES}. Got {self.score!r}.")
         if self.response not in OOD_RESPONSES:
             raise ValueError(f"`monitor.response` must be one of {OOD_RESPONSES}. Got {self.response!r}.")

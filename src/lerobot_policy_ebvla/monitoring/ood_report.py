@@ -17,14 +17,13 @@ With context features, the scores include the combinations of the final energy a
 """
 
 import dataclasses
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..configuration_ebvla import MonitorConfig
+from ..configuration_ebvla import EBVLAConfig
 from ..runtime.calibration import OOD_CALIBRATION_FILENAME, THRESHOLD_RULES, OODCalibration
 from ..runtime.scores import INPUT_SOURCES, SCORE_AGGREGATIONS, SCORES
 from ..runtime.statistics import DEFAULT_KNN_K
@@ -65,13 +64,11 @@ logger = logging.getLogger(__name__)
 
 
 def checkpoint_monitor_score(checkpoint: Path | None) -> str:
-    """The score a pretrained_model folder is monitored with: its config's `monitor.score` (`MonitorConfig`'s
-    default for a config without one, or without a folder)."""
-    config = None if checkpoint is None else Path(checkpoint) / "config.json"
-    if config is None or not config.is_file():
-        return MonitorConfig.score
-    monitor = json.loads(config.read_text()).get("monitor") or {}
-    return monitor.get("score", MonitorConfig.score)
+    """The score a pretrained_model folder is monitored with: its config's `monitor.score`, which a config saved
+    without one gets from its training signal (`MonitorConfig`); the paper's final energy without a folder."""
+    if checkpoint is None or not (Path(checkpoint) / "config.json").is_file():
+        return "final_energy"
+    return EBVLAConfig.from_pretrained(checkpoint).monitor.score
 
 
 @dataclass

@@ -8,7 +8,8 @@ vanilla rollouts' scores (`OODCalibration`). A score is fitted on vanilla rollou
 in `ood_calibration.json` (its JSON fields) and in safetensors files beside it (its side files).
 
 The package ships four scores (`SCORES`); a checkpoint is monitored with the one its config names
-(`EBVLAConfig.monitor.score`, "final_energy" unless the training preset says otherwise):
+(`EBVLAConfig.monitor.score`: "context_phase_energy" for a policy with E_c on its own encoder, "final_energy"
+otherwise, unless the config names another):
 
 - "final_energy" (`FinalEnergy`, the paper's): E(a^(K_inf), C).
 - "context_phase_energy" (`ContextPhaseEnergy`): a joint energy's context term E_c(C) against the vanilla E_c at
