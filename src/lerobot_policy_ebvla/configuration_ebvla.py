@@ -129,7 +129,8 @@ class EBVLAConfig(PreTrainedConfig):
             lambda = `max_guidance_weight` (each MCMC step closes a fraction min(1, alpha lambda w_t) of the
             gap). None (the default) or `enabled=False` refines every chunk from scratch.
         monitor: How the checkpoint is monitored at run time (`MonitorConfig`): the score `ebvla-ood-report
-            --calibrate_to` calibrates (the paper's final energy by default), and the policy's response to a
+            --calibrate_to` calibrates (unset: E_c's per-index score with E_c on its own encoder, else the
+            paper's final energy), and the policy's response to a
             flagged chunk (continue, hold or raise).
         action_feature_names: Names of the action dimensions, filled from the dataset by LeRobot's
             `make_policy`; `lerobot-rollout` maps actions to robot motors with them.
