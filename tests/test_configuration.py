@@ -157,6 +157,14 @@ def test_a_named_monitor_score_is_kept_and_saved(tmp_path):
     assert checkpoint_monitor_score(None) == "final_energy"
 
 
+def test_a_checkpoint_saved_without_a_monitor_score_is_monitored_as_its_training_signal_says(tmp_path):
+    tiny_config(joint_energy=OWN_ENCODER).save_pretrained(tmp_path)
+    saved = json.loads((tmp_path / "config.json").read_text())
+    del saved["monitor"]
+    (tmp_path / "config.json").write_text(json.dumps(saved))
+    assert checkpoint_monitor_score(tmp_path) == "context_phase_energy"
+
+
 def test_an_energy_only_score_without_its_encoder_is_refused():
     with pytest.raises(ValueError, match="reads the joint energy's context term E_c on its own encoder"):
         tiny_config(monitor={"score": "context_phase_energy"})

@@ -221,8 +221,10 @@ def test_without_a_score_the_report_saves_the_checkpoints_monitor_score(
     """The score was decided when the policy was trained (`config.monitor.score`); the records change nothing."""
     checkpoint = tmp_path / "pretrained_model"
     checkpoint.mkdir()
+    # A policy with E_c on its own encoder, for the score that reads it (the config refuses it otherwise).
+    joint_energy = {"target": "observation", "weight": 0.01} if context_energy else {}
     (checkpoint / "config.json").write_text(
-        json.dumps({"type": "ebvla", "monitor": {"score": monitor_score}})
+        json.dumps({"type": "ebvla", "joint_energy": joint_energy, "monitor": {"score": monitor_score}})
     )
     folders = with_context_energy(record_dirs, tmp_path / "records") if context_energy else record_dirs
     text, calibration = report(folders, tmp_path)
