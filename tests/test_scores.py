@@ -49,6 +49,19 @@ def test_a_registered_score_is_found_by_its_name_and_a_name_clash_is_refused(mon
         register_score(Impostor)
 
 
+def test_the_score_order_is_set_only_as_a_whole(monkeypatch):
+    monkeypatch.setattr("lerobot_policy_ebvla.runtime.scores.SCORES", dict(SCORES))
+    from lerobot_policy_ebvla.runtime import scores
+
+    names = list(reversed(scores.SCORES))
+    scores.set_score_order(names)
+    assert list(scores.SCORES) == names
+    # A registered score left out would vanish from every report: refused, by name.
+    with pytest.raises(ValueError, match=r"missing \['final_energy'\]"):
+        scores.set_score_order([n for n in names if n != "final_energy"])
+    assert list(scores.SCORES) == names
+
+
 def test_the_context_phase_energy_reads_e_c_at_the_chunks_index():
     calibration = OODCalibration(mu_v=0.0, sigma_v=1.0, score=ContextPhaseEnergy(PHASE))
     readout = EnergyReadout.of_arrays([7.0, 7.0], [0, 1], context_energy=[-5.0, -5.0])

@@ -28,7 +28,6 @@ import numpy as np
 from lerobot_policy_ebvla.runtime.checkpoint_files import SideFile
 from lerobot_policy_ebvla.runtime.scores import (
     NEIGHBOURS_FILE,
-    SCORES,
     AbsoluteOfAggregate,
     ChunkInputs,
     ChunkScore,
@@ -37,6 +36,7 @@ from lerobot_policy_ebvla.runtime.scores import (
     check_statistics,
     register_score,
     rollout_score,
+    set_score_order,
     statistics_pair,
 )
 from lerobot_policy_ebvla.runtime.statistics import (
@@ -339,6 +339,4 @@ for _score in RESEARCH_SCORES:
     register_score(_score)
 # The committed reports list their scores in this order (the registry's, before the package kept four): the
 # registry is put back in it, so that a report recomputed from the records is the committed one line for line.
-_ordered = {name: SCORES[name] for name in TABLE_ORDER}
-SCORES.clear()
-SCORES.update(_ordered)
+set_score_order(TABLE_ORDER)

@@ -430,3 +430,20 @@ def register_score(score: type[ChunkScore]) -> type[ChunkScore]:
         raise ValueError(f"The score name {name!r} is already registered for {SCORES[name].__qualname__}.")
     SCORES[name] = score
     return score
+
+
+def set_score_order(names: Sequence[str]) -> None:
+    """Puts `SCORES` in the order of `names`, which must name every registered score once: the order of the
+    rows of the reports built from it (research code that recomputes committed tables restores theirs).
+
+    Raises:
+        ValueError: `names` is not the registered scores, each once.
+    """
+    if sorted(names) != sorted(SCORES):
+        raise ValueError(
+            f"The score order must name every registered score once: missing {sorted(set(SCORES) - set(names))}, "
+            f"unknown {sorted(set(names) - set(SCORES))}, repeated {sorted({n for n in names if names.count(n) > 1})}."
+        )
+    ordered = {name: SCORES[name] for name in names}
+    SCORES.clear()
+    SCORES.update(ordered)
