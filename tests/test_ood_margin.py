@@ -264,6 +264,8 @@ def test_shading_scales_every_channel_by_one_smooth_field_of_both_signs():
         ("corruption_strength", (0.6, 0.3)),
         ("corruption_strength", (0.5, 1.5)),
         ("gradient_penalty", -1.0),
+        ("gradient_penalty_every", 0),
+        ("encoder_resize_shape", (32,)),
     ],
 )
 def test_margin_fields_are_validated_by_name(field, value):
@@ -326,6 +328,45 @@ def test_gradient_penalty_is_added_to_the_margin_and_trains_the_observation_enco
     assert all(p.grad is None for p in policy.model.backbone.parameters())
     assert all(p.grad is None for p in policy.model.head.parameters())
     assert policy.model.observation_encoder.state_proj.weight.grad.abs().sum() > 0
+
+
+def test_a_lazy_gradient_penalty_is_taken_one_step_in_k_at_k_times_its_weight():
+    """`gradient_penalty_every=k`: the steps whose count is a multiple of k carry k gamma times the penalty, the
+    others none, so that the penalty's expected gradient is the eager one's."""
+    batch = tiny_batch(tiny_config(), batch_size=3)
+    value = image_gradient_penalty(policy_with_gradient_penalty(0.0), batch)
+    eager = policy_with_gradient_penalty(0.0).model
+    torch.manual_seed(0)
+    lazy_fields = {
+        "weight": 1.0,
+        "target": "observation",
+        "gradient_penalty": 2.0,
+        "gradient_penalty_every": 3,
+    }
+    lazy = EBVLAPolicy(tiny_config(joint_energy=lazy_fields)).model
+    for steps, weight in ((0, 3 * 2.0), (1, 0.0), (2, 0.0), (3, 3 * 2.0)):
+        eager.train_steps.fill_(steps), lazy.train_steps.fill_(steps)
+        without, _ = context_margin_loss(eager, batch, torch.Generator().manual_seed(0))
+        with_lazy, _ = context_margin_loss(lazy, batch, torch.Generator().manual_seed(0))
+        assert with_lazy.item() == pytest.approx(without.item() + weight * value, rel=1e-4), steps
+
+
+def test_the_observation_encoder_reads_frames_at_its_own_size():
+    """`encoder_resize_shape`: E_c's encoder resizes the frames to its own side (its spatial softmax fitted to
+    that map) while the policy's backbone reads them at their stored size."""
+    torch.manual_seed(0)
+    fields = {"weight": 0.01, "target": "observation", "encoder_resize_shape": (40, 40)}
+    policy = EBVLAPolicy(tiny_config(joint_energy=fields))
+    encoder = policy.model.observation_encoder.rgb_encoders[0]
+    assert tuple(encoder.resize.size) == (40, 40)
+    assert policy.model.backbone.rgb_encoders[0].resize is None  # the policy's frames at their stored size
+    batch = tiny_batch(policy.config, batch_size=2)
+    energy = policy.model.context_energy_of(batch, None)
+    assert energy.shape == (2,) and torch.isfinite(energy).all()
+    with pytest.raises(ValueError, match="`joint_energy.encoder_resize_shape`.*target='observation'"):
+        tiny_config(joint_energy={"weight": 0.01, "target": "context", "encoder_resize_shape": (40, 40)})
+    with pytest.raises(ValueError, match="larger than 32 px.*after `joint_energy.encoder_resize_shape`"):
+        EBVLAPolicy(tiny_config(joint_energy={**fields, "encoder_resize_shape": (24, 24)}))
 
 
 def test_descending_the_gradient_penalty_flattens_the_context_energy_at_the_images():

@@ -27,6 +27,16 @@ Rows (`--policies`):
     ebvla-contrastive-fp32 the light policy until the evening of 2026-11-24: the contrastive term in fp32 on every CPU
                            (`contrastive.dtype="float32"`; the preset's "auto" takes bf16 where the CPU
                            has AVX512-BF16 or AMX, and is this row elsewhere)
+    ebvla-no-joint-energy  the same without the joint energy (no E_c, no observation encoder, no margin): the
+                           light policy before 2026-11-26
+    ebvla-no-gradient-penalty  the same with the joint energy's margin but without its gradient penalty
+    ebvla-lazy-penalty-4   the penalty on one step in 4 at 4 times its weight (`joint_energy.gradient_penalty_every=4`)
+    ebvla-ec-32px          E_c's own encoder at 32 px (`joint_energy.encoder_resize_shape=[32,32]`), the policy's at 64
+    ebvla-ec-32px-lazy-4   both
+    ebvla-compiled         the light policy with `train_compile_mode="default"` (inductor: the backbone pass and the
+                           K - 1 warm-up MCMC steps compiled; compilation happens in the warm-up steps)
+    ebvla-channels-last    the light policy with its weights in channels-last order (the convolutions then run
+                           channels-last; oneDNN's preferred layout on x86)
     diffusion              LeRobot's Diffusion Policy at its defaults (U-Net 512/1024/2048, 100 train timesteps),
                            with the light policy's encoder (ResNet-18 cut to the same stages, same image size, group
                            norm, 32 keypoints) and its chunk (1 observation, horizon 8)
@@ -66,6 +76,13 @@ ROWS = (
     "ebvla-4-anchors",
     "ebvla-ffn4",
     "ebvla-contrastive-fp32",
+    "ebvla-no-joint-energy",
+    "ebvla-no-gradient-penalty",
+    "ebvla-lazy-penalty-4",
+    "ebvla-ec-32px",
+    "ebvla-ec-32px-lazy-4",
+    "ebvla-compiled",
+    "ebvla-channels-last",
     "diffusion",
     "diffusion-cpu",
 )
@@ -143,6 +160,25 @@ def policy_config(row: str):
         return light_policy_config(ffn_multiplier=4)
     if row == "ebvla-contrastive-fp32":
         return light_policy_config(contrastive={"dtype": "float32"})
+    if row == "ebvla-no-joint-energy":
+        return light_policy_config(
+            joint_energy={"weight": 0.0, "target": "head", "gradient_penalty": 0.0},
+            monitor={"score": "final_energy"},
+        )
+    if row == "ebvla-no-gradient-penalty":
+        return light_policy_config(joint_energy={"gradient_penalty": 0.0})
+    if row == "ebvla-lazy-penalty-4":
+        return light_policy_config(joint_energy={"gradient_penalty_every": 4})
+    if row == "ebvla-ec-32px":
+        return light_policy_config(joint_energy={"encoder_resize_shape": (32, 32)})
+    if row == "ebvla-ec-32px-lazy-4":
+        return light_policy_config(
+            joint_energy={"encoder_resize_shape": (32, 32), "gradient_penalty_every": 4}
+        )
+    if row == "ebvla-compiled":
+        return light_policy_config(train_compile_mode="default")
+    if row == "ebvla-channels-last":
+        return light_policy_config()  # the weights are made channels-last in `build_row`
     from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 
     light = light_policy_config()
@@ -200,6 +236,8 @@ def build_row(name: str, args: argparse.Namespace) -> Row:
     if args.single_column_queries:
         read_delta_rows_from_columns(dataset)
     policy = make_policy(train_cfg.policy, ds_meta=dataset.meta)
+    if name == "ebvla-channels-last":
+        policy = policy.to(memory_format=torch.channels_last)
     if name.startswith("diffusion"):
         from lerobot_policy_ebvla.backbone_resnet import keep_resnet_stages
 
@@ -274,27 +312,34 @@ def time_image_encoder(row: Row, batch: dict) -> float:
 def summarize(row: Row) -> dict:
     medians = {part: statistics.median(values) for part, values in row.times_ms.items()}
     step_ms = sum(medians[p] for p in PARTS)
+    # A lazy penalty makes one step in k dearer: the median step is a cheap one, the mean is what a run pays.
+    mean_step_ms = statistics.mean(
+        sum(parts) for parts in zip(*(row.times_ms[p] for p in PARTS), strict=True)
+    )
     return {
         "params_m": sum(p.numel() for p in row.policy.parameters()) / 1e6,
         "median_ms": {part: round(value, 1) for part, value in medians.items()},
         "step_ms": round(step_ms, 1),
-        "steps_per_s": round(1000 / step_ms, 2),
+        "mean_step_ms": round(mean_step_ms, 1),
+        "steps_per_s": round(1000 / mean_step_ms, 2),
         "timed_steps": len(row.times_ms["forward"]),
         "loader_ms_per_sample": round(row.loader_ms_per_sample, 2),
     }
 
 
 def print_table(results: dict) -> None:
-    header = f"{'policy':<22} {'params M':>8} " + " ".join(f"{p:>10}" for p in PARTS)
-    print(header + f" {'step ms':>8} {'steps/s':>7} {'encoder':>8} {'ms/sample':>9}")
+    header = f"{'policy':<26} {'params M':>8} " + " ".join(f"{p:>10}" for p in PARTS)
+    print(header + f" {'step ms':>8} {'mean ms':>8} {'steps/s':>7} {'encoder':>8} {'ms/sample':>9}")
     for name, r in results.items():
         parts = " ".join(f"{r['median_ms'][p]:>10.1f}" for p in PARTS)
         print(
-            f"{name:<22} {r['params_m']:>8.2f} {parts} {r['step_ms']:>8.1f} {r['steps_per_s']:>7.2f} "
+            f"{name:<26} {r['params_m']:>8.2f} {parts} {r['step_ms']:>8.1f} {r['mean_step_ms']:>8.1f} "
+            f"{r['steps_per_s']:>7.2f} "
             f"{r['median_ms']['encoder']:>8.1f} {r['loader_ms_per_sample']:>9.2f}"
         )
     print(
-        "(median ms per part; encoder: the image encoder's forward + backward alone, on the same batch; "
+        "(median ms per part and their sum; mean ms: the mean step; encoder: the image encoder's forward + "
+        "backward alone, on the same batch; "
         "ms/sample: LeRobot's reader alone, one `dataset[i]`)"
     )
     if {"ebvla", "ebvla-no-contrastive"} <= set(results):
@@ -321,6 +366,19 @@ def time_rows(args: argparse.Namespace) -> dict:
     return {row.name: summarize(row) for row in rows}
 
 
+def cpu_vector_flags() -> list[str]:
+    """The CPU's AVX, AVX-512 and AMX flags (/proc/cpuinfo): light training runs about twice as fast with
+    AVX512-BF16 as with AVX2 alone, so every timing names them."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return []
+    flags = next(
+        (line.split(":", 1)[1].split() for line in text.splitlines() if line.startswith("flags")), []
+    )
+    return sorted(flag for flag in flags if flag.startswith(("avx", "amx")))
+
+
 def main(argv=None) -> dict:
     args = parse_args(argv)
     # LeRobot falls back from torchcodec to PyAV with a long traceback; PNG frames need neither.
@@ -334,6 +392,7 @@ def main(argv=None) -> dict:
         "command_args": vars(args) | {"dataset": str(args.dataset), "json": str(args.json)},
         "machine": {
             "cpu": platform.processor() or platform.machine(),
+            "cpu_vector_flags": cpu_vector_flags(),
             "torch_threads": torch.get_num_threads(),
             "torch": torch.__version__,
         },

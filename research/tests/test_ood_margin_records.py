@@ -1253,3 +1253,21 @@ def test_the_heads_energy_leaves_the_band_under_the_harmful_shifts_and_e_c_under
         run = seed_run(seed, "observation_r1_strong") / "context_energy_full"
         assert f"{median_mean_z(run, condition, ContextPhaseEnergy):.0f}" == context_z, condition
         assert f"{median_mean_z(run, condition, HeadEnergyTwoSided):.2f}" == head_z, condition
+
+
+def test_the_cheaper_context_energy_fails_its_rule_on_one_seed_of_two():
+    """context_energy_r1_fast.md (E_c's encoder at 32 px, the penalty on one step in 4; rule in summary.md, "A
+    cheaper E_c", written before the seeds ran), recomputed for seed 24000 from its records: `context_phase_energy`
+    pools 0.968 and 0.983 with no condition confidently under 0.5 and at most 20 % held-out alarms, but seed 24000's
+    success-cutting light_direction 3 scores 0.584, under the rule's 0.85, so the preset keeps its 64 px E_c."""
+    summaries_md = (FULL / "context_energy_r1_fast.md").read_text()
+    recomputed = summaries.score_summary(seed_run(24000, "observation_r1_fast") / "context_energy_full")
+    assert recomputed == section(summaries_md, "seed24000")
+    rows = default_rows("context_energy_r1_fast.md", (24000, 25000), "context_phase_energy")
+    cutting_min = {}
+    for seed, row in rows.items():
+        pooled, alarms, inverted, cutting = float(row[0].split()[0]), row[1], row[5], row[7]
+        assert pooled >= 0.90 and int(alarms.split("%")[0]) <= 20 and "!" not in inverted, seed
+        cutting_min[seed] = float(cutting.split("min ")[1])
+    assert cutting_min == {24000: 0.584, 25000: 1.0}
+    assert "light_direction 3 0.584" in rows[24000][4]

@@ -363,6 +363,15 @@ class EBVLAConfig(PreTrainedConfig):
         if self.backbone == "resnet":
             height, width = crop or resize or next(iter(self.image_features.values())).shape[1:]
             self.validate_light_backbone_image(height, width)
+        if self.joint_energy.encoder_resize_shape is not None:
+            if self.backbone != "resnet":
+                raise ValueError(
+                    "`joint_energy.encoder_resize_shape` sizes the light backbone's frames; the VLM backbone "
+                    f"reads them at its own size. Got backbone={self.backbone!r}."
+                )
+            self.validate_light_backbone_image(
+                *self.joint_energy.encoder_resize_shape, fields="`joint_energy.encoder_resize_shape`"
+            )
         if self.monitor.response == "hold" and self.monitor.hold_action == "current_state":
             self._validate_current_state_hold()
         if self.backbone == "resnet" and len({f.shape for f in self.image_features.values()}) > 1:
@@ -371,16 +380,18 @@ class EBVLAConfig(PreTrainedConfig):
                 f"{ {k: tuple(f.shape) for k, f in self.image_features.items()} }."
             )
 
-    def validate_light_backbone_image(self, height: int, width: int) -> None:
-        """Raises a ValueError when images of height x width (after resize and crop) are too small for the light
-        backbone's kept ResNet stages."""
+    def validate_light_backbone_image(
+        self, height: int, width: int, fields: str = "`resnet.resize_shape`/`resnet.crop_shape`"
+    ) -> None:
+        """Raises a ValueError when images of height x width (after resize and crop, as `fields` set them) are too
+        small for the light backbone's kept ResNet stages."""
         # Each kept ResNet stage halves the map after a 4x stem; on a 1x1 map the keypoints are constant.
         stages = self.resnet.vision_backbone_stages
         stride = 2 ** (stages + 1)
         if min(height, width) <= stride:
             raise ValueError(
                 f"The light backbone with `resnet.vision_backbone_stages={stages}` needs "
-                f"images larger than {stride} px (got {height}x{width} after `resnet.resize_shape`/`resnet.crop_shape`): "
+                f"images larger than {stride} px (got {height}x{width} after {fields}): "
                 "smaller ones give a 1x1 ResNet feature map whose keypoints carry no information."
             )
 

@@ -274,6 +274,17 @@ class JointEnergyConfig:
             down in another (docs/energy_study.md, section 8.11). With no gradient at the data every small
             change of the image moves E_c at second order, where the margin has made it rise. 0 (default) is
             off; it differentiates E_c twice through the observation encoder at each training step.
+        gradient_penalty_every: Lazy regularization (Karras et al., StyleGAN2, CVPR 2020): the penalty is
+            taken on one training step in k, weighted k gamma, so that its expected gradient is unchanged. Its
+            double backward through the observation encoder is about a quarter of a light training step on a
+            CPU (research/docs/benchmarks_speed.md); 1 (default) takes it on every step.
+        encoder_resize_shape: (height, width) the observation encoder resizes the frames to, for the light
+            backbone with target "observation"; None (default) is the policy's own `resnet.resize_shape`. E_c
+            reads the scene to tell it from the training data, not to act in it: a coarser frame costs its
+            encoder (two passes and the penalty's double backward at each training step, one pass per chunk
+            at inference) a quarter at half the side. On the MetaWorld sweep, 32 px with the penalty on one
+            step in 4 pooled as the light preset's 64 px but missed a mild light shift on one of two seeds
+            (research/results/metaworld_sweep_margin_full/summary.md, "A cheaper E_c"): opt-in.
     """
 
     weight: float = 0.0
@@ -283,9 +294,12 @@ class JointEnergyConfig:
     corruptions: tuple[str, ...] = ("channel_gain", "patch_swap", "shift")
     corruption_strength: tuple[float, float] = (1.0, 1.0)
     gradient_penalty: float = 0.0
+    gradient_penalty_every: int = 1
+    encoder_resize_shape: tuple[int, int] | None = None
 
     def __post_init__(self):
         check_at_least(self, "joint_energy", 0, "weight", "gradient_penalty")
+        check_at_least(self, "joint_energy", 1, "gradient_penalty_every")
         check_positive(self, "joint_energy", "margin")
         check_one_of(self, "joint_energy", "chunk", OOD_MARGIN_CHUNKS)
         check_one_of(self, "joint_energy", "target", OOD_MARGIN_TARGETS)
@@ -307,6 +321,19 @@ class JointEnergyConfig:
                 "encoder: it needs `joint_energy.target='observation'` and `joint_energy.weight` > 0. Got "
                 f"target={self.target!r}, weight={self.weight}."
             )
+
+        if self.encoder_resize_shape is not None:
+            if len(self.encoder_resize_shape) != 2 or min(self.encoder_resize_shape) < 1:
+                raise ValueError(
+                    "`joint_energy.encoder_resize_shape` must be (height, width) in pixels, or None (the policy's). "
+                    f"Got {self.encoder_resize_shape}."
+                )
+            if not self.on_own_encoder:
+                raise ValueError(
+                    "`joint_energy.encoder_resize_shape` sizes the frames of the observation encoder: it needs "
+                    f"`joint_energy.target='observation'` and `joint_energy.weight` > 0. Got target={self.target!r}, "
+                    f"weight={self.weight}."
+                )
 
     @property
     def has_context_energy(self) -> bool:

@@ -332,7 +332,7 @@ class EBVLA(nn.Module):
         if config.joint_energy.has_context_energy:
             self.context_energy = EBVLAContextEnergy(self.backbone.context_dim)
         if config.context_energy_on_own_encoder:
-            self.observation_encoder = make_backbone(config)
+            self.observation_encoder = make_backbone(observation_encoder_config(config))
 
     def encode_context(
         self, batch: dict[str, Tensor], return_features: bool = False
@@ -560,6 +560,16 @@ class EBVLA(nn.Module):
         chains = readout.chains.clone()
         chains[unsure] = cfg.num_restarts
         return actions, EnergyReadout(initial, final, chains=chains, context_energy=readout.context_energy)
+
+
+def observation_encoder_config(config: EBVLAConfig) -> EBVLAConfig:
+    """The config E_c's own encoder is built from: the policy's, at `joint_energy.encoder_resize_shape` where
+    set (the whole frame resized, never cropped: E_c compares scenes, it is not trained for invariance)."""
+    size = config.joint_energy.encoder_resize_shape
+    if size is None:
+        return config
+    resnet = dataclasses.replace(config.resnet, resize_shape=tuple(size), crop_shape=None)
+    return dataclasses.replace(config, resnet=resnet)
 
 
 def make_backbone(config: EBVLAConfig) -> nn.Module:

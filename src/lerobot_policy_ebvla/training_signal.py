@@ -424,7 +424,8 @@ def context_margin_loss(
     """The margin on the context energy E_c of the joint energy E(a, C) + E_c(C), on the pooled backbone
     contexts of the batch (`clean_features` where the caller's backbone pass has them) and of its corrupted
     copy, plus E_c(C)^2 on the data (the hinge leaves E_c's level free), plus the gradient penalty on E_c at
-    the real images where `joint_energy.gradient_penalty` > 0 (the training log's `ood_margin_loss` is the sum).
+    the real images where `joint_energy.gradient_penalty` > 0, on the training steps whose count is a multiple of
+    `joint_energy.gradient_penalty_every` (the training log's `ood_margin_loss` is the sum).
 
     `joint_energy.target="context"` detaches both contexts: the backbone and head train as without the
     term. "context_backbone" lets the margin's gradient into the backbone. "observation" reads the contexts
@@ -433,14 +434,16 @@ def context_margin_loss(
     cfg = model.config
     corrupted_batch, margin = _corrupted_copy(cfg, batch, generator)
     if model.observation_encoder is not None:
-        penalized = cfg.joint_energy.gradient_penalty > 0
+        every = cfg.joint_energy.gradient_penalty_every
+        penalized = cfg.joint_energy.gradient_penalty > 0 and int(model.train_steps) % every == 0
         images = {key: batch[key].detach().requires_grad_(penalized) for key in cfg.image_features}
         clean_features = pooled_context(model.observation_encoder({**batch, **images}))
         corrupted_features = pooled_context(model.observation_encoder(corrupted_batch))
         loss, gap, clean = _context_margin(model.context_energy, clean_features, corrupted_features, margin)
         if penalized:
+            # Lazy regularization: one step in `every` carries the penalty of all of them.
             penalty = data_gradient_penalty(clean, list(images.values()))
-            loss = loss + cfg.joint_energy.gradient_penalty * penalty
+            loss = loss + every * cfg.joint_energy.gradient_penalty * penalty
         return loss, gap
     through_backbone = cfg.joint_energy.target == "context_backbone"
     with torch.set_grad_enabled(through_backbone):
