@@ -345,7 +345,8 @@ def test_a_lazy_gradient_penalty_is_taken_one_step_in_k_at_k_times_its_weight():
     }
     lazy = EBVLAPolicy(tiny_config(joint_energy=lazy_fields)).model
     for steps, weight in ((0, 3 * 2.0), (1, 0.0), (2, 0.0), (3, 3 * 2.0)):
-        eager.train_steps.fill_(steps), lazy.train_steps.fill_(steps)
+        eager.train_steps.fill_(steps)
+        lazy.train_steps.fill_(steps)
         without, _ = context_margin_loss(eager, batch, torch.Generator().manual_seed(0))
         with_lazy, _ = context_margin_loss(lazy, batch, torch.Generator().manual_seed(0))
         assert with_lazy.item() == pytest.approx(without.item() + weight * value, rel=1e-4), steps

@@ -113,7 +113,7 @@ RUNS["ebvla_joint_all_cpu"] = [
     *JOINT_ENERGY_CPU,
     "--policy.joint_energy.corruptions=[channel_gain,patch_swap,shift,state_noise,random_conv,shading]",
 ]
-# C (added 2026-11-27 evening, before any candidate had a result: A had run 100 of its 10,000 steps): A with E_c's
+# C (added 2026-11-27 evening, before any candidate had a result: A had run 59 of its 10,000 steps): A with E_c's
 # own encoder at 48 px instead of the policy's 96 and its gradient penalty on one step in 4 at 4 times the weight
 # (`joint_energy.encoder_resize_shape`, `joint_energy.gradient_penalty_every`). A's step takes 2.9 s on a 2-core CPU
 # without AVX512 (10,000 steps: 8 hours), about 60 % of it E_c's encoder; C is the candidate two cores can afford.

@@ -69,23 +69,26 @@ from lerobot_policy_ebvla.pipelines.column_queries import read_delta_rows_from_c
 from lerobot_policy_ebvla.presets import LIGHT_POLICY, light_policy_config
 
 PARTS = ("data", "preprocess", "forward", "backward", "optimizer")
-ROWS = (
-    "ebvla",
-    "ebvla-no-contrastive",
-    "ebvla-fewer-negatives",
-    "ebvla-4-anchors",
-    "ebvla-ffn4",
-    "ebvla-contrastive-fp32",
-    "ebvla-no-joint-energy",
-    "ebvla-no-gradient-penalty",
-    "ebvla-lazy-penalty-4",
-    "ebvla-ec-32px",
-    "ebvla-ec-32px-lazy-4",
-    "ebvla-compiled",
-    "ebvla-channels-last",
-    "diffusion",
-    "diffusion-cpu",
-)
+# The `ebvla` rows: each the light preset with these fields changed (`light_policy_config`'s overrides).
+EBVLA_ROWS: dict[str, dict] = {
+    "ebvla": {},
+    "ebvla-no-contrastive": {"contrastive": {"weight": 0.0}},
+    "ebvla-fewer-negatives": {"contrastive": {"mismatched": 7, "negatives": 4}},
+    "ebvla-4-anchors": {"contrastive": {"anchors": 4}},
+    "ebvla-ffn4": {"ffn_multiplier": 4},
+    "ebvla-contrastive-fp32": {"contrastive": {"dtype": "float32"}},
+    "ebvla-no-joint-energy": {
+        "joint_energy": {"weight": 0.0, "target": "head", "gradient_penalty": 0.0},
+        "monitor": {"score": "final_energy"},
+    },
+    "ebvla-no-gradient-penalty": {"joint_energy": {"gradient_penalty": 0.0}},
+    "ebvla-lazy-penalty-4": {"joint_energy": {"gradient_penalty_every": 4}},
+    "ebvla-ec-32px": {"joint_energy": {"encoder_resize_shape": (32, 32)}},
+    "ebvla-ec-32px-lazy-4": {"joint_energy": {"encoder_resize_shape": (32, 32), "gradient_penalty_every": 4}},
+    "ebvla-compiled": {"train_compile_mode": "default"},
+    "ebvla-channels-last": {},  # the weights are made channels-last in `build_row`
+}
+ROWS = (*EBVLA_ROWS, "diffusion", "diffusion-cpu")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -148,37 +151,8 @@ def record_if_missing(root: Path, image_size: int, episodes: int, use_videos: bo
 
 def policy_config(row: str):
     """The row's policy config; diffusion takes the light policy's encoder fields and chunk."""
-    if row == "ebvla":
-        return light_policy_config()
-    if row == "ebvla-no-contrastive":
-        return light_policy_config(contrastive={"weight": 0.0})
-    if row == "ebvla-fewer-negatives":
-        return light_policy_config(contrastive={"mismatched": 7, "negatives": 4})
-    if row == "ebvla-4-anchors":
-        return light_policy_config(contrastive={"anchors": 4})
-    if row == "ebvla-ffn4":
-        return light_policy_config(ffn_multiplier=4)
-    if row == "ebvla-contrastive-fp32":
-        return light_policy_config(contrastive={"dtype": "float32"})
-    if row == "ebvla-no-joint-energy":
-        return light_policy_config(
-            joint_energy={"weight": 0.0, "target": "head", "gradient_penalty": 0.0},
-            monitor={"score": "final_energy"},
-        )
-    if row == "ebvla-no-gradient-penalty":
-        return light_policy_config(joint_energy={"gradient_penalty": 0.0})
-    if row == "ebvla-lazy-penalty-4":
-        return light_policy_config(joint_energy={"gradient_penalty_every": 4})
-    if row == "ebvla-ec-32px":
-        return light_policy_config(joint_energy={"encoder_resize_shape": (32, 32)})
-    if row == "ebvla-ec-32px-lazy-4":
-        return light_policy_config(
-            joint_energy={"encoder_resize_shape": (32, 32), "gradient_penalty_every": 4}
-        )
-    if row == "ebvla-compiled":
-        return light_policy_config(train_compile_mode="default")
-    if row == "ebvla-channels-last":
-        return light_policy_config()  # the weights are made channels-last in `build_row`
+    if row in EBVLA_ROWS:
+        return light_policy_config(**EBVLA_ROWS[row])
     from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 
     light = light_policy_config()
