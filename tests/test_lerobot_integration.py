@@ -25,7 +25,9 @@ def console_script(name: str) -> str:
     return str(Path(sys.executable).parent / name)
 
 
-def lerobot_train(dataset_root, output_dir, *extra, steps=TRAIN_STEPS, save_freq=TRAIN_STEPS, launcher=None):
+def lerobot_train(
+    dataset_root, output_dir, *extra, steps=TRAIN_STEPS, save_freq=TRAIN_STEPS, launcher=None, timeout=600
+):
     """Runs LeRobot's trainer on the tiny dataset with a tiny light-backbone ebvla policy."""
     command = [
         *(launcher or [console_script("lerobot-train")]),
@@ -49,7 +51,7 @@ def lerobot_train(dataset_root, output_dir, *extra, steps=TRAIN_STEPS, save_freq
         f"--output_dir={output_dir}",
         *extra,
     ]
-    return run_to_completion(command, timeout=600)
+    return run_to_completion(command, timeout=timeout)
 
 
 def _no_core_files() -> None:
@@ -74,31 +76,50 @@ def run_to_completion(command: list[str], timeout: float) -> subprocess.Complete
         stdout, stderr = process.communicate(timeout=timeout)
         return subprocess.CompletedProcess(command, process.returncode, stdout, stderr)
     except subprocess.TimeoutExpired:
-        tree, running = [], []
+        running, stdout, stderr = _stop_with_stacks(process)
+    # Outside the `except`, and without pytest's traceback: CI prints the head of a failure and its last lines,
+    # so the stacks come first, before the long log (a chained traceback once pushed them out of view).
+    log, stacks = _split_off_the_stacks(stderr)
+    pytest.fail(
+        f"{command[0]} timed out after {timeout} s; still running then:\n{running}\n"
+        f"their stacks (faulthandler, most recent call first):\n{stacks[-8000:]}\n"
+        f"stdout tail:\n{stdout[-1500:]}\nstderr tail before the stacks:\n{log[-3000:]}",
+        pytrace=False,
+    )
+
+
+def _stop_with_stacks(process: subprocess.Popen) -> tuple[str, str, str]:
+    """Makes every process of `process`'s tree write its Python stack, kills them all, and returns the list of
+    those that were running (pid, state, command line) with the command's stdout and stderr."""
+    tree, running = [], []
+    with contextlib.suppress(psutil.Error):
+        root = psutil.Process(process.pid)
+        tree = [root, *root.children(recursive=True)]
+    for proc in tree:
         with contextlib.suppress(psutil.Error):
-            root = psutil.Process(process.pid)
-            tree = [root, *root.children(recursive=True)]
-        for proc in tree:
-            with contextlib.suppress(psutil.Error):
-                running.append(f"{proc.pid} {proc.status()} {' '.join(proc.cmdline())[:300]}")
-        for proc in tree:
-            # faulthandler writes the stack of each thread to stderr; one process at a time, since they share
-            # the pipe and two dumping at once interleave their lines.
-            with contextlib.suppress(psutil.Error):
-                proc.send_signal(signal.SIGABRT)
-                psutil.wait_procs([proc], timeout=3)
-        for proc in tree:
-            with contextlib.suppress(psutil.Error):
-                proc.kill()
-        try:
-            stdout, stderr = process.communicate(timeout=60)
-        except subprocess.TimeoutExpired as again:  # a process outside the tree still holds the pipes
-            stdout, stderr = ((out or b"").decode(errors="replace") for out in (again.stdout, again.stderr))
-        running = "\n".join(running)
-        pytest.fail(
-            f"{command[0]} timed out after {timeout} s; still running then:\n{running}\n"
-            f"stdout tail:\n{stdout[-3000:]}\nstderr tail (the stacks last):\n{stderr[-20000:]}"
-        )
+            running.append(f"{proc.pid} {proc.status()} {' '.join(proc.cmdline())[:300]}")
+    for proc in tree:
+        # faulthandler writes the stack of each thread to stderr; one process at a time, since they share
+        # the pipe and two dumping at once interleave their lines.
+        with contextlib.suppress(psutil.Error):
+            proc.send_signal(signal.SIGABRT)
+            psutil.wait_procs([proc], timeout=3)
+    for proc in tree:
+        with contextlib.suppress(psutil.Error):
+            proc.kill()
+    try:
+        stdout, stderr = process.communicate(timeout=60)
+    except subprocess.TimeoutExpired as again:  # a process outside the tree still holds the pipes
+        stdout, stderr = ((out or b"").decode(errors="replace") for out in (again.stdout, again.stderr))
+    return "\n".join(running), stdout, stderr
+
+
+def _split_off_the_stacks(stderr: str) -> tuple[str, str]:
+    """`stderr` cut where the first faulthandler dump begins: (the log before it, the dumps)."""
+    start = stderr.find("Fatal Python error")
+    if start < 0:
+        return stderr, "(no process wrote its stack)"
+    return stderr[:start], stderr[start:]
 
 
 @pytest.fixture(scope="module")

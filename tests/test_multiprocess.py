@@ -35,12 +35,39 @@ def test_torchrun_two_processes_train_and_write_one_checkpoint(tmp_path):
         "--nproc_per_node=2",
         console_script("lerobot-train"),
     ]
-    result = lerobot_train(root, tmp_path / "run", steps=2, save_freq=2, launcher=torchrun)
+    # It takes under a minute even beside a busy test worker; 300 s still tells a hang from a slow machine, and
+    # a hang then costs CI five minutes instead of ten.
+    try:
+        result = lerobot_train(root, tmp_path / "run", steps=2, save_freq=2, launcher=torchrun, timeout=300)
+    except pytest.fail.Exception as hang:
+        xfail_if_only_the_teardown_hung(str(hang), tmp_path / "run")
+        raise
     log = result.stdout + result.stderr
     assert result.returncode == 0, log[-3000:]
     assert "Effective batch size: 4 x 2 = 8" in log
     checkpoints = sorted(p.name for p in (tmp_path / "run" / "checkpoints").iterdir())
     assert checkpoints == ["000002", "last"]
+
+
+def xfail_if_only_the_teardown_hung(message: str, output_dir) -> None:
+    """Marks the torchrun test xfail when its run timed out after doing everything the test checks and the one
+    rank still running was in torch.distributed's teardown, `destroy_process_group` (accelerate's `end_training`
+    calls it after the trainer's last barrier; a hang there comes and goes upstream: pytorch/pytorch#75097).
+    CI twice timed out here with one rank left (2026-11-27) but cut off its stacks, so this names the suspect and
+    demands its stack: any other timeout stays a failure, now with the stacks first."""
+    running = message.split("still running then:\n")[1].split("\ntheir stacks")[0].splitlines()
+    ranks = [line for line in running if "lerobot-train" in line and "torchrun" not in line]
+    stacks = message.split("their stacks")[1].split("stdout tail:")[0]
+    weights = output_dir / "checkpoints" / "last" / "pretrained_model" / "model.safetensors"
+    if (
+        len(ranks) == 1
+        and "End of training" in message
+        and weights.is_file()
+        and "destroy_process_group" in stacks
+    ):
+        pytest.xfail(
+            f"training ended and wrote its checkpoint, then one rank hung in destroy_process_group:\n{stacks}"
+        )
 
 
 def test_a_run_that_times_out_fails_with_the_stacks_of_its_processes_and_leaves_none_running(tmp_path):
@@ -55,13 +82,43 @@ def test_a_run_that_times_out_fails_with_the_stacks_of_its_processes_and_leaves_
     with pytest.raises(pytest.fail.Exception, match=r"timed out after 10 s") as failure:
         run_to_completion([sys.executable, str(script)], timeout=10)
     message = str(failure.value)
-    assert 'File "<string>", line 1 in <module>' in message  # the child's stack
-    assert f'File "{script}", line 3 in <module>' in message  # the parent's
+    stacks = message.split("stdout tail:")[0]  # the stacks come before the log, which CI may cut
+    assert 'File "<string>", line 1 in <module>' in stacks  # the child's stack
+    assert f'File "{script}", line 3 in <module>' in stacks  # the parent's
+    assert not failure.value.pytrace  # the message alone: no traceback listing ahead of it
     pids = [int(line.split()[0]) for line in message.split("still running then:\n")[1].splitlines()[:2]]
     assert len(pids) == 2
     for pid in pids:
         with contextlib.suppress(psutil.NoSuchProcess):
             assert psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+
+
+def test_only_a_finished_run_hung_in_destroy_process_group_is_marked_xfail(tmp_path):
+    weights = tmp_path / "checkpoints" / "last" / "pretrained_model" / "model.safetensors"
+    weights.parent.mkdir(parents=True)
+    weights.write_bytes(b"")
+    running = (
+        "1 sleeping python torchrun --standalone lerobot-train\n2 sleeping python3 -u lerobot-train --x=1"
+    )
+    stacks = '  File "torch/distributed/distributed_c10d.py", line 2307 in destroy_process_group'
+    log = "INFO ot_train.py:770 End of training"
+
+    def message(running=running, stacks=stacks, log=log):
+        return (
+            f"timed out; still running then:\n{running}\ntheir stacks (...):\n{stacks}\nstdout tail:\n\n{log}"
+        )
+
+    with pytest.raises(pytest.xfail.Exception, match="destroy_process_group"):
+        xfail_if_only_the_teardown_hung(message(), tmp_path)
+    # Each missing piece of evidence leaves the timeout a failure: a rank hung elsewhere, training not ended,
+    # both ranks still running, no checkpoint.
+    xfail_if_only_the_teardown_hung(message(stacks='  File "lerobot_train.py", line 301 in train'), tmp_path)
+    xfail_if_only_the_teardown_hung(message(log="INFO Creating policy"), tmp_path)
+    xfail_if_only_the_teardown_hung(
+        message(running=running + "\n3 sleeping python3 -u lerobot-train"), tmp_path
+    )
+    weights.unlink()
+    xfail_if_only_the_teardown_hung(message(), tmp_path)
 
 
 def _ddp_worker(rank: int, world_size: int, batch: dict, init_file: str, out_file: str) -> None:
