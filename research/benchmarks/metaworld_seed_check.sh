@@ -17,7 +17,7 @@ cd "$(dirname "$0")/../.."
 export MUJOCO_GL="${MUJOCO_GL:-egl}" OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 PY="${PY:-$PWD/.venv/bin/python}"
 WORK="${WORK:-$PWD/outputs/seed_check}"
-RESULTS="${RESULTS:-$PWD/benchmarks/results/metaworld_sweep_margin_full}"
+RESULTS="${RESULTS:-$PWD/research/results/metaworld_sweep_margin_full}"
 VARIANT="${VARIANT:-observation}"
 read -r -a QUICKSTART_OVERRIDES <<< "${QUICKSTART_ARGS:-}"
 
