@@ -29,8 +29,9 @@ N_ACTION_STEPS = 3
 class CountdownEnv(gym.Env):
     """Ends (successfully) after `length` steps; the rollout keeps stepping it until its batch is done."""
 
-    def __init__(self, length: int):
+    def __init__(self, length: int, reports_goal_distance: bool = False):
         self.length = length
+        self.reports_goal_distance = reports_goal_distance
         self.task = "countdown"
         self.task_description = "count down"
         self._max_episode_steps = 20
@@ -40,12 +41,18 @@ class CountdownEnv(gym.Env):
     def reset(self, seed=None, options=None):
         super().reset(seed=seed)
         self.t = 0
-        return {"agent_pos": np.zeros(2, dtype=np.float32)}, {"is_success": False}
+        return {"agent_pos": np.zeros(2, dtype=np.float32)}, self._info(done=False)
 
     def step(self, action):
         self.t += 1
         done = self.t >= self.length
-        return {"agent_pos": np.zeros(2, dtype=np.float32)}, 0.0, done, False, {"is_success": done}
+        return {"agent_pos": np.zeros(2, dtype=np.float32)}, 0.0, done, False, self._info(done)
+
+    def _info(self, done: bool) -> dict:
+        # The steps left as the "distance" to the goal, as LIBERO's env reports its object's distance.
+        return {"is_success": done} | (
+            {"goal_distance": float(self.length - self.t)} if self.reports_goal_distance else {}
+        )
 
 
 class ChunkingPolicy(nn.Module):
@@ -81,9 +88,11 @@ def identity(x):
     return x
 
 
-def run_recorded_rollout(lengths, seeds):
+def run_recorded_rollout(lengths, seeds, reports_goal_distance=(False, False)):
     policy = ChunkingPolicy()
-    env = gym.vector.SyncVectorEnv([lambda n=n: CountdownEnv(n) for n in lengths])
+    env = gym.vector.SyncVectorEnv(
+        [lambda n=n, r=r: CountdownEnv(n, r) for n, r in zip(lengths, reports_goal_distance, strict=False)]
+    )
     with EnergyRecorder(policy) as recorder:
         watched = recorder.watch(env, "countdown", 0)
         rollout(watched, policy, identity, identity, identity, identity, seeds=seeds)
@@ -112,6 +121,26 @@ def test_records_take_success_from_eval_info_and_drop_episodes_past_n_episodes()
     assert all(
         r.success and r.seed is None and r.perturbation == "pose" and r.severity == 2.0 for r in records
     )
+
+
+def test_records_keep_the_goal_distance_of_the_observation_each_chunk_was_refined_from(tmp_path):
+    lengths = [4, 9]
+    _, recorder = run_recorded_rollout(lengths, seeds=None, reports_goal_distance=(True, False))
+    eval_info = {
+        "per_task": [{"task_group": "countdown", "task_id": 0, "metrics": {"successes": [True, True]}}]
+    }
+    records = recorder.records(eval_info, n_episodes=2)
+    reported = [r for r in records if r.episode_index == 0]
+    assert (
+        [r.goal_distance for r in reported]
+        == [float(lengths[0] - r.env_step) for r in reported]
+        == [4.0, 1.0]
+    )
+    # The sub-env that reports none (gymnasium's `_goal_distance` mask is False there) has None, not a 0.
+    assert {r.goal_distance for r in records if r.episode_index == 1} == {None}
+    path = tmp_path / "energy_records.jsonl"
+    write_energy_records(path, records)
+    assert [r.goal_distance for r in read_energy_records(path)] == [r.goal_distance for r in records]
 
 
 def test_recorder_removes_its_chunk_hook_on_exit():

@@ -6,6 +6,7 @@ The running example at step 3, window 3 (final energies, slope per step):
 Reference slopes (the successful A, B): mean 0.5, population std 0.5.
 """
 
+import dataclasses
 import math
 
 import numpy as np
@@ -19,6 +20,7 @@ from lerobot_policy_ebvla.monitoring.failure import (
     episode_slopes,
     evaluate_configurations,
     evaluate_failure_predictor,
+    failure_onset,
     failure_prediction_sweep,
     first_alarms,
     format_alarms,
@@ -233,6 +235,40 @@ def test_an_episode_is_never_alarmed_after_its_last_chunk():
 def test_no_reference_at_a_step_raises_no_alarm():
     (alarm,) = first_alarms([episode([0.0, 5.0, 10.0], False)], [config(3)], reference_episodes=[])
     assert alarm.step is None
+
+
+def with_goal_distances(records, distances):
+    return [dataclasses.replace(r, goal_distance=d) for r, d in zip(records, distances, strict=True)]
+
+
+def test_the_onset_is_the_last_chunk_that_brought_the_object_closer_by_more_than_a_centimetre():
+    records = episode([0.0] * 6, False)
+    # Closer at steps 2 and 3; step 4's 5 mm and step 6's jitter back are not progress.
+    assert failure_onset(with_goal_distances(records, [0.30, 0.20, 0.10, 0.095, 0.12, 0.10])) == 3
+    # Creeping 6 mm a chunk is progress each time it adds up to more than 1 cm: at steps 3 and 5.
+    assert failure_onset(with_goal_distances(records, [0.30, 0.294, 0.288, 0.282, 0.276, 0.276])) == 5
+    assert failure_onset(with_goal_distances(records, [0.3] * 6)) == 1  # never came closer
+    assert failure_onset(records) is None  # records without goal distances
+
+
+def test_a_caught_failure_has_its_lead_to_the_onset_and_the_tables_show_it():
+    # Episode C is flagged at step 2 (see above); its object last came closer at step 3.
+    failing = with_goal_distances(EPISODES[2], [0.3, 0.2, 0.1])
+    episodes = [*EPISODES[:2], failing, EPISODES[3]]
+    alarms = first_alarms(episodes, [config(3), config(2)], reference_episodes=EPISODES)
+    assert (alarms[2].onset, alarms[2].lead_to_onset_chunks) == (3, 1)
+    assert alarms[0].onset is None  # a success has no onset
+    summary = LeadTimeSummary.of(alarms)
+    assert (
+        summary.failed_with_onset,
+        summary.failed_alarmed_before_onset,
+        summary.median_lead_to_onset_chunks,
+    ) == (1, 1, 1.0)
+    assert "Median lead to onset (chunks)" in format_lead_time_table({"all": summary})
+    assert "| 3 | 1 |" in format_alarms(alarms)
+    # Without goal distances the tables keep their columns.
+    plain = LeadTimeSummary.of(first_alarms(EPISODES, [config(3), config(2)], reference_episodes=EPISODES))
+    assert "onset" not in format_lead_time_table({"all": plain})
 
 
 def alarm(failed, step=None, n_chunks=5):

@@ -246,6 +246,33 @@ def test_lighting_perturbation_changes_both_cameras(perturbable_env):
         assert dim[key].mean() < clean[key].mean() - 5
 
 
+def test_the_env_reports_how_far_the_goal_object_is_from_its_basket(perturbable_env):
+    """`info["goal_distance"]`, which the energy recorder keeps with each chunk to date a failure's onset."""
+    from lerobot_policy_ebvla.envs.libero import goal_object_and_container
+
+    env = perturbable_env
+    env.perturbation, env.perturbation_severity = "none", 0
+    env.init_state_id = 0
+    _, info = env.reset(seed=0)
+    scene = env._env.env
+    obj, container = goal_object_and_container(scene)
+    assert (obj, container) == ("alphabet_soup_1", "basket_1")  # task 0: the alphabet soup in the basket
+    positions = [scene.sim.data.body_xpos[scene.obj_body_id[name]] for name in (obj, container)]
+    assert info["goal_distance"] == pytest.approx(np.linalg.norm(positions[0] - positions[1]))
+    assert 0.05 < info["goal_distance"] < 1.0  # on the table, not in the basket
+    *_, info = env.step(np.zeros(7, dtype=np.float32))
+    assert np.isfinite(info["goal_distance"])
+
+
+def test_a_goal_that_is_not_an_in_goal_has_no_goal_distance():
+    from types import SimpleNamespace
+
+    from lerobot_policy_ebvla.envs.libero import goal_distance
+
+    scene = SimpleNamespace(parsed_problem={"goal_state": [("On", "bowl_1", "plate_1")]}, obj_body_id={})
+    assert math.isnan(goal_distance(scene))
+
+
 def test_frames_do_not_depend_on_another_task_env_rendering_or_closing(perturbable_env):
     """robosuite renders and frees into whichever GL context is current: with a second task's env reset after
     this one, this env's next frames were drawn with the other scene's objects, and broken once it closed."""

@@ -324,6 +324,27 @@ def with_context_energy(records, rising_when_failed=True):
     ]
 
 
+def test_failure_report_measures_the_lead_to_the_onset_when_the_records_carry_goal_distances(
+    tmp_path, capsys
+):
+    """A failed episode's object comes 5 cm closer a chunk for its first 3 chunks, then stays: onset at step 3."""
+
+    def with_goal_distances(records):
+        return [
+            dataclasses.replace(r, goal_distance=0.3 - 0.05 * min(r.chunk_index, 2 if not r.success else 5))
+            for r in records
+        ]
+
+    calibration = write(tmp_path, "cal", with_goal_distances(rollouts(12, 5.0, seed=5)))
+    held_out = write(tmp_path, "held", with_goal_distances(rollouts(12, 5.0, seed=7)))
+    args = [f"--calibration=[{calibration}]", f"--records=[{held_out}]", "--max_step=6", "--max_window=4"]
+    failure_report.main([*args, f"--output_dir={tmp_path / 'out'}", "--n_bootstrap=100"])
+    out = capsys.readouterr().out
+    assert "Median lead to onset (chunks)" in out and "Alarmed by the onset" in out
+    onsets = [line.split("|")[-3].strip() for line in out.splitlines() if line.startswith("| reach |")]
+    assert onsets and set(onsets) == {"3"}  # every failed episode's row in the alarm table
+
+
 def test_failure_report_adds_the_context_energys_slope_when_the_records_carry_it(tmp_path, capsys):
     calibration = write(tmp_path, "cal", with_context_energy(rollouts(12, 5.0, seed=5)))
     held_out = write(tmp_path, "held", with_context_energy(rollouts(12, 5.0, seed=7)))

@@ -189,6 +189,26 @@ def free_render_context(libero_env: Any) -> None:
         context.con.free()
 
 
+def goal_object_and_container(scene: Any) -> tuple[str, str] | None:
+    """The (object, container) body names of a LIBERO goal `(In <object> <container>_contain_region)`, the goal
+    of every LIBERO-Object task, from the robosuite env `scene`; None for any other goal."""
+    goal = scene.parsed_problem["goal_state"]
+    if len(goal) != 1 or goal[0][0].lower() != "in":
+        return None
+    return goal[0][1], goal[0][2].removesuffix("_contain_region")
+
+
+def goal_distance(scene: Any) -> float:
+    """How far, in metres, the goal's object is from its container (their body origins): how much of the task is
+    left. Table IV's failure onset is read from it (the last step at which the object still came closer). NaN for
+    a goal that is not an `In` goal over two bodies of the scene."""
+    pair = goal_object_and_container(scene)
+    if pair is None or any(name not in scene.obj_body_id for name in pair):
+        return float("nan")
+    obj, container = (np.asarray(scene.sim.data.body_xpos[scene.obj_body_id[name]]) for name in pair)
+    return float(np.linalg.norm(obj - container))
+
+
 class LiberoEBVLAGymEnv(LiberoEnv):
     """LeRobot's `LiberoEnv` with the scene perturbation of `LiberoEBVLAEnv` (see its docstring).
 
@@ -238,11 +258,17 @@ class LiberoEBVLAGymEnv(LiberoEnv):
 
     def reset(self, seed: int | None = None, **kwargs: Any) -> tuple[dict[str, Any], dict[str, Any]]:
         self._activate()
-        return super().reset(seed=seed, **kwargs)
+        observation, info = super().reset(seed=seed, **kwargs)
+        return observation, self._with_goal_distance(info)
 
     def step(self, action: np.ndarray) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
         self._activate()
-        return super().step(action)
+        observation, reward, terminated, truncated, info = super().step(action)
+        return observation, reward, terminated, truncated, self._with_goal_distance(info)
+
+    def _with_goal_distance(self, info: dict[str, Any]) -> dict[str, Any]:
+        """`info` with `goal_distance`, which the energy recorder stores with each chunk (`EnergyRecord`)."""
+        return {**info, "goal_distance": goal_distance(self._env.env)}
 
     def render(self) -> np.ndarray:
         self._activate()

@@ -159,6 +159,13 @@ def _format_checks(checks: dict[str, list[_Check]]) -> str:
                     f"{s.median_lead_chunks:g}, {s.median_lead_env_steps:g}",
                 ]
             )
+    summaries = [c.alarms for scope_checks in checks.values() for c in scope_checks]
+    if any(s.failed_with_onset for s in summaries):  # records with goal distances: the lead to the onset
+        headers.append("Alarmed by the onset; median lead to it (chunks)")
+        for row, s in zip(rows, summaries, strict=True):
+            row.append(
+                f"{s.failed_alarmed_before_onset}/{s.failed_with_onset}; {s.median_lead_to_onset_chunks:g}"
+            )
     return markdown_table(headers, rows)
 
 

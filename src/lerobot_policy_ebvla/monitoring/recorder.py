@@ -13,7 +13,8 @@ While active, the recorder is registered with `policy.register_chunk_hook`: afte
 refines (whichever loop calls `select_action`) it receives the observation batch, the chunk's `EnergyReadout`
 and the OOD decision. The watched env reports its resets, steps and which sub-envs are done: LeRobot's
 `rollout` keeps stepping finished sub-envs until the whole batch is done, and only chunks of sub-envs still
-running belong to an episode.
+running belong to an episode. Where the env's info has a `goal_distance` (our LIBERO env's: how far the task's
+object is from its container), each chunk keeps the one of the observation it was refined from.
 
 Opt-in scores (`baselines.py`) are the policy's own quantities, computed from the same observation right after
 each refinement, without touching the executed chunk or the global random state (they draw from the
@@ -55,6 +56,7 @@ class _Chunk:
     mcmc_chains: int | None = None
     context_energy: float | None = None
     context_feature: np.ndarray | None = None
+    goal_distance: float | None = None
 
 
 class WatchedVecEnv:
@@ -71,6 +73,8 @@ class WatchedVecEnv:
         self.seeds: list[int | None] = [None] * env.num_envs
         self.chunk_counts = np.zeros(env.num_envs, dtype=int)
         self.task = ""
+        # Each sub-env's `info["goal_distance"]` of its last reset or step: the observation a chunk is refined from.
+        self.goal_distances: list[float | None] = [None] * env.num_envs
 
     def __getattr__(self, name: str) -> Any:
         if name == "_env":  # not set yet (e.g. while unpickling): avoid recursing
@@ -79,6 +83,7 @@ class WatchedVecEnv:
 
     def reset(self, **kwargs: Any) -> Any:
         result = self._env.reset(**kwargs)
+        self.goal_distances = _goal_distances(result[1], self.num_envs)
         seeds = kwargs.get("seed")
         self.batch_index += 1
         self.step_index = 0
@@ -91,13 +96,27 @@ class WatchedVecEnv:
 
     def step(self, actions: Any) -> Any:
         result = self._env.step(actions)
-        _, _, terminated, truncated, _ = result
+        _, _, terminated, truncated, info = result
+        self.goal_distances = _goal_distances(info, self.num_envs)
         self.done |= np.asarray(terminated, dtype=bool) | np.asarray(truncated, dtype=bool)
         self.step_index += 1
         return result
 
     def close(self) -> None:
         self._env.close()
+
+
+def _goal_distances(info: Any, num_envs: int) -> list[float | None]:
+    """Each sub-env's `goal_distance` from a vector env's info (gymnasium's `_goal_distance` marks the sub-envs
+    that reported one); None where it is absent or NaN."""
+    values = info.get("goal_distance") if isinstance(info, dict) else None
+    if values is None:
+        return [None] * num_envs
+    reported = info.get("_goal_distance", np.ones(num_envs, dtype=bool))
+    return [
+        float(value) if has and np.isfinite(value) else None
+        for value, has in zip(np.asarray(values, dtype=np.float64), reported, strict=True)
+    ]
 
 
 def _per_env(values: Any) -> list[float] | None:
@@ -224,6 +243,7 @@ class EnergyRecorder:
                     mcmc_chains=None if chains is None else int(chains[i]),
                     context_energy=None if context_energy is None else context_energy[i],
                     context_feature=None if features is None else features[i],
+                    goal_distance=env.goal_distances[i],
                 )
             )
             env.chunk_counts[i] += 1
@@ -278,6 +298,7 @@ class EnergyRecorder:
                 mcmc_chains=chunk.mcmc_chains,
                 context_energy=chunk.context_energy,
                 context_feature=chunk.context_feature,
+                goal_distance=chunk.goal_distance,
             )
             for chunk in chunks
             if chunk.episode_index < n_episodes

@@ -92,6 +92,9 @@ class EnergyRecord:
             part is the difference); None for a policy without one.
         context_feature: Baseline: the (D,) pooled backbone context of the observation; None when not
             recorded. Stored in the `.features.npy` file beside the records, not in the JSON row.
+        goal_distance: How far the task's object was from its goal, in metres, in the observation the chunk
+            was predicted from (the env's `info["goal_distance"]`: LIBERO's `In` goals); None where the env
+            reports none. It dates a failure's onset: the last chunk at which the object still came closer.
     """
 
     episode_index: int
@@ -110,6 +113,7 @@ class EnergyRecord:
     mcmc_chains: int | None = None
     context_energy: float | None = None
     context_feature: np.ndarray | None = field(default=None, compare=False, repr=False)
+    goal_distance: float | None = None
 
     @property
     def is_vanilla(self) -> bool:
@@ -154,6 +158,8 @@ def record_to_json(record: EnergyRecord) -> str:
         row["mcmc_chains"] = record.mcmc_chains
     if record.context_energy is not None:
         row["context_energy"] = _energy_to_json(record.context_energy)
+    if record.goal_distance is not None:
+        row["goal_distance"] = _energy_to_json(record.goal_distance)
     return json.dumps(row, allow_nan=False)
 
 
@@ -298,20 +304,20 @@ def record_from_json(row: dict[str, Any], where: str = "record") -> EnergyRecord
         seed=None if seed is None else _parse_int(seed, "seed", where),
         perturbation=row["perturbation"],
         severity=_parse_float(row["severity"], "severity", where),
-        restart_spread=None
-        if row.get("restart_spread") is None
-        else _parse_float(row["restart_spread"], "restart_spread", where),
-        normalized_energy=None
-        if row.get("normalized_energy") is None
-        else _parse_float(row["normalized_energy"], "normalized_energy", where),
+        restart_spread=_parse_optional_float(row, "restart_spread", where),
+        normalized_energy=_parse_optional_float(row, "normalized_energy", where),
         held=_parse_optional_bool(row.get("held"), "held", where),
         mcmc_chains=None
         if row.get("mcmc_chains") is None
         else _parse_int(row["mcmc_chains"], "mcmc_chains", where),
-        context_energy=None
-        if row.get("context_energy") is None
-        else _parse_float(row["context_energy"], "context_energy", where),
+        context_energy=_parse_optional_float(row, "context_energy", where),
+        goal_distance=_parse_optional_float(row, "goal_distance", where),
     )
+
+
+def _parse_optional_float(row: dict[str, Any], name: str, where: str) -> float | None:
+    """An optional number field: None when absent (or null), as files written before the field was had it."""
+    return None if row.get(name) is None else _parse_float(row[name], name, where)
 
 
 def _parse_optional_bool(value: Any, name: str, where: str) -> bool | None:

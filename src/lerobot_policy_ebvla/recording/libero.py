@@ -148,14 +148,18 @@ class LiberoObjectExpert:
     """
 
     def __init__(self, env: Any):
+        # Here, not at the top: `envs.libero` imports LIBERO, which asks questions on stdin until
+        # `require_libero_ready` has pointed it at the assets (an env given here has been built, so it is).
+        from ..envs.libero import goal_object_and_container
+
         self.scene = env._env.env  # LIBERO's robosuite env
-        goal = self.scene.parsed_problem["goal_state"]
-        if len(goal) != 1 or goal[0][0].lower() != "in":
+        pair = goal_object_and_container(self.scene)
+        if pair is None:
             raise ValueError(
-                f"Expected a LIBERO-Object goal `(In <object> <basket>_contain_region)`, got {goal}."
+                "Expected a LIBERO-Object goal `(In <object> <basket>_contain_region)`, got "
+                f"{self.scene.parsed_problem['goal_state']}."
             )
-        self.object_name = goal[0][1]
-        self.container_name = goal[0][2].removesuffix("_contain_region")
+        self.object_name, self.container_name = pair
         self.phase = "approach"
         self.phase_steps = 0
         self._slide: float | None = None
