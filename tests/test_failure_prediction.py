@@ -13,23 +13,25 @@ import numpy as np
 import pytest
 
 from lerobot_policy_ebvla.monitoring.failure import (
-    Alarm,
     FailurePredictionResult,
-    LeadTimeSummary,
     energy_matrix,
     episode_slopes,
     evaluate_configurations,
     evaluate_failure_predictor,
-    failure_onset,
     failure_prediction_sweep,
     first_alarms,
-    format_alarms,
     format_failure_table,
-    format_lead_time_table,
     linear_slope,
     select_check_step,
     select_configurations,
     slope_scores,
+)
+from lerobot_policy_ebvla.monitoring.lead_time import (
+    Alarm,
+    LeadTimeSummary,
+    failure_onset,
+    format_alarms,
+    format_lead_time_table,
 )
 from lerobot_policy_ebvla.monitoring.records import EnergyRecord
 

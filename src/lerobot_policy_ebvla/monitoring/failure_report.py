@@ -28,18 +28,16 @@ from .failure import (
     DEFAULT_MULTIPLIERS,
     Episode,
     FailurePredictionResult,
-    LeadTimeSummary,
     evaluate_configurations,
     failure_alarm,
     first_alarms,
-    format_alarms,
     format_failure_table,
-    format_lead_time_table,
     select_check_step,
     select_configurations,
     slope_scores,
     successful,
 )
+from .lead_time import LeadTimeSummary, format_alarms, format_lead_time_table
 from .metrics import format_auroc, markdown_table, percent
 from .plots import plot_energy_over_time
 from .protocol import check_held_out
