@@ -1,11 +1,14 @@
-"""Calibrate the OOD threshold of a checkpoint from vanilla rollouts, and save it beside the checkpoint.
+"""Calibrate a checkpoint's monitor from vanilla rollouts (its OOD threshold, and its failure check where it has
+one), and save it beside the checkpoint.
 
 The paper's Eq. 5: roll the policy out in the scene it was trained for, score each rollout by the mean of its
 chunks' scores, and set T = mu_v + k * sigma_v over those scores. The score is the checkpoint's own,
 `policy.config.monitor.score` (decided when it was trained: "final_energy" by default, "context_phase_energy" for
 the light preset), the one `ebvla-ood-report --calibrate_to` saves. `OODCalibration.save` writes
-`ood_calibration.json` into the checkpoint folder, where `EnergyOODMonitor.from_pretrained` and the policy's own
-OOD response (`--policy.monitor.response=hold|raise`, examples/rollout_with_ood_response.py) find it.
+`ood_calibration.json` into the checkpoint folder, where `EnergyMonitor.from_pretrained` and the policy's own
+OOD response (`--policy.monitor.response=hold|raise`, examples/rollout_with_ood_response.py) find it. A policy with
+the joint energy's E_c on its own encoder also gets its failure check (`policy.config.monitor.failure_score`, the
+head's energy over the first 3 chunks, fitted on the same rollouts): `failure_calibration.json`.
 
     MUJOCO_GL=egl python examples/calibrate_ood_threshold.py \\
         --checkpoint=outputs/example_metaworld/train/checkpoints/last/pretrained_model --episodes=20
@@ -23,7 +26,7 @@ from lerobot.envs import close_envs, make_env, make_env_pre_post_processors
 from lerobot.policies import make_pre_post_processors
 from lerobot.scripts.lerobot_eval import eval_policy_all
 
-from lerobot_policy_ebvla import EBVLAPolicy, EnergyOODMonitor, OODCalibration
+from lerobot_policy_ebvla import EBVLAPolicy, EnergyMonitor, FailureCalibration, OODCalibration
 from lerobot_policy_ebvla.envs import MetaworldEBVLAEnv
 from lerobot_policy_ebvla.monitoring import EnergyRecorder, group_by_episode
 from lerobot_policy_ebvla.monitoring.baselines import episode_readout, vanilla_rollouts
@@ -46,7 +49,7 @@ class CalibrateConfig:
     k: float = 1.0
     # Also store the conformal threshold of this false-alarm rate (`--threshold_rule=conformal` elsewhere).
     false_alarm_rate: float = 0.1
-    # Replace an existing ood_calibration.json.
+    # Replace an existing ood_calibration.json (and failure_calibration.json).
     overwrite: bool = True
 
 
@@ -88,14 +91,31 @@ def main(cfg: CalibrateConfig) -> None:
         f"{cfg.false_alarm_rate:.0%} false alarms: {calibration.conformal_threshold:.3f}"
     )
     print(f"Saved {path}")
+    monitor_config = policy.config.monitor
+    if monitor_config.failure_score != "none":
+        failure = FailureCalibration.calibrate(
+            monitor_config.failure_score,
+            vanilla_rollouts(episodes),
+            chunks=monitor_config.failure_chunks,
+            k=cfg.k,
+            false_alarm_rate=cfg.false_alarm_rate,
+        )
+        path = failure.save(cfg.checkpoint, overwrite=cfg.overwrite)
+        print(
+            f"{failure.score.name} over the first {failure.chunks} chunks: T = {failure.threshold:.3f}; saved {path}"
+        )
 
-    # What a control loop does with it: the monitor reads the file back from the checkpoint folder and takes the
-    # policy's readout of each chunk (`monitor.update(policy.last_energy)`); here, each recorded rollout at once.
-    monitor = EnergyOODMonitor.from_pretrained(cfg.checkpoint)
+    # What a control loop does with it: the monitor reads the files back from the checkpoint folder and takes the
+    # policy's readout of each chunk (`monitor.update(policy.last_energy)`); here, each recorded chunk in turn.
+    monitor = EnergyMonitor.from_pretrained(cfg.checkpoint)
     for key, episode in episodes.items():
-        decision = monitor.check_rollout(episode_readout(episode))
-        verdict = "OOD" if decision.is_ood else "in distribution"
-        print(f"rollout {key.episode_index}: score {decision.energy:.3f} -> {verdict}")
+        monitor.reset()
+        readout = episode_readout(episode)
+        for chunk in range(len(episode)):
+            (decision,) = monitor.update(readout.row(chunk))
+        verdict = "OOD" if decision.unfamiliar.is_ood else "in distribution"
+        failing = {None: "", True: ", failing", False: ", not failing"}[decision.failing]
+        print(f"rollout {key.episode_index}: score {decision.unfamiliar.energy:.3f} -> {verdict}{failing}")
 
 
 if __name__ == "__main__":

@@ -168,3 +168,29 @@ def test_a_checkpoint_saved_without_a_monitor_score_is_monitored_as_its_training
 def test_an_energy_only_score_without_its_encoder_is_refused():
     with pytest.raises(ValueError, match="reads the joint energy's context term E_c on its own encoder"):
         tiny_config(monitor={"score": "context_phase_energy"})
+
+
+def test_the_failure_check_follows_the_training_signal(tmp_path):
+    assert tiny_config().monitor.failure_score == "none"
+    config = tiny_config(joint_energy=OWN_ENCODER)
+    assert config.monitor.failure_score == "head_energy_two_sided" and config.monitor.failure_chunks == 3
+    config.save_pretrained(tmp_path)
+    saved = json.loads((tmp_path / "config.json").read_text())
+    assert saved["monitor"]["failure_score"] == "head_energy_two_sided"
+    # A checkpoint saved before the failure check existed gets it from its training signal.
+    del saved["monitor"]["failure_score"]
+    (tmp_path / "config.json").write_text(json.dumps(saved))
+    assert EBVLAConfig.from_pretrained(tmp_path).monitor.failure_score == "head_energy_two_sided"
+
+
+@pytest.mark.parametrize(
+    ("monitor", "match"),
+    [
+        ({"failure_score": "context_knn"}, r"`monitor.failure_score` must be one of \('none'"),
+        ({"failure_chunks": 0}, "`monitor.failure_chunks` must be >= 1. Got 0"),
+        ({"failure_score": "head_energy_two_sided"}, "`monitor.failure_score='head_energy_two_sided'` reads"),
+    ],
+)
+def test_a_failure_check_the_policy_cannot_have_is_refused(monitor, match):
+    with pytest.raises(ValueError, match=match):
+        tiny_config(monitor=monitor)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from lerobot_policy_ebvla import OOD_CALIBRATION_FILENAME, OODCalibration
+from lerobot_policy_ebvla import OOD_CALIBRATION_FILENAME, FailureCalibration, OODCalibration
 from lerobot_policy_ebvla.monitoring import read_energy_records
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -80,7 +80,13 @@ def test_calibration_is_saved_beside_the_checkpoint_from_vanilla_rollouts(checkp
 
     calibration = OODCalibration.load(checkpoint / OOD_CALIBRATION_FILENAME)
     assert calibration.n_rollouts == 3 and calibration.sigma_v > 0
-    assert f"T = {calibration.threshold:.3f}" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert f"T = {calibration.threshold:.3f}" in printed
+    # The example trains the light preset, E_c on its own encoder: its failure check is calibrated beside.
+    failure = FailureCalibration.load(checkpoint)
+    assert failure.score.name == "head_energy_two_sided" and failure.chunks == 3 and failure.n_rollouts == 3
+    assert f"T = {failure.threshold:.3f}" in printed
+    assert len([line for line in printed.splitlines() if line.startswith("rollout ")]) == 3
 
 
 @pytest.mark.slow

@@ -711,6 +711,12 @@ def report(work: Path, runs: list[str], failure_calibration_shifts: tuple[str, .
             p.name for p in folder.glob("*") if p.is_dir() and not p.name.startswith("vanilla")
         )
         calibration, heldout = (str(folder / name / "task*") for name in ("vanilla_calib", "vanilla_heldout"))
+        # The checkpoint's own monitor (its config's scores), calibrated on the calibration rollouts as a user
+        # would: the report's "monitor" rows are then what ships with it.
+        checkpoint = work / "train" / run / "checkpoints" / "last" / "pretrained_model"
+        monitor = (
+            [f"--calibrate_to={checkpoint}", "--overwrite_calibration=true"] if checkpoint.is_dir() else []
+        )
         if perturbed:
             subprocess.run(
                 [
@@ -719,6 +725,7 @@ def report(work: Path, runs: list[str], failure_calibration_shifts: tuple[str, .
                     f"--vanilla=[{heldout}]",
                     f"--ood=[{','.join(str(folder / name / 'task*') for name in perturbed)}]",
                     f"--output_dir={work / 'reports' / run / 'ood'}",
+                    *monitor,
                 ],
                 check=True,
             )

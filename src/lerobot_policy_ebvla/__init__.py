@@ -2,7 +2,7 @@
 
 The policy (`EBVLAConfig`, `EBVLAPolicy`, `make_ebvla_pre_post_processors`, the CPU-sized `LIGHT_POLICY`
 preset) and what acts on its energy at
-run time (`OODCalibration`, `EnergyOODMonitor`, `EnergyOODError`) are importable from here; the offline
+run time (`EnergyMonitor`, the checkpoint's monitor; `OODCalibration`, `EnergyOODError`) are importable from here; the offline
 analysis lives in `lerobot_policy_ebvla.monitoring` and is not imported by the policy.
 """
 
@@ -15,10 +15,13 @@ from .presets import LIGHT_POLICY, light_policy_config
 from .processor_ebvla import make_ebvla_pre_post_processors
 from .runtime import (
     OOD_CALIBRATION_FILENAME,
+    EnergyMonitor,
     EnergyOODError,
     EnergyOODMonitor,
     EnergyOODResponse,
     EnergyReadout,
+    FailureCalibration,
+    MonitorDecision,
     OODCalibration,
     OODDecision,
 )
@@ -40,10 +43,13 @@ __all__ = [
     "OOD_CALIBRATION_FILENAME",
     "EBVLAConfig",
     "EBVLAPolicy",
+    "EnergyMonitor",
     "EnergyOODError",
     "EnergyOODMonitor",
     "EnergyOODResponse",
     "EnergyReadout",
+    "FailureCalibration",
+    "MonitorDecision",
     "OODCalibration",
     "OODDecision",
     "light_policy_config",

@@ -305,12 +305,19 @@ class EBVLAConfig(PreTrainedConfig):
             self.monitor.score = (
                 "context_phase_energy" if self.context_energy_on_own_encoder else "final_energy"
             )
-        if self.monitor.score in CONTEXT_ENERGY_SCORES and not self.context_energy_on_own_encoder:
-            raise ValueError(
-                f"`monitor.score={self.monitor.score!r}` reads the joint energy's context term E_c on its own "
-                "encoder, which this policy does not train: set `joint_energy.target='observation'` with "
-                "`joint_energy.weight` > 0, or monitor with 'final_energy' or 'context_knn'."
+        if self.monitor.failure_score is None:
+            self.monitor.failure_score = (
+                "head_energy_two_sided" if self.context_energy_on_own_encoder else "none"
             )
+        for option in ("score", "failure_score"):
+            score = getattr(self.monitor, option)
+            if score in CONTEXT_ENERGY_SCORES and not self.context_energy_on_own_encoder:
+                raise ValueError(
+                    f"`monitor.{option}={score!r}` reads the joint energy's context term E_c on its own "
+                    "encoder, which this policy does not train: set `joint_energy.target='observation'` with "
+                    "`joint_energy.weight` > 0, or use 'final_energy'"
+                    + (" or 'context_knn'." if option == "score" else " or 'none'.")
+                )
 
     @classmethod
     def from_pretrained(cls, pretrained_name_or_path: str | Path, **kwargs) -> "EBVLAConfig":

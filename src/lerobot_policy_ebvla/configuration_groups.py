@@ -380,6 +380,8 @@ HOLD_ACTIONS = ("zero_delta", "current_state")
 # and those that read a joint energy's context term E_c.
 MONITOR_SCORES = ("final_energy", "context_phase_energy", "head_energy_two_sided", "context_knn")
 CONTEXT_ENERGY_SCORES = ("context_phase_energy", "head_energy_two_sided")
+# The failure check reads energies only (no features stored); "none" leaves it out.
+FAILURE_SCORES = ("none", "final_energy", "context_phase_energy", "head_energy_two_sided")
 
 
 @dataclass
@@ -407,16 +409,31 @@ class MonitorConfig:
             "current_state" (the observed `observation.state`) for absolute joint targets (SO-100); the latter
             needs state and action of the same size and, when known, the same names.
         threshold_k: Multiplier k of T = mu_v + k * sigma_v (Eq. 5); None uses the calibration's own k.
+        failure_score: The energy score of the monitor's failure check (`runtime.EnergyMonitor`), which
+            `ebvla-ood-report --calibrate_to` fits on the same vanilla rollouts and saves as
+            `failure_calibration.json`: "head_energy_two_sided" (the head's part of the joint energy, E - E_c,
+            against vanilla at each chunk index, on either side), another energy score, or "none". None (the
+            default) is decided with `score`: "head_energy_two_sided" where the policy trains E_c on its own
+            encoder, "none" otherwise (without E_c no energy score told failures apart).
+        failure_chunks: N, the first chunks the failure check scores; it decides at the end of chunk N.
     """
 
     score: str | None = None
     response: str = "continue"
     hold_action: str | None = None
     threshold_k: float | None = None
+    failure_score: str | None = None
+    failure_chunks: int = 3
 
     def __post_init__(self):
         if self.score is not None and self.score not in MONITOR_SCORES:
             raise ValueError(f"`monitor.score` must be one of {MONITOR_SCORES}. Got {self.score!r}.")
+        if self.failure_score is not None and self.failure_score not in FAILURE_SCORES:
+            raise ValueError(
+                f"`monitor.failure_score` must be one of {FAILURE_SCORES}. Got {self.failure_score!r}."
+            )
+        if self.failure_chunks < 1:
+            raise ValueError(f"`monitor.failure_chunks` must be >= 1. Got {self.failure_chunks}.")
         if self.response not in OOD_RESPONSES:
             raise ValueError(f"`monitor.response` must be one of {OOD_RESPONSES}. Got {self.response!r}.")
         if self.hold_action is not None and self.hold_action not in HOLD_ACTIONS:

@@ -158,6 +158,46 @@ class PhaseEnergyModel:
         return statistics.z(final_energies, chunk_indices)
 
 
+def chunk_context_nn(
+    calibration: Mapping[Hashable, Episode], episodes: Mapping[Hashable, Episode], chunk: int
+) -> np.ndarray:
+    """The chunk-context nearest-neighbour failure baseline: how far each episode's pooled context at chunk
+    `chunk` (0-based; an episode's last chunk when it is shorter) lies from the nearest **successful**
+    calibration rollout's context at the same chunk, per dimension standardized by those contexts' mean and std.
+
+    No energy at all: a rollout whose scene at that point of the task looks unlike any that went well. A
+    calibration episode is scored against the others (leave-one-episode-out).
+
+    Raises:
+        ValueError: Fewer than two successful calibration rollouts, or a chunk without its context feature.
+    """
+
+    def context_at(episode: Episode) -> np.ndarray:
+        record = episode[min(chunk, len(episode) - 1)]
+        if record.context_feature is None:
+            raise ValueError(
+                "The chunk-context nearest-neighbour baseline needs each chunk's pooled context "
+                "(`ebvla-eval --record_context_features=true`)."
+            )
+        return np.asarray(record.context_feature, dtype=np.float64)
+
+    reference_ids = [key for key, episode in calibration.items() if episode[0].success]
+    if len(reference_ids) < 2:
+        raise ValueError(
+            f"The chunk-context nearest-neighbour baseline needs at least 2 successful calibration rollouts, "
+            f"got {len(reference_ids)}."
+        )
+    neighbours = ContextNeighbours.fit(np.stack([context_at(calibration[key]) for key in reference_ids]), k=1)
+    return np.array(
+        [
+            neighbours.distance(
+                context_at(episode)[None], excluded=np.array([i == key for i in reference_ids])
+            )[0]
+            for key, episode in episodes.items()
+        ]
+    )
+
+
 def every_chunk_has(episodes: Sequence[Episode], field: str) -> bool:
     """Whether every chunk record of `episodes` (at least one) has the optional `field`."""
     records = [r for episode in episodes for r in episode]

@@ -24,7 +24,15 @@ from pathlib import Path
 import numpy as np
 
 from ..configuration_ebvla import EBVLAConfig
-from ..runtime.calibration import OOD_CALIBRATION_FILENAME, THRESHOLD_RULES, OODCalibration
+from ..configuration_groups import MonitorConfig
+from ..runtime.calibration import (
+    DEFAULT_FAILURE_CHUNKS,
+    FAILURE_CALIBRATION_FILENAME,
+    OOD_CALIBRATION_FILENAME,
+    THRESHOLD_RULES,
+    FailureCalibration,
+    OODCalibration,
+)
 from ..runtime.scores import INPUT_SOURCES, SCORE_AGGREGATIONS, SCORES
 from ..runtime.statistics import DEFAULT_KNN_K
 from .baselines import (
@@ -38,6 +46,7 @@ from .baselines import (
     registered_scores,
     vanilla_rollouts,
 )
+from .failure_check import failure_check_section
 from .metrics import percent
 from .ood import TABLE_III_MULTIPLIERS
 from .ood_sections import (
@@ -63,12 +72,19 @@ from .scores import (
 logger = logging.getLogger(__name__)
 
 
-def checkpoint_monitor_score(checkpoint: Path | None) -> str:
-    """The score a pretrained_model folder is monitored with: its config's `monitor.score`, which a config saved
-    without one gets from its training signal (`MonitorConfig`); the paper's final energy without a folder."""
+def checkpoint_monitor(checkpoint: Path | None) -> MonitorConfig | None:
+    """How a pretrained_model folder is monitored (its config's `monitor`, whose unset scores a config gets from
+    its training signal); None without a folder."""
     if checkpoint is None or not (Path(checkpoint) / "config.json").is_file():
-        return "final_energy"
-    return EBVLAConfig.from_pretrained(checkpoint).monitor.score
+        return None
+    return EBVLAConfig.from_pretrained(checkpoint).monitor
+
+
+def checkpoint_monitor_score(checkpoint: Path | None) -> str:
+    """The score a pretrained_model folder is monitored with: its config's `monitor.score`; the paper's final
+    energy without a folder."""
+    monitor = checkpoint_monitor(checkpoint)
+    return "final_energy" if monitor is None else monitor.score
 
 
 @dataclass
@@ -124,7 +140,14 @@ class OODReportConfig:
     k: float = 1.0
     # Threshold the policy's monitor applies from the saved calibration: mean_std (Eq. 5) or conformal.
     threshold_rule: str = "mean_std"
-    # Replace an existing ood_calibration.json.
+    # The energy score of the monitor's failure check, fitted on the same calibration rollouts' first
+    # `failure_chunks` chunks, reported held out against the baselines and saved as failure_calibration.json with
+    # `calibrate_to`. None: the checkpoint's `monitor.failure_score`, or without a checkpoint
+    # head_energy_two_sided where the records carry E_c; "none" leaves it out.
+    failure_score: str | None = None
+    # N, the first chunks the failure check scores. None: the checkpoint's `monitor.failure_chunks` (3).
+    failure_chunks: int | None = None
+    # Replace an existing ood_calibration.json (and failure_calibration.json).
     overwrite_calibration: bool = False
 
     def validate(self) -> None:
@@ -137,6 +160,12 @@ class OODReportConfig:
             )
         if self.score is not None and self.score not in SCORES:
             raise ValueError(f"`score` must be one of {tuple(SCORES)}, got {self.score!r}.")
+        if self.failure_score not in (None, "none") and self.failure_score not in SCORES:
+            raise ValueError(
+                f"`failure_score` must be 'none' or one of {tuple(SCORES)}, got {self.failure_score!r}."
+            )
+        if self.failure_chunks is not None and self.failure_chunks < 1:
+            raise ValueError(f"`failure_chunks` must be >= 1, got {self.failure_chunks}.")
         if any(k < 1 for k in self.first_chunks) or self.table_iii_first_chunks < 0:
             raise ValueError(
                 f"`first_chunks` must be >= 1 and `table_iii_first_chunks` >= 0, got {self.first_chunks} "
@@ -193,6 +222,8 @@ class OODScores:
     names: list[str]
     reference: ScoreReference
     saved_score: str
+    failure_score: str  # "none": no failure check
+    failure_chunks: int
     in_sample: bool
     n_calibration_files: int
     n_failed_left_out: int
@@ -273,14 +304,26 @@ def score_ood_report(cfg: OODReportConfig) -> OODScores:
     can_combine = all(name in chunk_names for name in COMBINED_FROM)
     registered = [n for n in registered_scores() if set(SCORES[n].reads) <= inputs]
     names = _beside_one_sided([*chunk_names, *(COMBINED_SCORES if can_combine else ()), *registered])
+    monitor = checkpoint_monitor(cfg.calibrate_to)
     saved_score = cfg.score or checkpoint_monitor_score(cfg.calibrate_to)
-    if saved_score not in names:
-        missing = [name for name in SCORES[saved_score].reads if name not in inputs]
-        raise ValueError(
-            f"`--score={saved_score}` needs, in every chunk of every set, "
-            + "; ".join(INPUT_SOURCES[name] for name in missing)
-            + "."
-        )
+    failure_score = cfg.failure_score or (
+        monitor.failure_score
+        if monitor is not None
+        else _DEFAULT_FAILURE_SCORE
+        if _DEFAULT_FAILURE_SCORE in names
+        else "none"
+    )
+    failure_chunks = cfg.failure_chunks or (
+        DEFAULT_FAILURE_CHUNKS if monitor is None else monitor.failure_chunks
+    )
+    for option, score in (("score", saved_score), ("failure_score", failure_score)):
+        if score != "none" and score not in names:
+            missing = [name for name in SCORES[score].reads if name not in inputs]
+            raise ValueError(
+                f"`--{option}={score}` needs, in every chunk of every set, "
+                + "; ".join(INPUT_SOURCES[name] for name in missing)
+                + "."
+            )
     reference = fit_score_reference(calibration_set, cfg.knn_k, has_features, registered, cfg.aggregation)
 
     # Each chunk is scored once; the whole-episode and first-chunk scores aggregate the same chunk scores (a
@@ -306,6 +349,8 @@ def score_ood_report(cfg: OODReportConfig) -> OODScores:
         names,
         reference,
         saved_score,
+        failure_score,
+        failure_chunks,
         in_sample,
         n_calibration_files,
         n_failed_left_out,
@@ -324,11 +369,12 @@ def write_ood_report(cfg: OODReportConfig) -> str:
         FileExistsError: `calibrate_to` holds a calibration and `overwrite_calibration` is False.
     """
     cfg.validate()
-    calibration_file = cfg.calibrate_to / OOD_CALIBRATION_FILENAME if cfg.calibrate_to else None
-    if calibration_file is not None and calibration_file.exists() and not cfg.overwrite_calibration:
-        raise FileExistsError(
-            f"{calibration_file} exists; pass `--overwrite_calibration=true` to replace it."
-        )
+    for filename in (OOD_CALIBRATION_FILENAME, FAILURE_CALIBRATION_FILENAME):
+        calibration_file = cfg.calibrate_to / filename if cfg.calibrate_to else None
+        if calibration_file is not None and calibration_file.exists() and not cfg.overwrite_calibration:
+            raise FileExistsError(
+                f"{calibration_file} exists; pass `--overwrite_calibration=true` to replace it."
+            )
     return write_scored_report(score_ood_report(cfg))
 
 
@@ -371,6 +417,7 @@ def write_scored_report(scored: OODScores) -> str:
         + auroc_table(conditions, names, negatives, positives, cfg),
         first_chunks_section(by_length, vanilla, conditions, names, cfg),
         outcome_section(by_length, vanilla, scored.ood, names, cfg),
+        *([failure_check_section(scored, fits)] if scored.failure_score != "none" else []),
         *table_iii_sections("Table III", fits, by_length[None], vanilla, conditions, names, cfg),
     ]
     if cfg.table_iii_first_chunks:
@@ -399,7 +446,24 @@ def write_scored_report(scored: OODScores) -> str:
         calibration = dataclasses.replace(fits[saved], score=score)
         path = calibration.save(cfg.calibrate_to, overwrite=cfg.overwrite_calibration)
         logger.info(f"Saved the OOD calibration ({saved}, T = {calibration.threshold:.3f}) to {path}")
+        if scored.failure_score != "none":
+            failure = _failure_calibration(scored)
+            path = failure.save(cfg.calibrate_to, overwrite=cfg.overwrite_calibration)
+            logger.info(
+                f"Saved the failure check ({failure.score.name}, T = {failure.threshold:.3f}) to {path}"
+            )
     return report
+
+
+_DEFAULT_FAILURE_SCORE = "head_energy_two_sided"
+
+
+def _failure_calibration(scored: OODScores) -> FailureCalibration:
+    """The failure check `--calibrate_to` saves: its score fitted on every calibration rollout, mu_v and sigma_v
+    those of the calibration rollouts' first N chunks (leave-one-out, as the report's)."""
+    cfg, name, n = scored.cfg, scored.failure_score, scored.failure_chunks
+    score = SCORES[name].fit(vanilla_rollouts(scored.calibration_set, cfg.aggregation, cfg.knn_k))
+    return FailureCalibration.of(dataclasses.replace(scored.fit(name, n), score=score), n)
 
 
 def _beside_one_sided(names: list[str]) -> list[str]:

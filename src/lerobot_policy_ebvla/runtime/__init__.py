@@ -10,11 +10,13 @@
   (final energy, context phase energy, two-sided head energy, context k-NN), and `SCORES`, the registry that
   names them, with `register_score`, its hook for research scores.
 - `calibration`: `OODCalibration`, the threshold statistics of one chunk score (`ood_calibration.json` beside
-  the weights, the score's statistics in safetensors files beside it).
-- `monitor`: `EnergyOODMonitor`, which applies a calibration to the policy's readouts as they come
-  (`from_pretrained`, `update(policy.last_energy)`, `reset`).
-- `failure_alarm`: `FailureAlarm`, the energy-slope failure predictor as one check at a step chosen on
-  calibration (`failure_alarm.json` beside the weights), and `EnergyFailureMonitor`, which feeds it each chunk.
+  the weights, the score's statistics in safetensors files beside it), and `FailureCalibration`, the failure
+  check's: an energy score over the first N chunks, set on the same vanilla rollouts (`failure_calibration.json`).
+- `monitor`: `EnergyMonitor`, the checkpoint's monitor: both thresholds applied to the policy's readouts as they
+  come (`from_pretrained`, `update(policy.last_energy)`, `reset`), and `EnergyOODMonitor`, one calibration alone.
+- `failure_alarm`: `FailureAlarm`, the paper's energy-slope failure predictor as one check at a step chosen on
+  calibration rollouts that include failures (`failure_alarm.json` beside the weights), and
+  `EnergyFailureMonitor`, which feeds it each chunk.
 - `history`: the per-environment history both monitors keep, and `ReadoutMonitor`, their one shape.
 - `checkpoint_files`: the one way a calibration is saved beside a checkpoint and loaded back (local or Hub).
 - `response`: what the policy does with a flagged chunk (`EBVLAConfig.monitor.response`: continue, hold, or raise
@@ -23,9 +25,14 @@
 Nothing here imports the analysis (`monitoring/`), matplotlib or a simulator.
 """
 
-from .calibration import OOD_CALIBRATION_FILENAME, OODCalibration
+from .calibration import (
+    FAILURE_CALIBRATION_FILENAME,
+    OOD_CALIBRATION_FILENAME,
+    FailureCalibration,
+    OODCalibration,
+)
 from .failure_alarm import FAILURE_ALARM_FILENAME, EnergyFailureMonitor, FailureAlarm, FailureDecision
-from .monitor import EnergyOODMonitor
+from .monitor import EnergyMonitor, EnergyOODMonitor, MonitorDecision
 from .readout import EnergyReadout
 from .response import EnergyOODError, EnergyOODResponse, HoldAction, respond_to_energy
 from .scores import SCORES, ChunkInputs, ChunkScore, VanillaRollouts, rollout_score
@@ -34,11 +41,14 @@ from .threshold import MeanStd, OODDecision, conformal_threshold, exceeds, mean_
 
 __all__ = [
     "FAILURE_ALARM_FILENAME",
+    "FAILURE_CALIBRATION_FILENAME",
     "SCORES",
     "ChunkInputs",
     "ChunkScore",
     "EnergyFailureMonitor",
+    "EnergyMonitor",
     "FailureAlarm",
+    "FailureCalibration",
     "FailureDecision",
     "OOD_CALIBRATION_FILENAME",
     "EnergyOODError",
@@ -47,6 +57,7 @@ __all__ = [
     "EnergyReadout",
     "HoldAction",
     "MeanStd",
+    "MonitorDecision",
     "OODCalibration",
     "OODDecision",
     "PhaseStatistics",

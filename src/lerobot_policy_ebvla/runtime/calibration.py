@@ -39,6 +39,10 @@ from .scores import (
 from .threshold import ArrayLike, MeanStd, conformal_threshold, mean_std_threshold
 
 OOD_CALIBRATION_FILENAME = "ood_calibration.json"
+FAILURE_CALIBRATION_FILENAME = "failure_calibration.json"
+# Table IV at equal elapsed time: the failure check decides on a rollout's first 3 chunks, the paper's early
+# window and the one every LIBERO and MetaWorld table reports.
+DEFAULT_FAILURE_CHUNKS = 3
 THRESHOLD_RULES = ("mean_std", "conformal")
 
 
@@ -238,7 +242,9 @@ class OODCalibration(CheckpointJSON):
         for side_file in _all_side_files():
             if side_file in type(self.score).side_files:
                 fields[side_file.field] = side_file.write(checkpoint_dir, fields[side_file.field])
-            else:  # a previous calibration's file no longer belongs here
+            elif side_file.filename.startswith(Path(self.filename).stem):
+                # A previous calibration of this file left it; another file's (the failure check's
+                # neighbours beside the OOD calibration's) is not ours to remove.
                 (checkpoint_dir / side_file.filename).unlink(missing_ok=True)
         return {**payload, **fields}
 
@@ -283,6 +289,67 @@ class OODCalibration(CheckpointJSON):
             if s.json_fields or s.side_files
         ]
         return f"{', '.join(statistics)} (mu_v, sigma_v required), and the score's own ({'; '.join(own)})"
+
+
+@dataclass(frozen=True)
+class FailureCalibration(OODCalibration):
+    """The monitor's failure check: a threshold on an energy score of a rollout's first N chunks (Table IV at
+    equal elapsed time), fitted like the OOD threshold on vanilla rollouts alone (`failure_calibration.json`).
+
+    No failed rollout chooses it: mu_v and sigma_v (or the conformal quantile) are those of the vanilla
+    calibration rollouts' scores over their first `chunks` chunks, so the alarm says "these first chunks are
+    unlike a vanilla rollout's", and the report measures how often that means failure. It is decided once, at
+    the end of chunk N, and kept for the episode (`EnergyMonitor`). The score is an energy score, the head's part
+    of the joint energy by default (`monitor.failure_score`): it stores no features.
+
+    Args:
+        chunks: N, the chunks the rollout score aggregates (the first N; an episode that ends before chunk N is
+            never decided at run time and scored on all its chunks by the reports).
+        (the rest as `OODCalibration`'s)
+    """
+
+    chunks: int = DEFAULT_FAILURE_CHUNKS
+
+    filename = FAILURE_CALIBRATION_FILENAME
+    what = "failure calibration"
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.chunks < 1:
+            raise ValueError(f"`chunks` must be >= 1, got {self.chunks}.")
+        if type(self.score).side_files or "context_features" in self.score.reads:
+            raise ValueError(
+                f"The failure check reads the policy's energies only and stores no features; `{self.score.name}` "
+                "reads the pooled context. Use an energy score (head_energy_two_sided, the default)."
+            )
+
+    @classmethod
+    def of(cls, calibration: OODCalibration, chunks: int) -> "FailureCalibration":
+        """The failure check with `calibration`'s statistics, which must be those of the first `chunks` chunks."""
+        return cls(
+            **{f.name: getattr(calibration, f.name) for f in dataclasses.fields(OODCalibration)},
+            chunks=chunks,
+        )
+
+    @classmethod
+    def calibrate(
+        cls,
+        score: str,
+        vanilla: VanillaRollouts,
+        *,
+        chunks: int = DEFAULT_FAILURE_CHUNKS,
+        k: float = 1.0,
+        false_alarm_rate: float | None = None,
+        rule: str = "mean_std",
+    ) -> "FailureCalibration":
+        """`OODCalibration.calibrate` on the vanilla rollouts' first `chunks` chunks."""
+        first = VanillaRollouts(
+            [r.first(chunks) for r in vanilla.rollouts], vanilla.aggregation, vanilla.knn_k
+        )
+        calibration = OODCalibration.calibrate(
+            score, first, k=k, false_alarm_rate=false_alarm_rate, rule=rule
+        )
+        return cls.of(calibration, chunks)
 
 
 def _all_side_files() -> list:

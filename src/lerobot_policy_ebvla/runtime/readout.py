@@ -99,3 +99,20 @@ class EnergyReadout:
             chunk_index=index,
             context_features=features,
         )
+
+    def row(self, i: int) -> "EnergyReadout":
+        """The readout of row i alone: replays a recorded rollout (`of_arrays`) through a monitor chunk by chunk,
+        as the policy reported it."""
+
+        def one(values: Tensor | None) -> Tensor | None:
+            return None if values is None else values[i : i + 1]
+
+        index = self.chunk_index
+        return EnergyReadout(
+            one(self.initial_energy),
+            one(self.final_energy),
+            one(self.chains),
+            one(self.context_energy),
+            index[i : i + 1] if isinstance(index, Tensor) and index.ndim else index,
+            one(self.context_features),
+        )

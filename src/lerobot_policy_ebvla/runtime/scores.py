@@ -135,6 +135,16 @@ class ChunkInputs:
                 )
         return cls(energies, index, features, context)
 
+    def first(self, n: int) -> "ChunkInputs":
+        """The first n chunks (all of them when there are fewer): a rollout's opening, in chunk order."""
+        rows = slice(0, n)
+        return ChunkInputs(
+            self.final_energy[rows],
+            self.chunk_index[rows],
+            None if self.context_features is None else self.context_features[rows],
+            None if self.context_energy is None else self.context_energy[rows],
+        )
+
     @property
     def head_energy(self) -> np.ndarray | None:
         """E(a^(K_inf), C) - E_c(C), the head's part of a joint final energy, (B,); None without E_c."""

@@ -1,0 +1,104 @@
+"""The monitor's failure check in the OOD report: Table IV at equal elapsed time, beside the feature baselines.
+
+`EnergyMonitor`'s second threshold (`runtime.FailureCalibration`) decides on a rollout's first N chunks against the
+vanilla calibration rollouts' first N chunks. The OOD report already holds every score of those chunks
+(`ood_report.OODScores`); here each score becomes the same decision at its own calibration threshold, the monitor's
+two checks are combined as it combines them at run time, and the chunk-context nearest-neighbour baseline is added.
+"""
+
+import numpy as np
+
+from ..runtime.calibration import OODCalibration
+from ..runtime.threshold import exceeds
+from .baselines import FEATURE_SCORES, chunk_context_nn
+from .metrics import BinaryRates, markdown_table, percent
+from .ood_sections import ALL_CONDITIONS, auroc_interval
+
+
+def failure_check_section(scored, fits: dict) -> str:
+    """The section of an OOD report's scores (`ood_report.OODScores`, with the whole-episode calibrations `fits` by
+    score name): the failure check and each baseline at its calibration threshold over the first N chunks, and
+    the monitor's two checks together."""
+    n, vanilla, ood = scored.failure_chunks, scored.vanilla, scored.ood
+    held_out = scored.at(n)
+
+    def both(name: str) -> np.ndarray:
+        return np.concatenate([held_out.negatives[name], held_out.positives[ALL_CONDITIONS][name]])
+
+    labels = {
+        "held-out vanilla rollouts": np.array([not e[0].success for e in vanilla.values()], dtype=bool),
+        "held-out vanilla and perturbed rollouts together": np.array(
+            [not e[0].success for e in [*vanilla.values(), *ood.values()]], dtype=bool
+        ),
+    }
+
+    def row(scores: np.ndarray | None, flags: np.ndarray) -> dict:
+        # Every set starts with the held-out vanilla rollouts: each takes as many rollouts as it has labels.
+        return {
+            title: (None if scores is None else scores[: len(failed)], flags[: len(failed)])
+            for title, failed in labels.items()
+        }
+
+    failure = scored.failure_score
+    rows = {
+        "monitor (either check)": row(
+            None,
+            exceeds(both(scored.saved_score), fits[scored.saved_score].threshold)
+            | exceeds(both(failure), scored.fit(failure, n).threshold),
+        )
+    }
+    for name in dict.fromkeys([failure, scored.saved_score, "final_energy", *FEATURE_SCORES]):
+        if name in scored.names:
+            rows[name] = row(both(name), exceeds(both(name), scored.fit(name, n).threshold))
+    if scored.reference.features:
+        calibration = chunk_context_nn(scored.calibration_set, scored.calibration_set, n - 1)
+        cfg = scored.cfg
+        threshold = OODCalibration.fit(
+            calibration, k=cfg.k, false_alarm_rate=cfg.false_alarm_rate, rule=cfg.threshold_rule
+        ).threshold
+        scores = chunk_context_nn(scored.calibration_set, {**vanilla, **ood}, n - 1)
+        rows["chunk_context_nn"] = row(scores, exceeds(scores, threshold))
+    return format_failure_check(rows, labels, n, failure, scored.cfg)
+
+
+def format_failure_check(rows: dict, failed: dict, chunks: int, failure_score: str, cfg) -> str:
+    """Table IV at equal elapsed time for the monitor's failure check, and the same decision by each baseline.
+
+    Args:
+        rows: By row label, (scores or None, flags) per set of `failed`: each rollout's score over its first
+            `chunks` chunks and whether it was alarmed at the row's calibration threshold (None: no AUROC, a
+            decision combined from two thresholds).
+        failed: By set title, each rollout's label (True: failed), in the rows' order.
+    """
+    lines = [
+        f"## The monitor's failure check (Table IV at equal elapsed time), held out\n\n"
+        f"The checkpoint's failure check, `{failure_score}` over each rollout's first {chunks} chunks, alarms when "
+        f"it exceeds T set on the calibration rollouts' first {chunks} chunks alone (vanilla; no failed rollout "
+        "chooses anything). Positives are the failed rollouts, negatives the successful ones. Each baseline "
+        "below decides the same way, its T from the same calibration rollouts and rule: `chunk_context_nn` is "
+        f"the pooled context at chunk {chunks} against the successful calibration rollouts' at that chunk (no "
+        f"energy). `monitor (either check)` is what `EnergyMonitor` raises by chunk {chunks}: its OOD check "
+        f"(the saved score over the first {chunks} chunks against its saved T) or its failure check."
+    ]
+    headers = ["Score", "Failed alarmed (TPR)", "Successful alarmed (FPR)", "Bal. acc.", "AUROC [95% CI]"]
+    for title, labels in failed.items():
+        if labels.all() or not labels.any():
+            lines.append(f"### {title}: {int(labels.sum())} of {labels.size} failed, no rates")
+            continue
+        table = []
+        for label, per_set in rows.items():
+            scores, flags = per_set[title]
+            rates = BinaryRates.from_flags(flags[~labels], flags[labels])
+            table.append(
+                [
+                    label,
+                    f"{rates.tp}/{rates.n_positive} ({percent(rates.tpr)})",
+                    f"{rates.fp}/{rates.fp + rates.tn} ({percent(rates.fpr)})",
+                    percent(rates.balanced_accuracy),
+                    "-" if scores is None else auroc_interval(scores[~labels], scores[labels], cfg),
+                ]
+            )
+        lines.append(
+            f"### {title}: {int(labels.sum())} of {labels.size} failed\n\n" + markdown_table(headers, table)
+        )
+    return "\n\n".join(lines)
