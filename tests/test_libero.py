@@ -8,6 +8,7 @@ run everywhere (they use temporary folders).
 import math
 import os
 
+import mujoco
 import numpy as np
 import pytest
 import torch
@@ -244,6 +245,34 @@ def test_lighting_perturbation_changes_both_cameras(perturbable_env):
     dim = render_with(perturbable_env, "light_dim", 3)
     for key in ("image", "image2"):
         assert dim[key].mean() < clean[key].mean() - 5
+
+
+def test_sensor_noise_is_drawn_on_every_camera_from_the_reset_seed(perturbable_env):
+    from lerobot_policy_ebvla.envs.sensor import NOISE_STD_PER_LEVEL
+
+    clean = render_with(perturbable_env, "none", 0)
+    noisy = render_with(perturbable_env, "noise", 2)
+    again = render_with(perturbable_env, "noise", 2)
+    for key in ("image", "image2"):
+        residual = (noisy[key] - clean[key])[
+            (clean[key] > 60) & (clean[key] < 195)
+        ]  # not clipped at 0 or 255
+        assert residual.std() == pytest.approx(2 * NOISE_STD_PER_LEVEL, rel=0.1)
+        np.testing.assert_array_equal(noisy[key], again[key])  # the same seed, the same noise
+
+
+def test_table_color_recolours_the_background_on_both_cameras_and_keeps_the_objects(perturbable_env):
+    from lerobot_policy_ebvla.envs.libero import LIBERO_MATERIAL_TINTS
+
+    clean = render_with(perturbable_env, "none", 0)
+    tinted = render_with(perturbable_env, "table_color", 5)
+    model = perturbable_env._env.sim.model._model
+    floor = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_MATERIAL, "floorplane")
+    np.testing.assert_allclose(model.mat_rgba[floor, :3], LIBERO_MATERIAL_TINTS["floorplane"])
+    for key in ("image", "image2"):
+        # The floor turns pink: red stays, green falls.
+        red, green = (tinted[key][..., c].mean() - clean[key][..., c].mean() for c in (0, 1))
+        assert green < -15 and red > green + 15
 
 
 def test_the_env_reports_how_far_the_goal_object_is_from_its_basket(perturbable_env):

@@ -242,7 +242,7 @@ def test_distractors_stay_in_every_frame():
 
 
 def test_pixel_noise_has_the_documented_std_and_follows_the_reset_seed(vanilla):
-    from lerobot_policy_ebvla.envs.metaworld import NOISE_STD_PER_LEVEL
+    from lerobot_policy_ebvla.envs.sensor import NOISE_STD_PER_LEVEL
 
     first, _ = _first_observation("noise", 1)
     again, _ = _first_observation("noise", 1)
@@ -301,7 +301,7 @@ def test_small_frames_are_rendered_at_their_size_and_show_the_same_scene(vanilla
 
 def test_blur_is_the_same_fraction_of_a_smaller_frame():
     pytest.importorskip("metaworld")
-    from lerobot_policy_ebvla.envs.metaworld import perturb_image
+    from lerobot_policy_ebvla.envs.sensor import perturb_image
 
     rng = np.random.default_rng(0)
     edge = np.zeros((480, 480, 3), np.uint8)

@@ -10,6 +10,10 @@ edits are re-applied to each new model):
   of the camera in place (yaw, then pitch); or its field of view is widened.
 - lighting: the intensity or colour of every light (the headlight included), or the direction the scene's spot
   lights shine from.
+- background ("table_color"): the colour of the table, the floor and the walls.
+
+and the sensor perturbations ("noise", "blur": `sensor.perturb_image`) on every camera's frame of every
+observation, with a generator seeded by `reset(seed=...)`.
 
 Every perturbation is graded by a severity 1..5 (0: none). The camera magnitudes are LIBERO-Plus's ranges
 (horizontal 0-75 deg, vertical 0-15 deg, distance x1.0-2.0, turn 0-10 deg) scaled by severity / 5; the
@@ -31,7 +35,8 @@ from scipy.spatial.transform import Rotation
 
 from ..lerobot_private import get_libero_suite, lazy_async_vector_env, select_libero_task_ids
 from .lighting import LIGHT_INTENSITY_PERTURBATIONS, perturb_light_intensity
-from .perturbations import MAX_SEVERITY, check_libero_perturbation
+from .perturbations import LIBERO_SENSOR_PERTURBATIONS, MAX_SEVERITY, check_libero_perturbation
+from .sensor import perturb_image
 
 # The MuJoCo camera behind LeRobot's `agentview_image` (`observation.images.image`).
 AGENTVIEW_CAMERA = "agentview"
@@ -53,6 +58,18 @@ FOVY_GROWTH_PER_LEVEL = 0.10
 # about its aim point by 12 deg per level, so at severity 5 the light comes from 60 deg off the vertical
 # (LIBERO's lights shine almost straight down).
 LIGHT_TILT_DEG_PER_LEVEL = 12.0
+
+# Background: "table_color" moves the colour of these materials (which multiplies their textures, so the wood grain
+# and the floor's pattern stay) linearly towards a tint, reached at severity 5: the table blue, the floor and the
+# walls pink, as MetaWorld's (envs/metaworld.py). A scene without one of them keeps it as it is.
+LIBERO_MATERIAL_TINTS = {
+    "table_mat": (0.25, 0.45, 1.0),
+    "table_texture": (0.25, 0.45, 1.0),
+    "table_legs": (0.25, 0.45, 1.0),
+    "floorplane": (1.0, 0.45, 0.55),
+    "walls_mat": (1.0, 0.45, 0.55),
+    "living_room": (1.0, 0.45, 0.55),
+}
 
 
 def _quat_wxyz_to_rotation(quat: np.ndarray) -> Rotation:
@@ -147,14 +164,36 @@ def tilt_lights(model: mujoco.MjModel, degrees: float) -> None:
         model.light_dir[light_id] = tilt.apply(direction)
 
 
+def tint_background(model: mujoco.MjModel, fraction: float) -> list[str]:
+    """Moves the colour of the table, floor and walls towards their tints by `fraction` (0 to 1), in place.
+
+    Materials are read at every frame, so unlike a texture edit this also works once the renderer exists.
+    Returns the names of the materials it changed.
+    """
+    changed = []
+    for name, tint in LIBERO_MATERIAL_TINTS.items():
+        material_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_MATERIAL, name)
+        if material_id >= 0:
+            rgb = model.mat_rgba[material_id, :3]
+            rgb += fraction * (np.asarray(tint) - rgb)
+            changed.append(name)
+    return changed
+
+
 def perturb_libero_model(
     model: mujoco.MjModel, perturbation: str, severity: int, camera_name: str = AGENTVIEW_CAMERA
 ) -> None:
-    """Applies a camera or lighting perturbation of `severity` (0: none) to a LIBERO scene's model, in place."""
+    """Applies a camera, lighting or background perturbation of `severity` (0: none) to a LIBERO scene's model,
+    in place; the sensor perturbations leave the model as it is (they act on the frames)."""
     check_libero_perturbation(perturbation, severity)
-    if perturbation == "none" or severity == 0:
+    if perturbation == "none" or severity == 0 or perturbation in LIBERO_SENSOR_PERTURBATIONS:
         return
-    if perturbation in LIGHT_INTENSITY_PERTURBATIONS:
+    if perturbation == "table_color":
+        if not tint_background(model, severity / MAX_SEVERITY):
+            raise ValueError(
+                f"The scene has none of the materials {list(LIBERO_MATERIAL_TINTS)}: is it LIBERO's?"
+            )
+    elif perturbation in LIGHT_INTENSITY_PERTURBATIONS:
         perturb_light_intensity(model, perturbation, severity, MAX_SEVERITY)
     elif perturbation == "light_direction":
         tilt_lights(model, LIGHT_TILT_DEG_PER_LEVEL * severity)
@@ -224,6 +263,8 @@ class LiberoEBVLAGymEnv(LiberoEnv):
         self.perturbation = perturbation
         self.perturbation_severity = perturbation_severity
         self._perturbed_model: mujoco.MjModel | None = None
+        # Draws the sensor noise; reseeded by `reset(seed=...)`.
+        self._sensor_rng = np.random.default_rng(0)
 
     def _perturb_current_model(self) -> None:
         """Perturbs the simulator's model once; a hard reset builds a new model, which is perturbed again."""
@@ -256,8 +297,19 @@ class LiberoEBVLAGymEnv(LiberoEnv):
         self._ensure_env()
         make_render_context_current(self._env)
 
+    def _format_raw_obs(self, raw_obs: dict[str, Any]) -> dict[str, Any]:
+        """LeRobot's observation, each camera's frame through the sensor perturbation (none without one)."""
+        observation = super()._format_raw_obs(raw_obs)
+        if self.perturbation in LIBERO_SENSOR_PERTURBATIONS:
+            observation["pixels"] = {
+                camera: perturb_image(frame, self.perturbation, self.perturbation_severity, self._sensor_rng)
+                for camera, frame in observation["pixels"].items()
+            }
+        return observation
+
     def reset(self, seed: int | None = None, **kwargs: Any) -> tuple[dict[str, Any], dict[str, Any]]:
         self._activate()
+        self._sensor_rng = np.random.default_rng(seed)
         observation, info = super().reset(seed=seed, **kwargs)
         return observation, self._with_goal_distance(info)
 

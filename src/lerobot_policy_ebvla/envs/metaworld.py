@@ -22,7 +22,6 @@ from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Any
 
-import cv2
 import gymnasium as gym
 import mujoco
 import numpy as np
@@ -31,6 +30,7 @@ from lerobot.envs.metaworld import DIFFICULTY_TO_TASKS, MetaworldEnv
 from ..lerobot_private import lazy_async_vector_env
 from .lighting import LIGHT_INTENSITY_PERTURBATIONS, perturb_light_intensity
 from .perturbations import CAMERA_PERTURBATIONS, MAX_SEVERITY, check_perturbation
+from .sensor import perturb_image
 
 # Camera. Per severity level: degrees of azimuth and elevation of the "pose" orbit, relative widening of "fov".
 AZIMUTH_DEG_PER_LEVEL = 5.0
@@ -43,12 +43,6 @@ TABLE_HEIGHT = 0.0
 # "light_direction": the direction of every scene light moves linearly (then renormalized) from its own to
 # this low, grazing direction (from the robot's left, 14 degrees above the table), reached at severity 5.
 LIGHT_GRAZING_DIR = (1.0, 0.0, -0.25)
-
-# Sensor: standard deviation of the Gaussian pixel noise (uint8 levels) and of the Gaussian blur (pixels of
-# the 480x480 frame, scaled with a smaller `observation_size`) per level.
-NOISE_STD_PER_LEVEL = 8.0
-BLUR_SIGMA_PX_PER_LEVEL = 1.5
-BLUR_REFERENCE_SIZE = 480
 
 # Table/background appearance. "table_color": the colour multiplying the table's wood texture and the
 # floor/wall materials moves linearly towards these tints (reached at severity 5); the sky behind the scene
@@ -248,25 +242,6 @@ def perturb_model(model: mujoco.MjModel, camera_name: str, perturbation: str, se
         tint_table_and_background(model, level)
     elif perturbation == "table_texture":
         checker_table(model, CHECKER_BLEND_PER_LEVEL * severity)
-
-
-def perturb_image(
-    image: np.ndarray, perturbation: str, severity: int, rng: np.random.Generator
-) -> np.ndarray:
-    """Applies the sensor perturbations ("noise", "blur", "blank") to an (H, W, 3) uint8 frame.
-
-    Other perturbations return `image` unchanged. "blank" (a black frame) is the same at every severity >= 1.
-    """
-    if severity == 0 or perturbation not in ("noise", "blur", "blank"):
-        return image
-    if perturbation == "blank":
-        return np.zeros_like(image)
-    if perturbation == "blur":
-        # The same blur relative to the frame whatever size it was rendered at.
-        sigma = BLUR_SIGMA_PX_PER_LEVEL * severity * image.shape[1] / BLUR_REFERENCE_SIZE
-        return cv2.GaussianBlur(image, (0, 0), sigmaX=sigma)
-    noisy = image + rng.normal(0.0, NOISE_STD_PER_LEVEL * severity, image.shape)
-    return np.clip(np.round(noisy), 0, 255).astype(np.uint8)
 
 
 def distractor_markers(severity: int) -> list[dict[str, Any]]:

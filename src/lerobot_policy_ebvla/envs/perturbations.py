@@ -28,7 +28,18 @@ PERTURBATIONS = (
 # it away from the pivot, "rotation" turns it in place. "fov" widens its field of view (a focal change, which
 # LIBERO-Plus's released variants do not include). Magnitudes per severity: envs/libero.py, docs/libero.md.
 LIBERO_CAMERA_PERTURBATIONS = ("pose", "distance", "rotation", "fov")
-LIBERO_PERTURBATIONS = ("none", *LIBERO_CAMERA_PERTURBATIONS, *LIGHTING_PERTURBATIONS)
+# Beyond the camera and the light, two kinds that no training corruption of the LIBERO recipe produces (issue 52):
+# LIBERO-Plus's sensor noise (and a blur) on every camera's frames, and its background dimension as a recolouring
+# of the table, floor and walls ("table_color", as MetaWorld's).
+LIBERO_SENSOR_PERTURBATIONS = ("noise", "blur")
+LIBERO_SCENE_PERTURBATIONS = ("table_color",)
+LIBERO_PERTURBATIONS = (
+    "none",
+    *LIBERO_CAMERA_PERTURBATIONS,
+    *LIGHTING_PERTURBATIONS,
+    *LIBERO_SENSOR_PERTURBATIONS,
+    *LIBERO_SCENE_PERTURBATIONS,
+)
 
 
 def _check(perturbation: str, severity: int, names: tuple[str, ...]) -> None:
