@@ -386,12 +386,17 @@ def last_checkpoint(work: Path, run: str) -> Path | None:
 # Evaluate ----------------------------------------------------------------------------------------------------
 
 
+# Fresh placements for evaluation: sampled with seeds 200000 + i (the recordings use 100000 + i).
+FRESH_CONDITION = "vanilla_fresh"
+FRESH_PLACEMENT_SEED = 200000
+
+
 @dataclass(frozen=True)
 class EvalJob:
     """`n` episodes of one task, one condition and one policy, from initial states [first, first + n)."""
 
     run: str
-    condition: str  # vanilla_calib, vanilla_heldout, or <perturbation><severity>
+    condition: str  # vanilla_calib, vanilla_heldout, vanilla_fresh, or <perturbation><severity>
     task: int
     first: int
     n: int
@@ -411,6 +416,7 @@ def eval_jobs(
     perturbed: int,
     conditions=CAMERA_CONDITIONS,
     calibration: int | None = None,
+    fresh: int = 0,
 ) -> list[EvalJob]:
     """The evaluation queue, most needed first: vanilla calibration and held-out rollouts of the `ebvla` runs,
     then the camera perturbations of the `ebvla` runs in the order of `conditions`; the other policies (no
@@ -420,6 +426,10 @@ def eval_jobs(
     the perturbed rollouts start from the calibration's states. With it, states [0, calibration) calibrate,
     `vanilla` held-out rollouts follow them, and the perturbed rollouts start from the held-out states, so that
     a perturbed rollout and a held-out vanilla one differ only by the perturbation.
+
+    `fresh` vanilla rollouts per task of each `ebvla` run come last (`vanilla_fresh`): from placements LIBERO
+    samples with seeds `FRESH_PLACEMENT_SEED` + i, which neither the fixed initial states nor the recordings
+    (seeds 100000 + i) use: success off the states every other job starts from.
     """
     half = vanilla // 2 if calibration is None else calibration
     heldout = vanilla - half if calibration is None else vanilla
@@ -453,6 +463,12 @@ def eval_jobs(
     queue += [job for run in other_runs for job in vanilla_jobs(run) if job.condition == "vanilla_heldout"]
     for perturbation, severity in conditions[2:]:
         queue += camera_jobs(perturbation, severity)
+    queue += [
+        EvalJob(run, FRESH_CONDITION, task, 0, fresh, FRESH_PLACEMENT_SEED)
+        for run in ebvla_runs
+        for task in tasks
+        if fresh
+    ]
     return queue
 
 
@@ -480,6 +496,9 @@ def eval_command(work: Path, job: EvalJob, device: str, episode_length: int | No
     ]
     if episode_length is not None:
         cmd.append(f"--env.episode_length={episode_length}")
+    if job.condition == FRESH_CONDITION:
+        # LeRobot's env then keeps the placements LIBERO's reset samples from the episode's seed.
+        cmd.append("--env.init_states=false")
     if program == "ebvla-eval":
         cmd.append("--record_context_features=true")
     return cmd
@@ -805,6 +824,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--vanilla", type=int, default=20, help="vanilla episodes per task and run (half calibrate)"
     )
+    parser.add_argument(
+        "--fresh",
+        type=int,
+        default=0,
+        help="eval: vanilla episodes per task of each ebvla run from fresh placements (seeds 200000 + i), last",
+    )
     parser.add_argument("--perturbed", type=int, default=5, help="episodes per task and camera condition")
     parser.add_argument(
         "--deadline_s", type=float, default=480.0, help="eval: stop starting and cut jobs after this"
@@ -864,7 +889,9 @@ def main(argv: list[str] | None = None) -> None:
             if run.startswith("ebvla"):
                 camera_check(work, run)
         conditions = [(c.split(":")[0], int(c.split(":")[1])) for c in args.conditions]
-        jobs = eval_jobs(args.runs, args.tasks, args.vanilla, args.perturbed, conditions, args.calibration)
+        jobs = eval_jobs(
+            args.runs, args.tasks, args.vanilla, args.perturbed, conditions, args.calibration, args.fresh
+        )
         remaining = args.deadline_s - (time.time() - start)
         statuses = evaluate(work, jobs, args.device, args.jobs, remaining, args.episode_length)
         (work / "eval_status.json").write_text(json.dumps(statuses, indent=1))

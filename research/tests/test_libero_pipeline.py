@@ -240,6 +240,29 @@ def test_with_a_calibration_count_held_out_and_perturbed_rollouts_share_the_stat
     assert (jobs["pose5"].first, jobs["pose5"].n) == (10, 5)
 
 
+def test_fresh_placement_rollouts_come_last_from_seeds_no_recording_or_initial_state_uses(work):
+    jobs = pipeline.eval_jobs(
+        ["ebvla_cpu", "diffusion"], [2, 3], 20, 5, (("pose", 5),), calibration=10, fresh=10
+    )
+    fresh = [job for job in jobs if job.condition == pipeline.FRESH_CONDITION]
+    assert jobs[-2:] == fresh and [(j.run, j.task, j.n) for j in fresh] == [
+        ("ebvla_cpu", 2, 10),
+        ("ebvla_cpu", 3, 10),
+    ]
+    assert not [
+        job
+        for job in pipeline.eval_jobs(["ebvla_cpu"], [2], 20, 5, calibration=10)
+        if job.condition == pipeline.FRESH_CONDITION
+    ]
+    fake_checkpoint(work, "ebvla_cpu")
+    cmd = pipeline.eval_command(work, fresh[0], "cpu")
+    # LeRobot's eval resets episode i with seed --seed + i; LIBERO samples the placements from it.
+    assert "--env.init_states=false" in cmd and f"--seed={pipeline.FRESH_PLACEMENT_SEED}" in cmd
+    assert pipeline.FRESH_PLACEMENT_SEED >= 100000 + 1000  # beyond any recording's seeds (100000 + attempt)
+    held_out = pipeline.eval_command(work, jobs[1], "cpu")
+    assert "--env.init_states=false" not in held_out
+
+
 def test_cpu_runs_resize_their_cameras_and_diffusion_crops_by_ratio():
     assert "--policy.resnet.resize_shape=[96,96]" in pipeline.run_args("ebvla_cpu", 128)
     assert "--policy.resize_shape=[96,96]" in pipeline.run_args("diffusion_cpu", 128)
