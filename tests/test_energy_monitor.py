@@ -240,3 +240,20 @@ def test_the_chunk_context_baseline_measures_to_the_nearest_successful_calibrati
     )  # "short" ends before chunk 1: its last chunk, against "a"
     with pytest.raises(ValueError, match="at least 2 successful calibration rollouts"):
         chunk_context_nn({"a": calibration["a"], "failed": calibration["failed"]}, held_out, chunk=1)
+
+
+def test_the_failure_check_gives_each_caught_failures_lead_to_its_onset():
+    from types import SimpleNamespace
+
+    from lerobot_policy_ebvla.monitoring.failure_check import format_failure_check
+
+    labels = np.array([True, True, True, False, False])
+    flags = np.array([True, True, False, True, False])  # two failures caught, one success alarmed
+    onsets = np.array([5.0, 3.0, 4.0, np.nan, np.nan])  # 1-based steps of the failures' last progress
+    cfg = SimpleNamespace(n_bootstrap=20, seed=0)
+    rows = {"head_energy_two_sided": {"all": (np.arange(5.0), flags)}}
+    text = format_failure_check(rows, {"all": labels}, 3, "head_energy_two_sided", cfg, onsets)
+    # Decided at chunk 3: leads 5 - 3 = +2 and 3 - 3 = 0, both at or before the onset.
+    assert "| 2/3 (66.7%) | 1/2 (50.0%) |" in text and text.split("\n")[-3].endswith("| 2/2, median +1 |")
+    # Records without goal distances: no such column.
+    assert "onset" not in format_failure_check(rows, {"all": labels}, 3, "head_energy_two_sided", cfg)

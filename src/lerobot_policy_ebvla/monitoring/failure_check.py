@@ -11,6 +11,7 @@ import numpy as np
 from ..runtime.calibration import OODCalibration
 from ..runtime.threshold import exceeds
 from .baselines import FEATURE_SCORES, chunk_context_nn
+from .lead_time import failure_onset
 from .metrics import BinaryRates, markdown_table, percent
 from .ood_sections import ALL_CONDITIONS, auroc_interval
 
@@ -58,10 +59,17 @@ def failure_check_section(scored, fits: dict) -> str:
         ).threshold
         scores = chunk_context_nn(scored.calibration_set, {**vanilla, **ood}, n - 1)
         rows["chunk_context_nn"] = row(scores, exceeds(scores, threshold))
-    return format_failure_check(rows, labels, n, failure, scored.cfg)
+    # Where the records carry goal distances (LIBERO), how far each caught failure's alarm came before its onset.
+    onsets = np.array(
+        [np.nan if (o := failure_onset(e)) is None else o for e in [*vanilla.values(), *ood.values()]],
+        dtype=float,
+    )
+    return format_failure_check(rows, labels, n, failure, scored.cfg, onsets)
 
 
-def format_failure_check(rows: dict, failed: dict, chunks: int, failure_score: str, cfg) -> str:
+def format_failure_check(
+    rows: dict, failed: dict, chunks: int, failure_score: str, cfg, onsets: np.ndarray | None = None
+) -> str:
     """Table IV at equal elapsed time for the monitor's failure check, and the same decision by each baseline.
 
     Args:
@@ -69,6 +77,8 @@ def format_failure_check(rows: dict, failed: dict, chunks: int, failure_score: s
             `chunks` chunks and whether it was alarmed at the row's calibration threshold (None: no AUROC, a
             decision combined from two thresholds).
         failed: By set title, each rollout's label (True: failed), in the rows' order.
+        onsets: Each rollout's failure onset (`lead_time.failure_onset`, 1-based step; NaN where unknown), in the
+            largest set's order. A set whose failures all have one gets the caught failures' lead to it.
     """
     lines = [
         f"## The monitor's failure check (Table IV at equal elapsed time), held out\n\n"
@@ -80,11 +90,15 @@ def format_failure_check(rows: dict, failed: dict, chunks: int, failure_score: s
         f"energy). `monitor (either check)` is what `EnergyMonitor` raises by chunk {chunks}: its OOD check "
         f"(the saved score over the first {chunks} chunks against its saved T) or its failure check."
     ]
-    headers = ["Score", "Failed alarmed (TPR)", "Successful alarmed (FPR)", "Bal. acc.", "AUROC [95% CI]"]
     for title, labels in failed.items():
         if labels.all() or not labels.any():
             lines.append(f"### {title}: {int(labels.sum())} of {labels.size} failed, no rates")
             continue
+        onset = None if onsets is None else onsets[: labels.size]
+        with_onset = onset is not None and bool(np.isfinite(onset[labels]).all())
+        headers = ["Score", "Failed alarmed (TPR)", "Successful alarmed (FPR)", "Bal. acc.", "AUROC [95% CI]"]
+        if with_onset:
+            headers.append("Caught at or before the onset, median lead (chunks)")
         table = []
         for label, per_set in rows.items():
             scores, flags = per_set[title]
@@ -96,9 +110,25 @@ def format_failure_check(rows: dict, failed: dict, chunks: int, failure_score: s
                     f"{rates.fp}/{rates.fp + rates.tn} ({percent(rates.fpr)})",
                     percent(rates.balanced_accuracy),
                     "-" if scores is None else auroc_interval(scores[~labels], scores[labels], cfg),
+                    *([_lead_to_onset(onset[labels & flags] - chunks)] if with_onset else []),
                 ]
             )
+        note = (
+            f"\n\nThe onset is a failure's last chunk that brought its object closer to the goal; an alarm at "
+            f"chunk {chunks} leads it by (onset - {chunks}) chunks, negative once the failure had begun."
+            if with_onset
+            else ""
+        )
         lines.append(
-            f"### {title}: {int(labels.sum())} of {labels.size} failed\n\n" + markdown_table(headers, table)
+            f"### {title}: {int(labels.sum())} of {labels.size} failed\n\n"
+            + markdown_table(headers, table)
+            + note
         )
     return "\n\n".join(lines)
+
+
+def _lead_to_onset(leads: np.ndarray) -> str:
+    """'k/n, median +m' over the caught failures' leads to their onsets (chunks)."""
+    if not leads.size:
+        return "-"
+    return f"{int((leads >= 0).sum())}/{leads.size}, median {np.median(leads):+.0f}"
