@@ -47,7 +47,8 @@ for run in $RUNS; do  # one training at a time: each takes both cores
   pipeline save --results="$RESULTS"
   [ -f "$WORK/train/$run/DONE" ] || break  # the next run waits for this one
 done
-if [ "$(left)" -gt "${EVAL_MIN_S:-300}" ] && [ -f "$WORK/train/ebvla_cpu/DONE" ]; then
+first_run="${RUNS%% *}"  # the evaluation waits for the first run's training (ebvla_cpu by default)
+if [ "$(left)" -gt "${EVAL_MIN_S:-300}" ] && [ -f "$WORK/train/$first_run/DONE" ]; then
   # shellcheck disable=SC2086
   pipeline eval --runs $RUNS --tasks $TASKS --calibration="$CALIBRATION" --vanilla="$HELDOUT" \
       --perturbed="$PERTURBED" --conditions $CONDITIONS --jobs=2 --device=cpu \
