@@ -7,6 +7,7 @@ from operator import attrgetter
 
 import pytest
 
+from lerobot_policy_ebvla import EnergyMonitor
 from lerobot_policy_ebvla.monitoring import (
     EnergyRecord,
     group_by_episode,
@@ -26,6 +27,7 @@ TINY = [
     "--steps=2",
     "--batch_size=2",
     "--eval_episodes=1",
+    "--calibration_episodes=2",
     "--max_episode_steps=8",
     "--vision_frames=2",
     "--perturbation=light_dim",
@@ -95,6 +97,7 @@ def test_help_lists_the_quickstart_options(capsys):
     [
         ("--steps=0", "steps"),
         ("--eval_episodes=0", "eval_episodes"),
+        ("--calibration_episodes=1", "calibration_episodes"),
         ("--policy.resnet.resize_shape=[8,8]", "resize_shape"),
         ("--perturbation=rain", "perturbation"),
         ("--policy.backbone=vlm", "backbone"),
@@ -170,9 +173,25 @@ def test_records_trains_evaluates_three_conditions_and_checks_the_camera(tmp_pat
         assert math.isfinite(condition["mean_final_energy"]), name
         assert (tmp_path / "eval" / name / "energy_records.jsonl").is_file()
     assert set(summary["energy_auroc"]) == {"blank", "light_dim_s5", "failed_vs_successful"}
+    # The checkpoint's monitor, calibrated on two vanilla rollouts of other seeds and saved beside the weights.
+    checkpoint = tmp_path / "train" / "checkpoints" / "last" / "pretrained_model"
+    monitor = EnergyMonitor.from_pretrained(checkpoint)
+    assert monitor.ood.n_rollouts == 2 and monitor.failure.n_rollouts == 2
+    calibration = group_by_episode(read_energy_records(tmp_path / "eval" / "calibration"))
+    assert {episode[0].seed for episode in calibration.values()} == {101000, 101001}  # evaluation: 1000 on
+    assert summary["monitor"]["score"] == "context_phase_energy" and summary["monitor"]["n_calibration"] == 2
+    assert set(summary["monitor"]["unfamiliar"]) == {"vanilla", "blank", "light_dim_s5"}
+    assert summary["monitor"]["unfamiliar"]["blank"]["alarmed"][1] == 1
+    failing = summary["monitor"]["failing"]
+    assert failing["score"] == "head_energy_two_sided" and failing["n_failed"] + failing["n_successful"] == 3
+    assert (tmp_path / "monitor" / "ood_report.md").is_file()
     assert summary["camera_check"]["num_frames"] == 2
     assert math.isfinite(summary["camera_check"]["energy_blank"])
     assert (tmp_path / "train" / "checkpoints" / "last" / "pretrained_model" / "model.safetensors").is_file()
     printed = capsys.readouterr().out
     assert "Camera check on 2 dataset frames" in printed and "light_dim_s5" in printed
-    assert "AUROC of the episodes' final energy" in printed
+    assert "The paper's raw final energy, AUROC of the episodes' mean" in printed
+    assert (
+        "unfamiliar (context_phase_energy)" in printed
+        and "failing (head_energy_two_sided, first 3 chunks)" in printed
+    )

@@ -3,14 +3,19 @@
 A condition is one evaluation (a scene: vanilla, a blanked camera, a perturbation). Its summary holds the
 success rate and mean energies of its episodes and one row per episode, each episode's energies being the mean
 over its chunks (`scores.episode_scores`). The final energy then ranks each condition against a reference one,
-and failed against successful episodes, by AUROC. The quickstart prints and writes these
+and failed against successful episodes, by AUROC. `monitor_summary` says what the checkpoint's monitor (both its
+thresholds, from an OOD report's calibration) makes of the same rollouts. The quickstart prints and writes these
 (`pipelines/quickstart.py`).
 """
 
 import math
 from collections.abc import Iterable, Mapping, Sequence
 
-from .metrics import auroc
+import numpy as np
+
+from ..runtime.threshold import exceeds
+from .metrics import BinaryRates, auroc
+from .ood_sections import ALL_CONDITIONS
 from .records import Episode, EpisodeKey
 from .scores import episode_scores
 
@@ -100,3 +105,49 @@ def energy_aurocs(conditions: Mapping[str, dict], reference: str) -> dict[str, f
     }
     aurocs["failed_vs_successful"] = auroc(*final_energy_by_outcome(pooled_episodes(conditions)))
     return aurocs
+
+
+def monitor_summary(scored) -> dict:
+    """The monitor's two checks on an OOD report's held-out rollouts (`ood_report.OODScores`), at the thresholds
+    saved with the checkpoint.
+
+    `unfamiliar`: per shift, the OOD score's AUROC against the held-out vanilla rollouts over the first N chunks
+    and over whole episodes, and the rollouts alarmed at T by their end (vanilla's too). `failing` (a checkpoint
+    with a failure check): failed against successful rollouts over all of them, first N chunks: AUROC, and the
+    alarms at its T.
+    """
+    n = scored.failure_chunks
+    ood, first, whole = scored.saved_score, scored.at(n), scored.at(None)
+    threshold = scored.fit(ood).threshold
+
+    def alarmed(scores) -> list[int]:
+        return [int(exceeds(scores, threshold).sum()), len(scores)]
+
+    unfamiliar = {"vanilla": {"alarmed": alarmed(whole.negatives[ood])}}
+    for condition, scores in whole.positives.items():
+        if condition != ALL_CONDITIONS:
+            unfamiliar[condition] = {
+                "auroc_first_chunks": auroc(first.negatives[ood], first.positives[condition][ood]),
+                "auroc": auroc(whole.negatives[ood], scores[ood]),
+                "alarmed": alarmed(scores[ood]),
+            }
+    summary = {
+        "score": ood,
+        "n_calibration": len(scored.calibration_set),
+        "chunks": n,
+        "unfamiliar": unfamiliar,
+    }
+    if scored.failure_score != "none":
+        name = scored.failure_score
+        scores = np.concatenate([first.negatives[name], first.positives[ALL_CONDITIONS][name]])
+        failed = np.array([not e[0].success for e in [*scored.vanilla.values(), *scored.ood.values()]])
+        rates = BinaryRates.from_scores(scores[~failed], scores[failed], scored.fit(name, n).threshold)
+        summary["failing"] = {
+            "score": name,
+            "auroc": auroc(scores[~failed], scores[failed]),
+            "n_failed": int(failed.sum()),
+            "n_successful": int((~failed).sum()),
+            "failed_alarmed": rates.tp,
+            "successful_alarmed": rates.fp,
+        }
+    return summary

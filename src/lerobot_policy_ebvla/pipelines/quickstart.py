@@ -9,16 +9,22 @@ The whole pipeline of the project, offline and sized for a small CPU (`run`):
    `presets.LIGHT_POLICY`. Its loader reads each action chunk from the action column alone
    (`column_queries`), not from whole decoded rows as LeRobot 0.6.1 does.
 3. **Evaluate** with `pipelines.eval_energy` (LeRobot's `eval_policy_all` under the `EnergyRecorder`),
-   recording the energy of every refined chunk, in three conditions: the vanilla scene, a blanked camera (does
-   success depend on the camera?) and one perturbed scene. Then the camera check on dataset frames
-   (`monitoring.vision.checkpoint_camera_dependence`): how much the refined chunk and its final energy change
-   when the camera is replaced by a black image, with the same MCMC noise.
-4. **Summarise** (`monitoring.summary`): per condition, the success rate and the mean initial and final
-   energy; the AUROCs of the final energy; the camera check. Printed, and written to `summary.json`.
+   recording the energy of every refined chunk: vanilla rollouts of other seeds that calibrate the monitor, then
+   three conditions: the vanilla scene, a blanked camera (does success depend on the camera?) and one perturbed
+   scene. Then the camera check on dataset frames (`monitoring.vision.checkpoint_camera_dependence`): how much the
+   refined chunk and its final energy change when the camera is replaced by a black image, with the same MCMC
+   noise.
+4. **Monitor**: the checkpoint's `EnergyMonitor` calibrated on the calibration rollouts alone
+   (`ebvla-ood-report --calibrate_to`'s work: `ood_calibration.json` and `failure_calibration.json` beside the
+   weights, the full report in `monitor/ood_report.md`), and what it says of the three conditions: does its OOD
+   check flag the shifted rollouts, and does its failure check name the rollouts that fail, from their first chunks.
+5. **Summarise** (`monitoring.summary`): per condition, the success rate and the mean initial and final
+   energy; the monitor; the paper's raw final energy beside it; the camera check. Printed, and written to
+   `summary.json`.
 
 Everything goes under `QuickstartConfig.output_dir`: the dataset in `data/<task>/`, LeRobot's training output
-in `train/`, each condition's `eval_info.json` and `energy_records.jsonl` in `eval/<condition>/`, and
-`summary.json`.
+in `train/`, each condition's `eval_info.json` and `energy_records.jsonl` in `eval/<condition>/`, the monitor's
+report in `monitor/`, and `summary.json`.
 """
 
 import json
@@ -34,12 +40,14 @@ import draccus
 
 from ..configuration_ebvla import EBVLAConfig
 from ..envs import MetaworldEBVLAEnv
+from ..monitoring.ood_report import OODReportConfig, score_ood_report, write_scored_report
 from ..monitoring.records import group_by_episode, read_energy_records
 from ..monitoring.summary import (
     condition_summary,
     energy_aurocs,
     final_energy_by_outcome,
     mean_or_nan,
+    monitor_summary,
     pooled_episodes,
 )
 from ..presets import light_policy_config
@@ -50,7 +58,9 @@ from .eval_energy import eval_metaworld_checkpoint, metaworld_eval_env
 # Written into output_dir when a run starts: a second run there is refused without `overwrite`.
 RUN_MARKER = "quickstart_run.json"
 SUMMARY_FILENAME = "summary.json"
-VANILLA, BLANK = "vanilla", "blank"
+VANILLA, BLANK, CALIBRATION = "vanilla", "blank", "calibration"
+# The calibration rollouts' seeds start this far after the evaluation's: no seed is in both.
+CALIBRATION_SEED_OFFSET = 100_000
 
 
 @dataclass
@@ -77,6 +87,9 @@ class QuickstartConfig:
     batch_size: int = 16
     # Evaluation episodes per task and condition (vanilla, blanked camera, perturbed).
     eval_episodes: int = 10
+    # Vanilla episodes per task that calibrate the checkpoint's monitor, from seeds `seed` + 100000 on (never an
+    # evaluated episode's).
+    calibration_episodes: int = 10
     # Evaluation episodes end after this many env steps (MetaWorld's own limit is 500).
     max_episode_steps: int = 100
     # The perturbed evaluation condition: one of `--env.type=metaworld_ebvla`'s perturbations (docs/metaworld.md),
@@ -99,11 +112,16 @@ class QuickstartConfig:
             "steps",
             "batch_size",
             "eval_episodes",
+            "calibration_episodes",
             "max_episode_steps",
             "vision_frames",
         ):
             if getattr(self, name) < 1:
                 raise ValueError(f"`{name}` must be >= 1, got {getattr(self, name)}.")
+        if self.calibration_episodes < 2:
+            raise ValueError(
+                f"`calibration_episodes` must be >= 2 (a threshold needs a spread), got {self.calibration_episodes}."
+            )
         # The config's own rule, checked now rather than after recording and before training.
         self.policy.validate_light_backbone_image(
             *(
@@ -197,20 +215,71 @@ def train_config(cfg: QuickstartConfig, root: Path, repo_id: str, train_dir: Pat
 
 
 def evaluate(
-    cfg: QuickstartConfig, checkpoint: Path, eval_dir: Path, perturbation: str, severity: int
+    cfg: QuickstartConfig,
+    checkpoint: Path,
+    eval_dir: Path,
+    perturbation: str,
+    severity: int,
+    calibration: bool = False,
 ) -> None:
-    """LeRobot's rollouts of the checkpoint in one condition, energies to `eval_dir/energy_records.jsonl`."""
+    """LeRobot's rollouts of the checkpoint in one condition, energies to `eval_dir/energy_records.jsonl`; the
+    calibration's from seeds of their own."""
     eval_metaworld_checkpoint(
         checkpoint,
         eval_dir,
         task=cfg.task,
         max_episode_steps=cfg.max_episode_steps,
-        n_episodes=cfg.eval_episodes,
-        seed=cfg.seed,
+        n_episodes=cfg.calibration_episodes if calibration else cfg.eval_episodes,
+        seed=cfg.seed + CALIBRATION_SEED_OFFSET if calibration else cfg.seed,
         perturbation=perturbation,
         severity=severity,
         observation_size=cfg.observation_size,
     )
+
+
+def calibrate_monitor(cfg: QuickstartConfig, checkpoint: Path, eval_root: Path, shifts: list[str]) -> dict:
+    """Calibrates the checkpoint's `EnergyMonitor` on the calibration rollouts (both files beside the weights, the
+    report in `output_dir/monitor`) and returns what it says of the evaluated rollouts (`monitor_summary`)."""
+    scored = score_ood_report(
+        OODReportConfig(
+            calibration=[str(eval_root / CALIBRATION)],
+            vanilla=[str(eval_root / VANILLA)],
+            ood=[str(eval_root / name) for name in shifts],
+            output_dir=cfg.output_dir / "monitor",
+            calibrate_to=checkpoint,
+            overwrite_calibration=True,
+            n_bootstrap=200,
+        )
+    )
+    write_scored_report(scored)
+    summary = monitor_summary(scored)
+    # The report names a condition by its perturbation and severity; the summary by the quickstart's names.
+    names = {f"{p} {float(s):g}": name for name, (p, s) in cfg.conditions().items()}
+    summary["unfamiliar"] = {names.get(c, c): row for c, row in summary["unfamiliar"].items()}
+    return summary
+
+
+def format_monitor(monitor: dict) -> list[str]:
+    """The monitor's lines of the printed summary."""
+    n = monitor["chunks"]
+    lines = [
+        f"The checkpoint's monitor, calibrated on {monitor['n_calibration']} vanilla rollouts of other seeds "
+        "(ood_calibration.json, failure_calibration.json beside the weights; monitor/ood_report.md):",
+        f"  unfamiliar ({monitor['score']}): AUROC against vanilla, first {n} chunks / whole episode; rollouts "
+        "alarmed at T",
+    ]
+    for condition, row in monitor["unfamiliar"].items():
+        aurocs = f"{row['auroc_first_chunks']:.2f} / {row['auroc']:.2f}" if "auroc" in row else "-"
+        alarmed, total = row["alarmed"]
+        lines.append(f"    {condition:<12} {aurocs:>11}   {alarmed}/{total}")
+    if "failing" in monitor:
+        f = monitor["failing"]
+        lines.append(
+            f"  failing ({f['score']}, first {n} chunks): failed vs successful over the {f['n_failed'] + f['n_successful']} "
+            f"rollouts above ({f['n_failed']} failed): AUROC {f['auroc']:.2f}; alarmed at T: failed "
+            f"{f['failed_alarmed']}/{f['n_failed']}, successful {f['successful_alarmed']}/{f['n_successful']}"
+        )
+    return lines
 
 
 def format_summary(summary: dict) -> str:
@@ -245,10 +314,14 @@ def format_summary(summary: dict) -> str:
         f"Camera check on {check['num_frames']} dataset frames: the refined chunk changes by "
         f"{100 * check['chunk_change']:.1f}% with the camera blanked (0% = blind policy); final energy "
         f"{check['energy_real']:.3f} (real) vs {check['energy_blank']:.3f} (blanked).",
+    ]
+    if "monitor" in summary:
+        lines += format_monitor(summary["monitor"])
+    lines += [
         "Mean final energy of successful episodes (all conditions): "
         f"{mean_or_nan(succeeded):.3f}, of failed episodes: {mean_or_nan(failed):.3f} (nan: no such episode)",
-        "AUROC of the episodes' final energy (0.5 = no signal, 1 = always higher; nan: no such episode): "
-        + ", ".join(f"{name} {value:.2f}" for name, value in summary["energy_auroc"].items()),
+        "The paper's raw final energy, AUROC of the episodes' mean (0.5 = no signal, 1 = always higher; nan: no such "
+        "episode): " + ", ".join(f"{name} {value:.2f}" for name, value in summary["energy_auroc"].items()),
     ]
     return "\n".join(lines)
 
@@ -306,14 +379,14 @@ def run(cfg: QuickstartConfig) -> dict:
     timings = {}
 
     start = time.perf_counter()
-    banner(f"1/4 Recording MetaWorld expert demonstrations ({cfg.task}, {cfg.record_episodes} per task)")
+    banner(f"1/5 Recording MetaWorld expert demonstrations ({cfg.task}, {cfg.record_episodes} per task)")
     record_dataset(cfg, root, repo_id)
     timings["record_s"] = time.perf_counter() - start
 
     start = time.perf_counter()
     p = cfg.policy
     banner(
-        f"2/4 Training ebvla for {cfg.steps} steps of batch {cfg.batch_size} ({p.resnet.vision_backbone_stages}-stage "
+        f"2/5 Training ebvla for {cfg.steps} steps of batch {cfg.batch_size} ({p.resnet.vision_backbone_stages}-stage "
         f"{p.resnet.vision_backbone} at {p.resnet.resize_shape} px, energy head D={p.dim_model}, {p.n_heads} heads, "
         f"L={p.n_blocks}; state dropout {p.resnet.state_dropout}, contrastive weight {p.contrastive.weight})"
     )
@@ -325,22 +398,32 @@ def run(cfg: QuickstartConfig) -> dict:
     start = time.perf_counter()
     conditions = cfg.conditions()
     banner(
-        f"3/4 Evaluating: {cfg.eval_episodes} episodes per task of at most {cfg.max_episode_steps} steps, seeds "
-        f"from {cfg.seed}, in each of {', '.join(conditions)}; then the camera check on {cfg.vision_frames} frames"
+        f"3/5 Evaluating: {cfg.calibration_episodes} vanilla episodes per task to calibrate the monitor (seeds from "
+        f"{cfg.seed + CALIBRATION_SEED_OFFSET}), then {cfg.eval_episodes} per task of at most {cfg.max_episode_steps} "
+        f"steps, seeds from {cfg.seed}, in each of {', '.join(conditions)}; then the camera check on "
+        f"{cfg.vision_frames} frames"
     )
+    say(f"--- {CALIBRATION} ---")
+    evaluate(cfg, checkpoint, eval_root / CALIBRATION, "none", 0, calibration=True)
     for name, (perturbation, severity) in conditions.items():
         say(f"--- {name} ---")
         evaluate(cfg, checkpoint, eval_root / name, perturbation, severity)
     check = checkpoint_camera_dependence(checkpoint, root, repo_id, cfg.vision_frames, cfg.seed)
     timings["eval_s"] = time.perf_counter() - start
 
-    banner("4/4 Summary")
+    banner("4/5 Calibrating the checkpoint's monitor on the calibration rollouts")
+    start = time.perf_counter()
+    monitor = calibrate_monitor(cfg, checkpoint, eval_root, [name for name in conditions if name != VANILLA])
+    timings["monitor_s"] = time.perf_counter() - start
+
+    banner("5/5 Summary")
     summaries = {
         name: condition_summary(group_by_episode(read_energy_records(eval_root / name)))
         for name in conditions
     }
     summary = {
         "conditions": summaries,
+        "monitor": monitor,
         "energy_auroc": energy_aurocs(summaries, reference=VANILLA),
         "camera_check": {**asdict(check), "energy_shift": check.energy_shift},
         "timings_s": {name: round(seconds, 1) for name, seconds in timings.items()},
