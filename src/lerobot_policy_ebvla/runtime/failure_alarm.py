@@ -8,6 +8,10 @@ check, at the step s* whose (w, k) had the best balanced accuracy on calibration
 (`ebvla-failure-report --calibrate_to=<checkpoint>` chooses and saves it), so the alarm rate of successful
 episodes is that of one check and the alarm comes s* chunks into the episode, before a failure at the step cap.
 
+It needs failed calibration rollouts to choose s*, w and k. The checkpoint's own monitor (`monitor.EnergyMonitor`)
+carries a failure check that does not: an energy score of the first N chunks against vanilla rollouts alone
+(`calibration.FailureCalibration`). This alarm is the paper's, kept for Table IV and for users who record failures.
+
 Steps are 1-based (step s is the s-th chunk). The slope is the least-squares slope of the energies of steps
 max(1, s - w + 1) .. s against their step numbers; a non-finite slope (a diverged refinement's +inf) raises the
 alarm, as the threshold rule says (`threshold.exceeds`).
