@@ -13,7 +13,7 @@ from ..runtime.threshold import exceeds
 from .baselines import FEATURE_SCORES, chunk_context_nn
 from .lead_time import failure_onset
 from .metrics import BinaryRates, markdown_table, percent
-from .ood_sections import ALL_CONDITIONS, auroc_interval
+from .ood_sections import auroc_interval
 
 
 def failure_check_section(scored, fits: dict) -> str:
@@ -21,36 +21,33 @@ def failure_check_section(scored, fits: dict) -> str:
     score name): the failure check and each baseline at its calibration threshold over the first N chunks, and
     the monitor's two checks together."""
     n, vanilla, ood = scored.failure_chunks, scored.vanilla, scored.ood
-    held_out = scored.at(n)
-
-    def both(name: str) -> np.ndarray:
-        return np.concatenate([held_out.negatives[name], held_out.positives[ALL_CONDITIONS][name]])
-
+    failed = scored.held_out_failed()
+    # Every set starts with the held-out vanilla rollouts: each takes as many rollouts as it has labels.
     labels = {
-        "held-out vanilla rollouts": np.array([not e[0].success for e in vanilla.values()], dtype=bool),
-        "held-out vanilla and perturbed rollouts together": np.array(
-            [not e[0].success for e in [*vanilla.values(), *ood.values()]], dtype=bool
-        ),
+        "held-out vanilla rollouts": failed[: len(vanilla)],
+        "held-out vanilla and perturbed rollouts together": failed,
     }
 
     def row(scores: np.ndarray | None, flags: np.ndarray) -> dict:
-        # Every set starts with the held-out vanilla rollouts: each takes as many rollouts as it has labels.
         return {
-            title: (None if scores is None else scores[: len(failed)], flags[: len(failed)])
-            for title, failed in labels.items()
+            title: (None if scores is None else scores[: len(set_labels)], flags[: len(set_labels)])
+            for title, set_labels in labels.items()
         }
 
-    failure = scored.failure_score
+    def alarms(name: str) -> np.ndarray:
+        return exceeds(scored.held_out(name, n), scored.fit(name, n).threshold)
+
+    failure, ood_score = scored.failure_score, scored.saved_score
+    failure_alarms = alarms(failure)
     rows = {
         "monitor (either check)": row(
-            None,
-            exceeds(both(scored.saved_score), fits[scored.saved_score].threshold)
-            | exceeds(both(failure), scored.fit(failure, n).threshold),
+            None, exceeds(scored.held_out(ood_score, n), fits[ood_score].threshold) | failure_alarms
         )
     }
-    for name in dict.fromkeys([failure, scored.saved_score, "final_energy", *FEATURE_SCORES]):
+    for name in dict.fromkeys([failure, ood_score, "final_energy", *FEATURE_SCORES]):
         if name in scored.names:
-            rows[name] = row(both(name), exceeds(both(name), scored.fit(name, n).threshold))
+            flags = failure_alarms if name == failure else alarms(name)
+            rows[name] = row(scored.held_out(name, n), flags)
     if scored.reference.features:
         calibration = chunk_context_nn(scored.calibration_set, scored.calibration_set, n - 1)
         cfg = scored.cfg

@@ -255,6 +255,17 @@ class OODScores:
             rule=self.cfg.threshold_rule,
         )
 
+    def held_out(self, name: str, first_chunks: int | None = None) -> np.ndarray:
+        """Every held-out rollout's score, the vanilla ones first, then the perturbed ones (`held_out_failed`'s
+        order)."""
+        scored = self.at(first_chunks)
+        return np.concatenate([scored.negatives[name], scored.positives[ALL_CONDITIONS][name]])
+
+    def held_out_failed(self) -> np.ndarray:
+        """Whether each held-out rollout failed, the vanilla ones first, then the perturbed ones."""
+        episodes = [*self.vanilla.values(), *self.ood.values()]
+        return np.array([not episode[0].success for episode in episodes], dtype=bool)
+
     def at(self, first_chunks: int | None = None) -> ScoredSets:
         """Every score of the held-out rollouts over each episode's first k chunks (None: whole episodes)."""
         if first_chunks not in self._scored:

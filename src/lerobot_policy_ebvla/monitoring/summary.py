@@ -11,8 +11,6 @@ thresholds, from an OOD report's calibration) makes of the same rollouts. The qu
 import math
 from collections.abc import Iterable, Mapping, Sequence
 
-import numpy as np
-
 from ..runtime.threshold import exceeds
 from .metrics import BinaryRates, auroc
 from .ood_sections import ALL_CONDITIONS
@@ -139,8 +137,7 @@ def monitor_summary(scored) -> dict:
     }
     if scored.failure_score != "none":
         name = scored.failure_score
-        scores = np.concatenate([first.negatives[name], first.positives[ALL_CONDITIONS][name]])
-        failed = np.array([not e[0].success for e in [*scored.vanilla.values(), *scored.ood.values()]])
+        scores, failed = scored.held_out(name, n), scored.held_out_failed()
         rates = BinaryRates.from_scores(scores[~failed], scores[failed], scored.fit(name, n).threshold)
         summary["failing"] = {
             "score": name,
