@@ -330,6 +330,7 @@ def build(
 ) -> dict:
     """Builds the bundle for `job` ("libero": the LIBERO pipeline and the VLM benchmark; "vlm": the VLM benchmark
     alone, without LIBERO's wheels) into `out/part<N>/` and returns its manifest."""
+    out = out.resolve()  # the wheels' file URIs below must be absolute
     shutil.rmtree(out, ignore_errors=True)
     staging = out / "staging"
     wheels = staging / "wheels"

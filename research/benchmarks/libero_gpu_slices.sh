@@ -12,8 +12,11 @@
 # machine's disk; `start` copies the last, joins and checks the files (SHA-256), installs the wheels into a venv
 # beside the machine's own packages with pip and no index (`research/benchmarks/gpu_bundle.py install`), unpacks the
 # optional data and checkpoints into the work folder, extracts the EGL libraries, links LIBERO's assets, checks the
-# imports and starts the driver. JOB=libero (the default) records, trains and evaluates; JOB=none only installs;
-# JOB=vlm installs a `gpu_bundle.py build --job=vlm` bundle (no LIBERO wheels), for vlm_bench in the same call.
+# imports and starts the driver. JOB=libero (the default) records, trains and evaluates. JOB=eval only evaluates
+# the bundled checkpoints (`--checkpoint=RUN=DIR` at build time) or those carried in .gpu_bundle_checkpoints/<run>/,
+# with frames rendered at IMAGE_SIZE (the recording's). JOB=none only installs. JOB=vlm installs a `gpu_bundle.py
+# build --job=vlm` bundle (no LIBERO wheels), for vlm_bench in the same call. RUNS names the pipeline's runs,
+# EVAL_ARGS the eval stage's queue (tasks, rollouts per job, conditions), EVAL_JOBS the evaluations side by side.
 #
 # The driver runs detached (its own session), so it lives across calls: record (skipped when the bundle brought
 # the data), train until TRAIN_UNTIL_S after its start (or both runs done; a run with a bundled checkpoint
@@ -21,9 +24,7 @@
 # /tmp/libero_out (copied to $OUT by every call). STEPS is lerobot-train's --steps (its cosine schedule scales to
 # it); a run stopped at TRAIN_UNTIL_S is evaluated at its last checkpoint. The minutes: research/docs/libero_runs.md.
 set -uo pipefail
-BUNDLE=/tmp/gpu_bundle
-VENV=/tmp/venv
-WORK=/tmp/libero_work
+: "${BUNDLE:=/tmp/gpu_bundle}" "${VENV:=/tmp/venv}" "${WORK:=/tmp/libero_work}"
 PRODUCTS=/tmp/libero_out
 DRIVER=/tmp/libero_driver
 PY=$VENV/bin/python
@@ -31,6 +32,7 @@ export MUJOCO_GL=egl LIBERO_CONFIG_PATH=$VENV/libero_config HF_HUB_OFFLINE=1 PYT
 NVIDIA_EGL=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
 [ -f "$NVIDIA_EGL" ] && export __EGL_VENDOR_LIBRARY_FILENAMES=$NVIDIA_EGL
 : "${TRAIN_UNTIL_S:=900}" "${EVAL_UNTIL_S:=1380}" "${STEPS:=5000}" "${POLL_S:=560}" "${JOB:=libero}"
+: "${RUNS:=ebvla_paper diffusion}" "${EVAL_ARGS:=--vanilla=20 --perturbed=5}" "${EVAL_JOBS:=14}" "${IMAGE_SIZE:=128}" "${DEVICE:=cuda}"
 
 copy_part() {  # the carried part(s) of this call onto the machine's disk
   mkdir -p $BUNDLE
@@ -76,27 +78,43 @@ case "${1:-}" in
     for f in $BUNDLE/gl/*.deb; do [ -f "$f" ] && dpkg -x "$f" /; done; ldconfig
     $VENV/bin/ebvla-install-libero-assets || exit 1
     $PY -c "import lerobot, robosuite, libero, mujoco, av, lerobot_policy_ebvla; print('imports ok')" || exit 1
-    [ "$JOB" = libero ] || exit 0
+    [ "$JOB" = libero ] || [ "$JOB" = eval ] || exit 0
     mkdir -p $DRIVER $WORK && cp research/benchmarks/libero_pipeline.py research/benchmarks/libero_gpu_slices.sh $DRIVER/
+    # A checkpoint carried beside the last part (.gpu_bundle_checkpoints/<run>/: its pretrained_model folder, in
+    # `carry`) is evaluated as the run's last; the bundle need not be rebuilt for it.
+    for ckpt in .gpu_bundle_checkpoints/*/; do
+      [ -f "${ckpt}model.safetensors" ] || continue
+      dest=$WORK/train/$(basename "$ckpt")/checkpoints/last/pretrained_model
+      mkdir -p "$dest" && cp -r "$ckpt". "$dest"/ && echo "carried checkpoint: $dest"
+    done
+    # The eval stage renders at the recording's size, which it reads from the recording's summary.
+    [ "$JOB" = eval ] && [ ! -f $WORK/recording_summary.json ] \
+      && echo "{\"image_size\": $IMAGE_SIZE}" >$WORK/recording_summary.json
     setsid nohup bash $DRIVER/libero_gpu_slices.sh driver >>$WORK/driver.log 2>&1 < /dev/null &
     POLL_S=${START_POLL_S:-420} bash "$0" poll ;;
   driver)
     start=$(date +%s)
     cd $DRIVER
-    # 20 recorders side by side on the 16 cores: one round instead of two (402 s for 16 + 4 on 2026-11-24).
-    # Skipped when the bundle brought a recorded dataset (data/all).
-    $PY libero_pipeline.py record --work=$WORK --episodes_per_task=20 --parts=2 --jobs=20 --image_size=128
-    echo "recorded after $(($(date +%s) - start)) s"; pack
-    $PY libero_pipeline.py train --work=$WORK --runs ebvla_paper diffusion --steps=$STEPS --batch_size=32 \
-        --workers=6 --device=cuda --detach
-    while [ $(($(date +%s) - start)) -lt "$TRAIN_UNTIL_S" ]; do
-      [ -f $WORK/train/ebvla_paper/DONE ] && [ -f $WORK/train/diffusion/DONE ] && break
-      sleep 60; pack
-    done
-    $PY libero_pipeline.py stop --work=$WORK; sleep 5
-    echo "training stopped after $(($(date +%s) - start)) s"; pack
-    $PY libero_pipeline.py eval --work=$WORK --runs ebvla_paper diffusion --jobs=14 --device=cuda \
-        --vanilla=20 --perturbed=5 --deadline_s=$((EVAL_UNTIL_S - ($(date +%s) - start)))
+    if [ "$JOB" = libero ]; then
+      # 20 recorders side by side on the 16 cores: one round instead of two (402 s for 16 + 4 on 2026-11-24).
+      # Skipped when the bundle brought a recorded dataset (data/all).
+      $PY libero_pipeline.py record --work=$WORK --episodes_per_task=20 --parts=2 --jobs=20 --image_size=128
+      echo "recorded after $(($(date +%s) - start)) s"; pack
+      # shellcheck disable=SC2086
+      $PY libero_pipeline.py train --work=$WORK --runs $RUNS --steps=$STEPS --batch_size=32 \
+          --workers=6 --device=$DEVICE --detach
+      while [ $(($(date +%s) - start)) -lt "$TRAIN_UNTIL_S" ]; do
+        all_done=1
+        for run in $RUNS; do [ -f $WORK/train/$run/DONE ] || all_done=0; done
+        [ $all_done = 1 ] && break
+        sleep 60; pack
+      done
+      $PY libero_pipeline.py stop --work=$WORK; sleep 5
+      echo "training stopped after $(($(date +%s) - start)) s"; pack
+    fi
+    # shellcheck disable=SC2086
+    $PY libero_pipeline.py eval --work=$WORK --runs $RUNS --jobs=$EVAL_JOBS --device=$DEVICE $EVAL_ARGS \
+        --deadline_s=$((EVAL_UNTIL_S - ($(date +%s) - start)))
     pack; echo "driver done after $(($(date +%s) - start)) s" ;;
   poll)
     for _ in $(seq 1 $((POLL_S / 20))); do

@@ -389,6 +389,8 @@ def last_checkpoint(work: Path, run: str) -> Path | None:
 # Fresh placements for evaluation: sampled with seeds 200000 + i (the recordings use 100000 + i).
 FRESH_CONDITION = "vanilla_fresh"
 FRESH_PLACEMENT_SEED = 200000
+# The vanilla jobs of each ebvla run: the monitor's calibration, then the held-out rollouts.
+VANILLA_CONDITIONS = ("vanilla_calib", "vanilla_heldout")
 
 
 @dataclass(frozen=True)
@@ -417,6 +419,7 @@ def eval_jobs(
     conditions=CAMERA_CONDITIONS,
     calibration: int | None = None,
     fresh: int = 0,
+    vanilla_conditions: tuple[str, ...] = VANILLA_CONDITIONS,
 ) -> list[EvalJob]:
     """The evaluation queue, most needed first: vanilla calibration and held-out rollouts of the `ebvla` runs,
     then the camera perturbations of the `ebvla` runs in the order of `conditions`; the other policies (no
@@ -430,6 +433,10 @@ def eval_jobs(
     `fresh` vanilla rollouts per task of each `ebvla` run come last (`vanilla_fresh`): from placements LIBERO
     samples with seeds `FRESH_PLACEMENT_SEED` + i, which neither the fixed initial states nor the recordings
     (seeds 100000 + i) use: success off the states every other job starts from.
+
+    `vanilla_conditions` keeps some of the vanilla calibration and held-out jobs (none: `()`), for a machine that
+    runs the rest while another runs those (the queue with no `conditions`): the two queues together are the
+    whole one.
     """
     half = vanilla // 2 if calibration is None else calibration
     heldout = vanilla - half if calibration is None else vanilla
@@ -457,10 +464,13 @@ def eval_jobs(
 
     # The other policies' vanilla success comes after the first two camera conditions: Table III needs those
     # more, and it is the first thing a short slice drops.
-    queue = [job for run in ebvla_runs for job in vanilla_jobs(run)]
+    queue = [job for run in ebvla_runs for job in vanilla_jobs(run) if job.condition in vanilla_conditions]
     for perturbation, severity in conditions[:2]:
         queue += camera_jobs(perturbation, severity)
-    queue += [job for run in other_runs for job in vanilla_jobs(run) if job.condition == "vanilla_heldout"]
+    if "vanilla_heldout" in vanilla_conditions:
+        queue += [
+            job for run in other_runs for job in vanilla_jobs(run) if job.condition == "vanilla_heldout"
+        ]
     for perturbation, severity in conditions[2:]:
         queue += camera_jobs(perturbation, severity)
     queue += [
@@ -548,6 +558,9 @@ def camera_check(work: Path, run: str, frames: int = 32) -> None:
     out = work / "eval" / run / "camera_check.json"
     checkpoint = last_checkpoint(work, run)
     if out.exists() or checkpoint is None:
+        return
+    if not (work / "data" / "all").exists():  # an evaluation-only machine: the check runs where the data is
+        print(f"camera check {run}: not run here, no dataset in {work / 'data' / 'all'}")
         return
     from lerobot_policy_ebvla.monitoring.vision import checkpoint_camera_dependence
 
@@ -832,6 +845,14 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--perturbed", type=int, default=5, help="episodes per task and camera condition")
     parser.add_argument(
+        "--vanilla_conditions",
+        nargs="*",
+        choices=VANILLA_CONDITIONS,
+        default=list(VANILLA_CONDITIONS),
+        help="eval: the vanilla jobs to run (none: another machine runs them; the perturbed rollouts still start "
+        "from the held-out states)",
+    )
+    parser.add_argument(
         "--deadline_s", type=float, default=480.0, help="eval: stop starting and cut jobs after this"
     )
     parser.add_argument(
@@ -890,7 +911,14 @@ def main(argv: list[str] | None = None) -> None:
                 camera_check(work, run)
         conditions = [(c.split(":")[0], int(c.split(":")[1])) for c in args.conditions]
         jobs = eval_jobs(
-            args.runs, args.tasks, args.vanilla, args.perturbed, conditions, args.calibration, args.fresh
+            args.runs,
+            args.tasks,
+            args.vanilla,
+            args.perturbed,
+            conditions,
+            args.calibration,
+            args.fresh,
+            tuple(args.vanilla_conditions),
         )
         remaining = args.deadline_s - (time.time() - start)
         statuses = evaluate(work, jobs, args.device, args.jobs, remaining, args.episode_length)

@@ -240,6 +240,30 @@ def test_with_a_calibration_count_held_out_and_perturbed_rollouts_share_the_stat
     assert (jobs["pose5"].first, jobs["pose5"].n) == (10, 5)
 
 
+def test_a_queue_without_vanilla_and_one_without_conditions_split_the_whole_queue_between_two_machines():
+    conditions = (("pose", 5), ("noise", 5))
+    args = (["ebvla_cpu", "diffusion"], [2, 3], 20, 5)
+    whole = pipeline.eval_jobs(*args, conditions, calibration=10, fresh=10)
+    elsewhere = pipeline.eval_jobs(*args, conditions, calibration=10, fresh=10, vanilla_conditions=())
+    here = pipeline.eval_jobs(*args, (), calibration=10)
+    assert not {job.condition for job in elsewhere} & {"vanilla_calib", "vanilla_heldout"}
+    assert {job.condition for job in here} == {"vanilla_calib", "vanilla_heldout"}
+    # The same jobs, with the same initial states and seeds, whichever machine runs them.
+    assert sorted(elsewhere + here, key=lambda job: job.name) == sorted(whole, key=lambda job: job.name)
+    assert all(job.first == 10 for job in elsewhere if job.perturbation != "none")
+    # A control on the other machine: its calibration rollouts again, first in its queue.
+    control = pipeline.eval_jobs(*args, conditions, calibration=10, vanilla_conditions=("vanilla_calib",))
+    assert [job.condition for job in control[:2]] == ["vanilla_calib"] * 2
+    assert "vanilla_heldout" not in {job.condition for job in control}
+
+
+def test_the_camera_check_waits_for_a_machine_with_the_dataset(work, capsys):
+    fake_checkpoint(work, "ebvla_cpu")
+    pipeline.camera_check(work, "ebvla_cpu")
+    assert not (work / "eval" / "ebvla_cpu" / "camera_check.json").exists()
+    assert "no dataset" in capsys.readouterr().out
+
+
 def test_fresh_placement_rollouts_come_last_from_seeds_no_recording_or_initial_state_uses(work):
     jobs = pipeline.eval_jobs(
         ["ebvla_cpu", "diffusion"], [2, 3], 20, 5, (("pose", 5),), calibration=10, fresh=10
