@@ -604,7 +604,7 @@ def pack(work: Path, archive: Path) -> None:
 def save_results(work: Path, results: Path) -> None:
     """Copies what the next session needs to go on, and what a table is recomputed from, into `results` (a
     folder to commit): the recording summaries, each light run's last checkpoint with its optimizer state
-    (resume; `light_checkpoint`), `DONE` markers, eval infos, gzip records with their context features, camera
+    (resume; `light_checkpoint`; without it once the run is done), `DONE` markers, eval infos, gzip records with their context features, camera
     checks, reports, timings.
 
     Frames stored as images are not saved: `record` with the same `--placement_seed` makes the same dataset
@@ -658,7 +658,11 @@ def save_results(work: Path, results: Path) -> None:
             continue
         target = results / "train" / run_dir.name / "last"
         shutil.rmtree(target, ignore_errors=True)
-        shutil.copytree(last.resolve(), target)
+        # A finished run is never resumed: its optimizer state (twice the weights) stays behind.
+        done = (run_dir / "DONE").exists()
+        shutil.copytree(
+            last.resolve(), target, ignore=shutil.ignore_patterns("training_state") if done else None
+        )
     print(f"save: {results}")
 
 
@@ -680,7 +684,10 @@ def restore_results(results: Path, work: Path) -> None:
         checkpoints = work / "train" / last.parent.name / "checkpoints"
         if (checkpoints / "last").exists():
             continue
-        step = json.loads((last / "training_state" / "training_step.json").read_text())["step"]
+        state = last / "training_state" / "training_step.json"
+        # A finished run is saved without its training state: it stopped at the config's last step.
+        source = state if state.exists() else last / "pretrained_model" / "train_config.json"
+        step = json.loads(source.read_text())["step" if state.exists() else "steps"]
         shutil.copytree(last, checkpoints / f"{step:06d}")
         (checkpoints / "last").symlink_to(f"{step:06d}")
         # LeRobot resumes from the config the checkpoint names; it must point at this work folder.

@@ -313,7 +313,8 @@ def saved_run(work: Path, step: int) -> Path:
     checkpoints = work / "train" / "ebvla_cpu" / "checkpoints"
     model = checkpoints / f"{step:06d}" / "pretrained_model"
     write_json(
-        model / "train_config.json", {"output_dir": "/elsewhere", "dataset": {"root": "/elsewhere/data"}}
+        model / "train_config.json",
+        {"output_dir": "/elsewhere", "dataset": {"root": "/elsewhere/data"}, "steps": step},
     )
     (model / "model.safetensors").write_bytes(b"weights")
     write_json(checkpoints / f"{step:06d}" / "training_state" / "training_step.json", {"step": step})
@@ -355,6 +356,16 @@ def test_saved_results_restore_a_resumable_training_and_skip_finished_jobs(tmp_p
     assert (results / "eval/ebvla_cpu/vanilla_heldout/task2/energy_records.jsonl.gz").exists()
     assert not (results / "eval/ebvla_cpu/vanilla_heldout/task2/energy_records.jsonl").exists()
     assert (results / "train/ebvla_cpu/last/pretrained_model/model.safetensors").exists()
+    assert (results / "train/ebvla_cpu/last/training_state/training_step.json").exists()  # to resume from
+    # Once the run is done, nothing resumes it: its optimizer state is not committed.
+    (first / "train" / "ebvla_cpu" / "DONE").write_text("")
+    finished = tmp_path / "finished"
+    pipeline.save_results(first, finished)
+    assert (finished / "train/ebvla_cpu/last/pretrained_model/model.safetensors").exists()
+    assert not (finished / "train/ebvla_cpu/last/training_state").exists()
+    pipeline.restore_results(finished, tmp_path / "evaluate_only")
+    assert (tmp_path / "evaluate_only/train/ebvla_cpu/checkpoints/last").resolve().name == "001500"
+    (first / "train" / "ebvla_cpu" / "DONE").unlink()
 
     # Restored into the folder that saved them, the compressed records do not join the uncompressed ones (a
     # folder with both is refused), and saving again works.
