@@ -88,11 +88,13 @@ def identity(x):
     return x
 
 
-def run_recorded_rollout(lengths, seeds, reports_goal_distance=(False, False)):
+def run_recorded_rollout(lengths, seeds, reports_goal_distance=(False, False), render_every=None):
     policy = ChunkingPolicy()
     env = gym.vector.SyncVectorEnv(
         [lambda n=n, r=r: CountdownEnv(n, r) for n, r in zip(lengths, reports_goal_distance, strict=False)]
     )
+    for sub_env in env.envs if render_every is not None else []:
+        sub_env.render_every = render_every  # as LIBERO's env with `--env.render_every`
     with EnergyRecorder(policy) as recorder:
         watched = recorder.watch(env, "countdown", 0)
         rollout(watched, policy, identity, identity, identity, identity, seeds=seeds)
@@ -111,6 +113,15 @@ def test_records_one_row_per_chunk_while_each_env_runs():
         assert {c.task for c in chunks} == {"countdown"}
         assert [c.final_energy for c in chunks] == [float(k + 1) for k in range(len(chunks))]
         assert [c.initial_energy for c in chunks] == [k + 1.5 for k in range(len(chunks))]
+
+
+def test_an_env_rendering_every_n_th_step_must_render_each_step_a_chunk_is_refined_from():
+    # The policy refines a chunk every N_ACTION_STEPS steps: an env rendering those steps is recorded as any.
+    _, recorder = run_recorded_rollout([4, 9], seeds=[7, 8], render_every=N_ACTION_STEPS)
+    assert [c.env_step for c in recorder.chunks if c.episode_index == 1] == [0, 3, 6]
+    # One rendering every other step hands the policy a stale frame at step 3: refused, naming the option.
+    with pytest.raises(RuntimeError, match="env step 3.*render_every=2"):
+        run_recorded_rollout([4, 9], seeds=[7, 8], render_every=2)
 
 
 def test_records_take_success_from_eval_info_and_drop_episodes_past_n_episodes():

@@ -293,6 +293,55 @@ def test_the_env_reports_how_far_the_goal_object_is_from_its_basket(perturbable_
     assert np.isfinite(info["goal_distance"])
 
 
+def rollout_frames(env, perturbation: str, steps: int) -> list[dict]:
+    """The observations of a reset to the first initial state and `steps` fixed actions (the arm moves)."""
+    env.perturbation, env.perturbation_severity = perturbation, 2 if perturbation != "none" else 0
+    env.init_state_id = 0
+    observation, _ = env.reset(seed=0)
+    observations = [observation]
+    for step in range(steps):
+        action = np.array([0.6, -0.4 if step % 2 else 0.4, 0.5, 0, 0, 0, -1], dtype=np.float32)
+        observations.append(env.step(action)[0])
+    return observations
+
+
+def test_rendering_every_n_th_step_draws_the_frames_a_chunked_policy_reads_unchanged(perturbable_env):
+    """`render_every=4` renders the reset's frames and every 4th step's, pixel for pixel those of an env that
+    renders every step; the steps between repeat the last frames."""
+    from lerobot_policy_ebvla.envs.libero_configs import LiberoEBVLAEnv
+
+    env_cfg = LiberoEBVLAEnv(
+        task="libero_object",
+        task_ids=[0],
+        observation_height=IMAGE_SIZE,
+        observation_width=IMAGE_SIZE,
+        render_every=4,
+    )
+    vec_env = env_cfg.create_envs(n_envs=1)["libero_object"][0]
+    gated = vec_env.envs[0]
+    try:
+        for perturbation in ("none", "noise"):  # the sensor noise is drawn alike on every step
+            every = rollout_frames(perturbable_env, perturbation, 8)
+            fourth = rollout_frames(gated, perturbation, 8)
+            for step in range(9):
+                for part in ("eef", "joints"):
+                    for key, value in every[step]["robot_state"][part].items():
+                        np.testing.assert_array_equal(value, fourth[step]["robot_state"][part][key])
+                if step % 4 == 0:
+                    for camera in ("image", "image2"):
+                        np.testing.assert_array_equal(
+                            every[step]["pixels"][camera], fourth[step]["pixels"][camera]
+                        )
+        # Without noise, the steps between repeat the last rendered frames, while the arm moved in view.
+        every, fourth = rollout_frames(perturbable_env, "none", 3), rollout_frames(gated, "none", 3)
+        assert np.abs(every[3]["pixels"]["image2"].astype(int) - every[0]["pixels"]["image2"]).mean() > 1
+        np.testing.assert_array_equal(fourth[3]["pixels"]["image2"], fourth[0]["pixels"]["image2"])
+    finally:
+        vec_env.close()
+    with pytest.raises(ValueError, match="render_every"):
+        LiberoEBVLAEnv(task="libero_object", render_every=0)
+
+
 def test_a_goal_that_is_not_an_in_goal_has_no_goal_distance():
     from types import SimpleNamespace
 

@@ -511,6 +511,12 @@ def eval_command(work: Path, job: EvalJob, device: str, episode_length: int | No
         cmd.append("--env.init_states=false")
     if program == "ebvla-eval":
         cmd.append("--record_context_features=true")
+        # The policy reads a frame every n_action_steps steps; the others are not rendered (the same rollouts,
+        # about half the time on two cores). ebvla-eval raises should a chunk be refined from another step.
+        config = last_checkpoint(work, job.run) / "config.json"
+        n_action_steps = json.loads(config.read_text())["n_action_steps"] if config.exists() else 1
+        if n_action_steps > 1:
+            cmd.append(f"--env.render_every={n_action_steps}")
     return cmd
 
 

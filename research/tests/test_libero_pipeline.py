@@ -93,6 +93,10 @@ def test_ebvla_is_evaluated_by_ebvla_eval_with_context_features_from_its_initial
         assert arg in cmd
     # Rendered at the recorded size, as the policy saw its data.
     assert {"--env.observation_height=64", "--env.observation_width=64"} <= set(cmd)
+    # Only the frames the policy reads, once it names its chunk cadence.
+    assert not [arg for arg in cmd if arg.startswith("--env.render_every")]
+    write_json(checkpoint / "config.json", {"type": "ebvla", "n_action_steps": 8})
+    assert "--env.render_every=8" in pipeline.eval_command(work, job, "cpu")
 
 
 def test_other_policies_are_evaluated_by_lerobot_eval_without_context_features(work):
@@ -102,7 +106,11 @@ def test_other_policies_are_evaluated_by_lerobot_eval_without_context_features(w
     )
     assert Path(cmd[0]).name == "lerobot-eval"
     assert "--env.first_init_state=10" in cmd and "--env.perturbation=none" in cmd
-    assert not [arg for arg in cmd if arg.startswith(("--record_context_features", "--env.episode_length"))]
+    assert not [
+        arg
+        for arg in cmd
+        if arg.startswith(("--record_context_features", "--env.episode_length", "--env.render_every"))
+    ]
 
 
 def test_diffusion_policy_crops_ninety_percent_of_the_frame_and_ebvla_runs_are_unchanged():

@@ -15,6 +15,12 @@ edits are re-applied to each new model):
 and the sensor perturbations ("noise", "blur": `sensor.perturb_image`) on every camera's frame of every
 observation, with a generator seeded by `reset(seed=...)`.
 
+`render_every=N` (`--env.render_every`) renders the cameras only for the observations a chunked policy reads: the
+reset's and every N-th step's (N = the policy's `n_action_steps`); the steps between return the last frames. On two
+CPU cores rendering is most of a LIBERO rollout's time; the frames that are read are the ones rendered at
+`render_every=1`, so results do not change. A policy that reads every frame (Diffusion Policy's observation
+history) needs the default 1.
+
 Every perturbation is graded by a severity 1..5 (0: none). The camera magnitudes are LIBERO-Plus's ranges
 (horizontal 0-75 deg, vertical 0-15 deg, distance x1.0-2.0, turn 0-10 deg) scaled by severity / 5; the
 constants below are tabulated in docs/libero.md. Import this module only once LIBERO is set up
@@ -35,7 +41,12 @@ from scipy.spatial.transform import Rotation
 
 from ..lerobot_private import get_libero_suite, lazy_async_vector_env, select_libero_task_ids
 from .lighting import LIGHT_INTENSITY_PERTURBATIONS, perturb_light_intensity
-from .perturbations import LIBERO_SENSOR_PERTURBATIONS, MAX_SEVERITY, check_libero_perturbation
+from .perturbations import (
+    LIBERO_SENSOR_PERTURBATIONS,
+    MAX_SEVERITY,
+    check_libero_perturbation,
+    check_render_every,
+)
 from .sensor import perturb_image
 
 # The MuJoCo camera behind LeRobot's `agentview_image` (`observation.images.image`).
@@ -248,20 +259,67 @@ def goal_distance(scene: Any) -> float:
     return float(np.linalg.norm(obj - container))
 
 
+class FrameGate:
+    """Stands in for a robosuite simulator's `render`: while `skip` is set, a camera that rendered before returns
+    its last frame instead of drawing a new one.
+
+    robosuite renders every camera at each env step, whether or not anyone reads the frame; the frame is taken at
+    the step's first physics substep. Gating the render call itself (rather than forcing a render after the step)
+    keeps the frames that are drawn identical to those of an ungated env.
+    """
+
+    def __init__(self):
+        self.skip = False
+        self._last: dict[Any, np.ndarray] = {}
+        self._gated_sim: Any = None
+
+    def attach(self, sim: Any) -> None:
+        """Gates `sim.render`; a hard reset builds a new simulator, which is gated again."""
+        if sim is self._gated_sim:
+            return
+        render = sim.render
+
+        def gated_render(*args: Any, **kwargs: Any) -> np.ndarray:
+            key = (args, tuple(sorted(kwargs.items())))
+            if self.skip and key in self._last:
+                return self._last[key]
+            frame = render(*args, **kwargs)
+            self._last[key] = frame
+            return frame
+
+        sim.render = gated_render
+        self._gated_sim = sim
+
+
 class LiberoEBVLAGymEnv(LiberoEnv):
     """LeRobot's `LiberoEnv` with the scene perturbation of `LiberoEBVLAEnv` (see its docstring).
 
     Args:
         perturbation: A name of `perturbations.LIBERO_PERTURBATIONS`.
         perturbation_severity: 0 (no change) to 5.
+        render_every: Render the cameras for the reset's observation and every `render_every`-th step's only
+            (the module docstring); 1 renders every step, as LeRobot's env.
         *args, **kwargs: LeRobot's `LiberoEnv` arguments.
     """
 
-    def __init__(self, *args: Any, perturbation: str = "none", perturbation_severity: int = 0, **kwargs: Any):
+    def __init__(
+        self,
+        *args: Any,
+        perturbation: str = "none",
+        perturbation_severity: int = 0,
+        render_every: int = 1,
+        **kwargs: Any,
+    ):
         check_libero_perturbation(perturbation, perturbation_severity)
+        check_render_every(render_every)
         super().__init__(*args, **kwargs)
         self.perturbation = perturbation
         self.perturbation_severity = perturbation_severity
+        self.render_every = render_every
+        self._frames = FrameGate()
+        # Settling steps of the reset still to come (LeRobot's `num_steps_wait`), then policy steps taken.
+        self._settling_left = 0
+        self._steps = 0
         self._perturbed_model: mujoco.MjModel | None = None
         # Draws the sensor noise; reseeded by `reset(seed=...)`.
         self._sensor_rng = np.random.default_rng(0)
@@ -277,16 +335,29 @@ class LiberoEBVLAGymEnv(LiberoEnv):
         if self._env is not None:
             return
         super()._ensure_env()
-        reset_scene = self._env.reset
+        reset_scene, step_scene = self._env.reset, self._env.step
 
         def reset_scene_and_perturb() -> dict[str, Any]:
             # LeRobot's `reset` then sets the initial state and steps the simulator to let objects settle, so
             # the observation it returns is rendered from the perturbed model by LIBERO's own step.
             observation = reset_scene()
             self._perturb_current_model()
+            if self.render_every > 1:
+                self._frames.attach(self._env.env.sim)
             return observation
 
+        def step_rendering_what_is_read(action: np.ndarray) -> tuple:
+            if self._settling_left > 0:  # only the last settling step's frame is the reset's observation
+                self._settling_left -= 1
+                self._frames.skip = self._settling_left > 0
+            else:
+                self._steps += 1
+                self._frames.skip = self._steps % self.render_every != 0
+            return step_scene(action)
+
         self._env.reset = reset_scene_and_perturb
+        if self.render_every > 1:
+            self._env.step = step_rendering_what_is_read
         # Runs at `close()`, or when the env is collected unclosed; it holds LIBERO's env, not this one.
         self._free_render_context = weakref.finalize(self, free_render_context, self._env)
         self._free_render_context.atexit = False
@@ -310,6 +381,9 @@ class LiberoEBVLAGymEnv(LiberoEnv):
     def reset(self, seed: int | None = None, **kwargs: Any) -> tuple[dict[str, Any], dict[str, Any]]:
         self._activate()
         self._sensor_rng = np.random.default_rng(seed)
+        # Before the settling steps, frames are drawn for nobody (with none, the initial state's frame is read).
+        self._settling_left, self._steps = self.num_steps_wait, 0
+        self._frames.skip = self.render_every > 1 and self.num_steps_wait > 0
         observation, info = super().reset(seed=seed, **kwargs)
         return observation, self._with_goal_distance(info)
 

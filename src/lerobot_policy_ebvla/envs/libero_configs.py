@@ -18,7 +18,7 @@ from lerobot.envs.configs import LiberoEnv as LeRobotLiberoEnvConfig
 
 from ..lerobot_private import make_vec_env_cls
 from .libero_assets import require_libero_ready
-from .perturbations import check_libero_perturbation
+from .perturbations import check_libero_perturbation, check_render_every
 
 
 @EnvConfig.register_subclass("libero_ebvla")
@@ -37,6 +37,11 @@ class LiberoEBVLAEnv(LeRobotLiberoEnvConfig):
             "rotation", "fov"; lighting "light_dim", "light_bright", "light_color", "light_direction".
         perturbation_severity: Severity level, 0 (no change) to 5. At 0 `perturbation` is set to "none", so
             `perturbation` always names the perturbation actually applied (what energy records store).
+        render_every: Render the cameras only for the reset's observation and every `render_every`-th step's:
+            set it to the policy's `n_action_steps` (a chunked policy reads no frame in between) to halve a
+            CPU rollout's time with the same results; 1 (the default) renders every step, as `--env.type=libero`.
+            A policy that reads every frame (Diffusion Policy's observation history) needs 1. `ebvla-eval`
+            raises if a chunk is refined from a frame that was not rendered.
         first_init_state: LIBERO's initial state of each task's first episode. LeRobot starts env i of a
             task at initial state i and steps by the number of envs at each reset; this shifts that count, so
             that episodes 10-19 of a task (say) run in a process of their own, from the same states as in one
@@ -46,6 +51,7 @@ class LiberoEBVLAEnv(LeRobotLiberoEnvConfig):
     task: str = "libero_object"
     perturbation: str = "none"
     perturbation_severity: int = 0
+    render_every: int = 1
     first_init_state: int = 0
 
     def __post_init__(self):
@@ -53,6 +59,7 @@ class LiberoEBVLAEnv(LeRobotLiberoEnvConfig):
         check_libero_perturbation(self.perturbation, self.perturbation_severity)
         if self.perturbation_severity == 0:
             self.perturbation = "none"
+        check_render_every(self.render_every)
         if self.first_init_state < 0:
             raise ValueError(f"`first_init_state` must be >= 0, got {self.first_init_state}.")
 
@@ -62,6 +69,7 @@ class LiberoEBVLAEnv(LeRobotLiberoEnvConfig):
             **super().gym_kwargs,
             "perturbation": self.perturbation,
             "perturbation_severity": self.perturbation_severity,
+            "render_every": self.render_every,
             "first_init_state": self.first_init_state,
         }
 

@@ -75,6 +75,9 @@ class WatchedVecEnv:
         self.task = ""
         # Each sub-env's `info["goal_distance"]` of its last reset or step: the observation a chunk is refined from.
         self.goal_distances: list[float | None] = [None] * env.num_envs
+        # An env that renders only every N-th step's frames (our LIBERO env's `render_every`): 1 renders all.
+        # Asked at the first reset, when an async env's workers run.
+        self.render_every = 1
 
     def __getattr__(self, name: str) -> Any:
         if name == "_env":  # not set yet (e.g. while unpickling): avoid recursing
@@ -84,6 +87,7 @@ class WatchedVecEnv:
     def reset(self, **kwargs: Any) -> Any:
         result = self._env.reset(**kwargs)
         self.goal_distances = _goal_distances(result[1], self.num_envs)
+        self.render_every = _render_every(self._env)
         seeds = kwargs.get("seed")
         self.batch_index += 1
         self.step_index = 0
@@ -104,6 +108,15 @@ class WatchedVecEnv:
 
     def close(self) -> None:
         self._env.close()
+
+
+def _render_every(env: Any) -> int:
+    """The sub-envs' `render_every` (1 where they have none, or where an async env cannot be asked)."""
+    try:
+        values = env.get_attr("render_every")
+    except (AttributeError, NotImplementedError):
+        return 1
+    return max(int(value) for value in values)
 
 
 def _goal_distances(info: Any, num_envs: int) -> list[float | None]:
@@ -215,6 +228,14 @@ class EnergyRecorder:
         env = self.watching
         if env is None:
             raise RuntimeError("Energies were produced for an env that `EnergyRecorder.watch` did not wrap.")
+        if env.step_index % env.render_every:
+            # The frames between rendered steps are the last rendered ones: this chunk would be refined from a
+            # stale observation, and its rollout would not be the one an env rendering every step gives.
+            raise RuntimeError(
+                f"A chunk was refined from the observation of env step {env.step_index}, which the env did not "
+                f"render (`render_every={env.render_every}`): set `--env.render_every` to the policy's "
+                "n_action_steps, or to 1."
+            )
         initial, final = _per_env(readout.initial_energy), _per_env(readout.final_energy)
         if len(initial) != env.num_envs or len(final) != env.num_envs:
             raise ValueError(
