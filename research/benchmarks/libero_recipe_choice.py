@@ -5,7 +5,8 @@ records alone: held-out vanilla success, and over each rollout's first 3 chunks 
 score under each of the 13 shift conditions (held-out vanilla against the condition), the balanced accuracy at the
 shipped threshold (T = mu_v + 1 sigma_v on the calibration rollouts) and that threshold's alarm rate on held-out
 vanilla. Then the rule: eligible runs (success >= 90 %), the highest minimum AUROC, ties within 0.03 broken by the
-balanced accuracy, then by the lower alarm rate.
+balanced accuracy, then by the lower alarm rate; clause 4 names the chosen run's miss (a minimum AUROC below 0.5 or a
+balanced accuracy below 80 %), and `--not_run` the candidates without records.
 
     python research/benchmarks/libero_recipe_choice.py --results=research/results/libero_cpu \\
         --runs ebvla_cpu ebvla_joint_cpu ebvla_joint_all_cpu
@@ -26,6 +27,9 @@ SHIFTS = [f"{p}{s}" for p in ("pose", "distance", "rotation", "fov") for s in (5
 FIRST_CHUNKS = 3
 MIN_SUCCESS = 0.9
 TIE = 0.03
+# Clause 4: below either, the chosen run still goes to the ten-task check, its miss named.
+GOOD_MIN_AUROC = 0.5
+GOOD_BALANCED_ACCURACY = 0.8
 
 
 @dataclass
@@ -97,6 +101,17 @@ def choose(criteria: list[RunCriteria]) -> RunCriteria | None:
     return max(tied, key=lambda c: (c.balanced_accuracy, -c.heldout_alarm_rate))
 
 
+def clause_4_misses(chosen: RunCriteria) -> list[str]:
+    """What keeps the chosen run from being good enough (clause 4), each with its number; empty when nothing."""
+    misses = []
+    if chosen.min_auroc < GOOD_MIN_AUROC:
+        worst = min(chosen.auroc_per_condition, key=chosen.auroc_per_condition.get)
+        misses.append(f"minimum AUROC {chosen.min_auroc:.3f} ({worst}) < {GOOD_MIN_AUROC}")
+    if chosen.balanced_accuracy < GOOD_BALANCED_ACCURACY:
+        misses.append(f"balanced accuracy {100 * chosen.balanced_accuracy:.1f}% < {100 * GOOD_BALANCED_ACCURACY:.0f}%")
+    return misses
+
+
 def monitor_score(results: Path, run: str) -> str:
     """The score the run's checkpoint saved (`monitor.score`), "final_energy" for one saved before it existed."""
     config = results / "train" / run / "last" / "pretrained_model" / "config.json"
@@ -110,6 +125,9 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--results", type=Path, required=True)
     parser.add_argument("--runs", nargs="+", required=True)
+    parser.add_argument(
+        "--not_run", nargs="*", default=[], help="candidates of the rule without records, named in the output"
+    )
     parser.add_argument("--output_dir", type=Path, default=Path("outputs/libero_recipe_choice"))
     args = parser.parse_args(argv)
     criteria = [
@@ -125,9 +143,19 @@ def main(argv: list[str] | None = None) -> None:
             f"| {c.run} | {c.score} | {c.heldout_success[0]}/{c.heldout_success[1]} | {c.min_auroc:.3f} ({worst}) "
             f"| {100 * c.balanced_accuracy:.1f}% | {100 * c.heldout_alarm_rate:.1f}% |"
         )
+    misses = clause_4_misses(chosen) if chosen else []
     print(f"\nchosen: {chosen.run if chosen else 'none eligible'}")
+    if misses:
+        print("not good enough (clause 4): " + "; ".join(misses))
+    if args.not_run:
+        print("not run: " + ", ".join(args.not_run))
     args.output_dir.mkdir(parents=True, exist_ok=True)
-    payload = {"criteria": [asdict(c) for c in criteria], "chosen": chosen.run if chosen else None}
+    payload = {
+        "criteria": [asdict(c) for c in criteria],
+        "chosen": chosen.run if chosen else None,
+        "clause_4_misses": misses,
+        "not_run": args.not_run,
+    }
     (args.output_dir / "choice.json").write_text(json.dumps(payload, indent=1))
 
 

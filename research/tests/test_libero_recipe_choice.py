@@ -1,6 +1,8 @@
 """The LIBERO recipe choice rule (research/docs/libero_recipe_rule.md): its arithmetic, and the reference run's
 criteria recomputed from the committed records."""
 
+import json
+
 import pytest
 
 from research.tests.conftest import RESULTS, load_benchmark
@@ -43,3 +45,26 @@ def test_the_reference_run_is_eligible_and_its_paper_energy_is_confidently_inver
     assert min(got.auroc_per_condition, key=got.auroc_per_condition.get) == "pose 3"
     assert got.balanced_accuracy == pytest.approx(0.529, abs=5e-4)
     assert got.heldout_alarm_rate == pytest.approx(11 / 60)
+
+
+def test_clause_4_names_each_miss_with_its_number():
+    assert choice.clause_4_misses(criteria("good", (60, 60), 0.5, 0.8, 0.1)) == []
+    misses = choice.clause_4_misses(criteria("weak", (60, 60), 0.36, 0.79, 0.1))
+    assert misses == ["minimum AUROC 0.360 (pose 5) < 0.5", "balanced accuracy 79.0% < 80%"]
+
+
+def test_candidate_c_is_recomputed_from_its_records_and_the_committed_choice_matches(tmp_path):
+    """C (`ebvla_joint_fast_cpu`, context_phase_energy): 59/60 held out, 1.000 under every camera condition over the
+    first 3 chunks and 0.360 under light_dim 5, a balanced accuracy of 90.6 % at T; the committed choice is C, its
+    clause 4 miss named, A and B not run."""
+    results = RESULTS / "libero_recipe"
+    assert choice.monitor_score(results, "ebvla_joint_fast_cpu") == "context_phase_energy"
+    got = choice.run_criteria(results, "ebvla_joint_fast_cpu", "context_phase_energy", tmp_path)
+    assert got.heldout_success == (59, 60)
+    assert all(v == 1.0 for c, v in got.auroc_per_condition.items() if c != "light_dim 5")
+    assert got.min_auroc == pytest.approx(0.360, abs=5e-4)
+    assert got.balanced_accuracy == pytest.approx(0.906, abs=5e-4)
+    committed = json.loads((results / "choice" / "choice.json").read_text())
+    assert committed["chosen"] == choice.choose([got]).run == "ebvla_joint_fast_cpu"
+    assert committed["clause_4_misses"] == choice.clause_4_misses(got)
+    assert set(committed["not_run"]) == {"ebvla_joint_cpu", "ebvla_joint_all_cpu"}
