@@ -315,3 +315,70 @@ def test_blur_is_the_same_fraction_of_a_smaller_frame():
         return np.count_nonzero((row > 25.5) & (row < 229.5))
 
     assert ramp(row_large) == pytest.approx(4 * ramp(row_small), rel=0.4)
+
+
+def _frames_of_a_moving_arm(render_every: int, perturbation: str, steps: int) -> list[np.ndarray]:
+    """The observed frames of reset(seed=0) and `steps` steps of a hand moving sideways in view."""
+    from lerobot_policy_ebvla.envs.metaworld import MetaworldEBVLAGymEnv
+
+    severity = 0 if perturbation == "none" else 3
+    env = MetaworldEBVLAGymEnv(
+        task=TASK,
+        fast_render=True,
+        observation_size=64,
+        perturbation=perturbation,
+        perturbation_severity=severity,
+        render_every=render_every,
+    )
+    try:
+        observation, _ = env.reset(seed=0)
+        frames = [observation["pixels"].copy()]
+        for _ in range(steps):
+            observation, *_ = env.step(np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float32))
+            frames.append(observation["pixels"].copy())
+        return frames
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("perturbation", ["none", "noise", "distractor"])
+def test_rendering_every_n_th_step_draws_the_frames_a_chunked_policy_reads_unchanged(perturbation):
+    """`render_every=4` draws the reset's frame and every 4th step's, pixel for pixel those of an env that draws
+    every step (the sensor noise is drawn alike on every step; a distractor is in every drawn frame); the steps
+    between repeat the last drawn frame."""
+    pytest.importorskip("metaworld")
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    every = _frames_of_a_moving_arm(1, perturbation, 8)
+    fourth = _frames_of_a_moving_arm(4, perturbation, 8)
+    for step in (0, 4, 8):
+        np.testing.assert_array_equal(every[step], fourth[step])
+    if perturbation == "none":
+        assert np.abs(every[3].astype(int) - every[0]).mean() > 0.5  # the arm moved in view
+        np.testing.assert_array_equal(fourth[3], fourth[0])
+
+
+def test_render_every_is_checked_and_passed_to_the_env():
+    with pytest.raises(ValueError, match="render_every"):
+        MetaworldEBVLAEnv(task="push-v3", render_every=0)
+    assert MetaworldEBVLAEnv(task="push-v3", render_every=8).gym_kwargs["render_every"] == 8
+
+
+def test_a_video_frame_is_drawn_fresh_and_leaves_the_observed_frames_as_they_were():
+    pytest.importorskip("metaworld")
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from lerobot_policy_ebvla.envs.metaworld import MetaworldEBVLAGymEnv
+
+    env = MetaworldEBVLAGymEnv(task=TASK, fast_render=True, observation_size=64, render_every=4)
+    try:
+        first, _ = env.reset(seed=0)
+        move = np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float32)
+        for _ in range(3):
+            observation, *_ = env.step(move)
+        video = env.render()
+        assert np.abs(video.astype(int) - first["pixels"]).mean() > 0.5  # the arm has moved since the reset
+        observation, *_ = env.step(move)  # step 4's frame is drawn...
+        np.testing.assert_array_equal(
+            _frames_of_a_moving_arm(1, "none", 4)[4], observation["pixels"]
+        )  # ...as an ungated env draws it
+    finally:
+        env.close()

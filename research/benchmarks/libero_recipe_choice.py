@@ -108,7 +108,9 @@ def clause_4_misses(chosen: RunCriteria) -> list[str]:
         worst = min(chosen.auroc_per_condition, key=chosen.auroc_per_condition.get)
         misses.append(f"minimum AUROC {chosen.min_auroc:.3f} ({worst}) < {GOOD_MIN_AUROC}")
     if chosen.balanced_accuracy < GOOD_BALANCED_ACCURACY:
-        misses.append(f"balanced accuracy {100 * chosen.balanced_accuracy:.1f}% < {100 * GOOD_BALANCED_ACCURACY:.0f}%")
+        misses.append(
+            f"balanced accuracy {100 * chosen.balanced_accuracy:.1f}% < {100 * GOOD_BALANCED_ACCURACY:.0f}%"
+        )
     return misses
 
 

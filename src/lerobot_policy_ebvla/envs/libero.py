@@ -40,13 +40,9 @@ from lerobot.envs.utils import parse_camera_names
 from scipy.spatial.transform import Rotation
 
 from ..lerobot_private import get_libero_suite, lazy_async_vector_env, select_libero_task_ids
+from .frames import FrameGate, check_render_every
 from .lighting import LIGHT_INTENSITY_PERTURBATIONS, perturb_light_intensity
-from .perturbations import (
-    LIBERO_SENSOR_PERTURBATIONS,
-    MAX_SEVERITY,
-    check_libero_perturbation,
-    check_render_every,
-)
+from .perturbations import LIBERO_SENSOR_PERTURBATIONS, MAX_SEVERITY, check_libero_perturbation
 from .sensor import perturb_image
 
 # The MuJoCo camera behind LeRobot's `agentview_image` (`observation.images.image`).
@@ -257,38 +253,6 @@ def goal_distance(scene: Any) -> float:
         return float("nan")
     obj, container = (np.asarray(scene.sim.data.body_xpos[scene.obj_body_id[name]]) for name in pair)
     return float(np.linalg.norm(obj - container))
-
-
-class FrameGate:
-    """Stands in for a robosuite simulator's `render`: while `skip` is set, a camera that rendered before returns
-    its last frame instead of drawing a new one.
-
-    robosuite renders every camera at each env step, whether or not anyone reads the frame; the frame is taken at
-    the step's first physics substep. Gating the render call itself (rather than forcing a render after the step)
-    keeps the frames that are drawn identical to those of an ungated env.
-    """
-
-    def __init__(self):
-        self.skip = False
-        self._last: dict[Any, np.ndarray] = {}
-        self._gated_sim: Any = None
-
-    def attach(self, sim: Any) -> None:
-        """Gates `sim.render`; a hard reset builds a new simulator, which is gated again."""
-        if sim is self._gated_sim:
-            return
-        render = sim.render
-
-        def gated_render(*args: Any, **kwargs: Any) -> np.ndarray:
-            key = (args, tuple(sorted(kwargs.items())))
-            if self.skip and key in self._last:
-                return self._last[key]
-            frame = render(*args, **kwargs)
-            self._last[key] = frame
-            return frame
-
-        sim.render = gated_render
-        self._gated_sim = sim
 
 
 class LiberoEBVLAGymEnv(LiberoEnv):

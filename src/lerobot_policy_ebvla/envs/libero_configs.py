@@ -17,8 +17,9 @@ from lerobot.envs.configs import EnvConfig
 from lerobot.envs.configs import LiberoEnv as LeRobotLiberoEnvConfig
 
 from ..lerobot_private import make_vec_env_cls
+from .frames import check_render_every
 from .libero_assets import require_libero_ready
-from .perturbations import check_libero_perturbation, check_render_every
+from .perturbations import check_libero_perturbation
 
 
 @EnvConfig.register_subclass("libero_ebvla")

@@ -28,6 +28,7 @@ import numpy as np
 from lerobot.envs.metaworld import DIFFICULTY_TO_TASKS, MetaworldEnv
 
 from ..lerobot_private import lazy_async_vector_env
+from .frames import FrameGate, check_render_every
 from .lighting import LIGHT_INTENSITY_PERTURBATIONS, perturb_light_intensity
 from .perturbations import CAMERA_PERTURBATIONS, MAX_SEVERITY, check_perturbation
 from .sensor import perturb_image
@@ -276,6 +277,9 @@ class MetaworldEBVLAGymEnv(MetaworldEnv):
     It also keeps MetaWorld's 39-d state of the last observation (`state_obs`), which the scripted expert
     policies (`expert_policy.get_action(state_obs)`) act on. The sensor perturbations change the observed
     `pixels` only; `render()` (lerobot-eval's videos) shows the scene with its model edits and distractors.
+    `render_every=N` draws the observed frame at the reset and at every N-th step only (`envs.frames`); the
+    steps between observe the last one, through the sensor perturbation as every frame is. `render()` always
+    draws.
     """
 
     def __init__(
@@ -286,9 +290,11 @@ class MetaworldEBVLAGymEnv(MetaworldEnv):
         perturbation_severity: int = 0,
         max_episode_steps: int | None = None,
         observation_size: int | None = None,
+        render_every: int = 1,
         **kwargs: Any,
     ):
         check_perturbation(perturbation, perturbation_severity)
+        check_render_every(render_every)
         if observation_size is not None:
             kwargs.update(observation_width=observation_size, observation_height=observation_size)
         super().__init__(task, **kwargs)
@@ -302,6 +308,10 @@ class MetaworldEBVLAGymEnv(MetaworldEnv):
         # Draws the pixel noise and the hand's displacement; reseeded by `reset(seed=...)`.
         self._rng = np.random.default_rng(0)
         self._hand_init_pos: np.ndarray | None = None
+        self.render_every = render_every
+        self._frames = FrameGate()
+        # Policy steps taken since the reset: the frame of step t is drawn when t % render_every == 0.
+        self._steps = 0
 
     def _ensure_env(self) -> None:
         if self._env is not None:
@@ -315,6 +325,8 @@ class MetaworldEBVLAGymEnv(MetaworldEnv):
         if self.fast_render:
             disable_shadows_and_reflections(model)
         perturb_model(model, self.camera_name, self.perturbation, self.perturbation_severity)
+        if self.render_every > 1:
+            self._frames.attach(self._env)
         self._hand_init_pos = np.array(self._env.hand_init_pos, dtype=float)
         # Runs at `close()`, or when the env is collected unclosed; it holds the renderer, not the env.
         self._free_viewers = weakref.finalize(self, free_offscreen_viewers, self._env.mujoco_renderer)
@@ -333,7 +345,13 @@ class MetaworldEBVLAGymEnv(MetaworldEnv):
                 self._env.mocap_low,
                 self._env.mocap_high,
             )
+        self._steps, self._frames.skip = 0, False
         return super().reset(seed=seed, **kwargs)
+
+    def step(self, action: np.ndarray) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
+        self._steps += 1
+        self._frames.skip = self._steps % self.render_every != 0
+        return super().step(action)
 
     def _prepare_frame(self) -> None:
         """Makes this env's GL context current and queues the distractors, before each rendered frame."""
@@ -349,7 +367,8 @@ class MetaworldEBVLAGymEnv(MetaworldEnv):
     def render(self) -> np.ndarray:
         self._ensure_env()
         self._prepare_frame()
-        return super().render()
+        with self._frames.uncached():
+            return super().render()
 
     def close(self) -> None:
         if self._env is not None:
@@ -358,7 +377,9 @@ class MetaworldEBVLAGymEnv(MetaworldEnv):
 
     def _format_raw_obs(self, raw_obs: np.ndarray) -> dict[str, Any]:
         self.state_obs = raw_obs
-        self._prepare_frame()
+        if not self._frames.skip:
+            # Distractor markers queued for a frame that is not drawn would pile up into the next one.
+            self._prepare_frame()
         observation = super()._format_raw_obs(raw_obs)
         if not np.any(observation["pixels"]):
             # A lit scene never renders to exact zeros; an offscreen GL context that died does, and every

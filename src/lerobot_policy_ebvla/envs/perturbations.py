@@ -61,11 +61,3 @@ def check_perturbation(perturbation: str, severity: int) -> None:
 def check_libero_perturbation(perturbation: str, severity: int) -> None:
     """Raises a ValueError naming the field and its allowed values if a LIBERO perturbation is invalid."""
     _check(perturbation, severity, LIBERO_PERTURBATIONS)
-
-
-def check_render_every(render_every: int) -> None:
-    """Raises a ValueError naming `render_every` unless it is an int >= 1."""
-    if isinstance(render_every, bool) or not isinstance(render_every, int) or render_every < 1:
-        raise ValueError(
-            f"`render_every` must be an int >= 1 (the policy's n_action_steps, or 1), got {render_every!r}."
-        )

@@ -145,11 +145,12 @@ def metaworld_eval_env(
     perturbation: str = "none",
     severity: int = 0,
     observation_size: int | None = None,
+    render_every: int = 1,
 ) -> MetaworldEBVLAEnv:
     """The fast-render MetaWorld env of an evaluation; raises a ValueError naming an invalid perturbation.
 
     `observation_size` renders smaller frames than MetaWorld's 480 px: evaluate at the size the training data
-    was recorded at.
+    was recorded at. `render_every` draws only the frames a policy acting in chunks of that many steps reads.
     """
     return MetaworldEBVLAEnv(
         task=task,
@@ -158,7 +159,14 @@ def metaworld_eval_env(
         perturbation=perturbation,
         perturbation_severity=severity if perturbation != "none" else 0,
         observation_size=observation_size,
+        render_every=render_every,
     )
+
+
+def frames_read_every(policy: PreTrainedConfig) -> int:
+    """Every how many env steps the policy reads a frame: an `ebvla` policy refines a chunk every
+    `n_action_steps` from one observation; any other policy (Diffusion Policy's observation history) reads all."""
+    return policy.n_action_steps if policy.type == "ebvla" else 1
 
 
 def metaworld_eval_config(
@@ -173,6 +181,7 @@ def metaworld_eval_config(
     severity: int = 0,
     device: str | None = None,
     observation_size: int | None = None,
+    render_every: int | None = None,
     policy_overrides: Sequence[str] = (),
     **options: Any,
 ) -> EnergyEvalPipelineConfig:
@@ -190,6 +199,8 @@ def metaworld_eval_config(
         severity: Its severity, 1 to 5 (ignored for "none").
         device: The policy's torch device; None keeps the checkpoint's.
         observation_size: Side of the rendered frames (`--env.observation_size`); None: MetaWorld's 480 px.
+        render_every: Draw the frames of the reset and of every `render_every`-th step only
+            (`--env.render_every`); None: those the policy reads (`frames_read_every`). Results do not change.
         policy_overrides: `--policy.<field>=<value>` arguments without `policy.`, e.g. `["--num_restarts=4"]`.
         **options: Other `EnergyEvalPipelineConfig` fields, e.g. `normalized_energy_samples=16` or
             `restart_spread_chains=4`.
@@ -205,7 +216,14 @@ def metaworld_eval_config(
     eval_logger.setLevel(logging.ERROR)
     try:
         return EnergyEvalPipelineConfig(
-            env=metaworld_eval_env(task, max_episode_steps, perturbation, severity, observation_size),
+            env=metaworld_eval_env(
+                task,
+                max_episode_steps,
+                perturbation,
+                severity,
+                observation_size,
+                frames_read_every(policy) if render_every is None else render_every,
+            ),
             eval=EvalConfig(n_episodes=n_episodes, batch_size=1, use_async_envs=False),
             policy=policy,
             output_dir=Path(output_dir),
