@@ -6,6 +6,7 @@
   perturbations; the simulator side lives in `envs.libero` (needs the `libero` extra and
   `ebvla-install-libero-assets`, whose library part is `envs.libero_assets`).
 - `envs.perturbations`: the perturbation names of both envs and their check.
+- `envs.frames`: `render_every`, both envs drawing only the frames a chunked policy reads.
 """
 
 from .configs import MetaworldEBVLAEnv
