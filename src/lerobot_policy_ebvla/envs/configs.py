@@ -52,7 +52,7 @@ class MetaworldEBVLAEnv(LeRobotMetaworldEnvConfig):
         render_every: Draw the camera frame only at the reset and at every `render_every`-th step, the frames a
             policy acting in chunks of that many steps reads (its `n_action_steps`); the steps between observe
             the last frame. The frames drawn are those of 1 (every step, LeRobot's), so results do not change;
-            drawing is about 30 ms of a 31 ms step on a CPU core. A policy that reads every frame needs 1.
+            drawing was about 30 ms of a 32 ms step on a CPU core (2026-11-28). A policy that reads every frame needs 1.
     """
 
     task: str = "reach-v3"

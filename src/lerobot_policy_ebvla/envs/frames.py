@@ -2,7 +2,7 @@
 
 A policy that acts in chunks of N steps (`n_action_steps`) reads the reset's frame and every N-th step's; the env
 draws the others for nobody. On two CPU cores, with MuJoCo rendering in software, drawing is most of a rollout's
-time (LIBERO: 62 % of a step; MetaWorld: about 30 ms of a 31 ms step at 64-128 px). With `render_every=N` the env
+time (LIBERO: 62 % of a step; MetaWorld: about 30 ms of a 32 ms step at 64 px). With `render_every=N` the env
 draws the frames that are read, each exactly as with N = 1, and the steps between repeat the last ones.
 """
 
