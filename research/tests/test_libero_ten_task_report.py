@@ -1,0 +1,104 @@
+"""The ten-task check's report (`research/benchmarks/libero_ten_task_report.py`), on records made here: a shift
+that raises E_c and cuts success, one that lowers E_c and costs nothing."""
+
+import json
+
+import numpy as np
+import pytest
+
+from lerobot_policy_ebvla.monitoring.records import EnergyRecord, write_energy_records
+from research.tests.conftest import load_benchmark
+
+report = load_benchmark("libero_ten_task_report")
+
+RUN = "ebvla_joint_fast_cpu"
+# Condition folder: (seeds, E_c offset, context feature offset, success of each episode).
+SETS = {
+    "vanilla_calib": (range(0, 6), 0.0, 0.0, [True] * 6),
+    "vanilla_heldout": (range(10, 16), 0.0, 0.0, [True] * 5 + [False]),
+    "vanilla_fresh": (range(200000, 200003), 0.0, 0.0, [True, True, False]),
+    "pose5": (range(10, 13), 6.0, 4.0, [False, False, True]),
+    "light_dim5": (range(10, 13), -6.0, 4.0, [True] * 3),
+}
+
+
+def write_results(root):
+    rng = np.random.default_rng(0)
+    for folder, (seeds, offset, feature_offset, outcomes) in SETS.items():
+        perturbation, severity = (
+            ("none", 0) if folder.startswith("vanilla") else (folder.rstrip("0123456789"), int(folder[-1]))
+        )
+        for task in range(10):
+            records = [
+                EnergyRecord(
+                    episode_index=episode,
+                    chunk_index=chunk,
+                    env_step=8 * chunk,
+                    initial_energy=10.0,
+                    final_energy=float(rng.normal()),
+                    success=outcomes[episode],
+                    task=f"task {task}",
+                    seed=seed,
+                    perturbation=perturbation,
+                    severity=severity,
+                    context_energy=float(rng.normal() + offset),
+                    context_feature=(rng.normal(size=4) + feature_offset).astype(np.float32),
+                )
+                for episode, seed in enumerate(seeds)
+                for chunk in range(3)
+            ]
+            write_energy_records(root / "eval" / RUN / folder / f"task{task}" / "energy_records.jsonl", records)
+    config = root / "train" / RUN / "last" / "pretrained_model" / "config.json"
+    config.parent.mkdir(parents=True)
+    config.write_text(json.dumps({"monitor": {"score": "context_phase_energy"}}))
+    return root
+
+
+@pytest.fixture(scope="module")
+def groups(tmp_path_factory):
+    root = write_results(tmp_path_factory.mktemp("results"))
+    output = root / "report"
+    report.main([f"--results={root}", f"--run={RUN}", f"--output_dir={output}"])
+    saved = json.loads((output / "ten_task_report.json").read_text())
+    assert "## seven untouched: tasks 0, 1, 4, 5, 6, 7, 8" in (output / "ten_task_report.md").read_text()
+    return {group["group"]: group for group in saved}
+
+
+def test_each_group_counts_its_own_tasks_rollouts(groups):
+    assert list(groups) == ["all ten", "seven untouched", "three of the choice"]
+    for name, n_tasks in (("all ten", 10), ("seven untouched", 7), ("three of the choice", 3)):
+        success = groups[name]["success"]
+        assert success["fixed initial states"] == {"wins": 5 * n_tasks, "n": 6 * n_tasks}
+        assert success["fresh placements"] == {"wins": 2 * n_tasks, "n": 3 * n_tasks}
+        assert groups[name]["success_per_condition"]["pose 5"] == {"wins": n_tasks, "n": 3 * n_tasks}
+
+
+def test_the_one_sided_monitor_is_confidently_wrong_where_e_c_falls_and_the_targets_say_so(groups):
+    rows = {row["score"]: row for row in groups["all ten"]["rows"]}
+    assert [row["score"] for row in groups["all ten"]["rows"]][0] == "context_phase_energy"
+    monitor, two_sided = rows["context_phase_energy"], rows["context_energy_two_sided"]
+    assert monitor["auroc_per_condition"] == {"light_dim 5": 0.0, "pose 5": 1.0}
+    assert two_sided["auroc_per_condition"] == {"light_dim 5": 1.0, "pose 5": 1.0}
+    assert rows["context_knn"]["auroc_per_condition"]["light_dim 5"] == 1.0
+    targets = {target: (measured, met) for target, measured, met in groups["all ten"]["targets"]}
+    assert targets["AUROC >= 0.5 under every condition"] == ("lowest 0.000 (light_dim 5)", False)
+    # Pose 5 cuts success from 83 % to 33 %: it must reach 0.85, and does.
+    assert targets["AUROC >= 0.85 where success falls 20+ points"] == ("lowest 1.000 (pose 5) of 1", True)
+    measured, met = targets["not below context_knn outside its interval"]
+    assert not met and measured.endswith("against 1.000")
+    assert targets["success on the fixed initial states >= 90%"][1] is False
+    assert targets["success on fresh placements >= 80%"][1] is False
+    assert "success on the fixed initial states >= 90%" not in {t for t, _, _ in groups["seven untouched"]["targets"]}
+
+
+def test_alarms_are_counted_at_the_calibration_threshold_on_both_vanilla_sets(groups):
+    for row in groups["all ten"]["rows"]:
+        assert 0.0 <= row["heldout_alarm_rate"] <= 1.0 and row["fresh_alarm_rate"] is not None
+    monitor = groups["all ten"]["rows"][0]
+    # Half the shifted rollouts (pose) are far above T, the other half far below it.
+    assert monitor["balanced_accuracy"] == pytest.approx(0.5 * (0.5 + 1.0 - monitor["heldout_alarm_rate"]))
+
+
+def test_shift_folders_read_as_the_ood_reports_conditions():
+    assert report.condition_name("light_dim5") == "light_dim 5"
+    assert report.condition_name("pose1") == "pose 1"
