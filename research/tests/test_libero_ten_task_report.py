@@ -47,7 +47,9 @@ def write_results(root):
                 for episode, seed in enumerate(seeds)
                 for chunk in range(3)
             ]
-            write_energy_records(root / "eval" / RUN / folder / f"task{task}" / "energy_records.jsonl", records)
+            write_energy_records(
+                root / "eval" / RUN / folder / f"task{task}" / "energy_records.jsonl", records
+            )
     config = root / "train" / RUN / "last" / "pretrained_model" / "config.json"
     config.parent.mkdir(parents=True)
     config.write_text(json.dumps({"monitor": {"score": "context_phase_energy"}}))
@@ -88,7 +90,9 @@ def test_the_one_sided_monitor_is_confidently_wrong_where_e_c_falls_and_the_targ
     assert not met and measured.endswith("against 1.000")
     assert targets["success on the fixed initial states >= 90%"][1] is False
     assert targets["success on fresh placements >= 80%"][1] is False
-    assert "success on the fixed initial states >= 90%" not in {t for t, _, _ in groups["seven untouched"]["targets"]}
+    assert "success on the fixed initial states >= 90%" not in {
+        t for t, _, _ in groups["seven untouched"]["targets"]
+    }
 
 
 def test_alarms_are_counted_at_the_calibration_threshold_on_both_vanilla_sets(groups):
@@ -102,3 +106,22 @@ def test_alarms_are_counted_at_the_calibration_threshold_on_both_vanilla_sets(gr
 def test_shift_folders_read_as_the_ood_reports_conditions():
     assert report.condition_name("light_dim5") == "light_dim 5"
     assert report.condition_name("pose1") == "pose 1"
+
+
+def test_on_the_three_task_records_it_agrees_with_the_choice_and_leaves_out_the_unevaluated_tasks(tmp_path):
+    """C's committed three-task records: the report's "all ten" group holds tasks 2, 3 and 9 only, the seven
+    untouched are left out, and the monitor's row is the choice rule's (computed by other code)."""
+    from research.tests.conftest import RESULTS
+
+    report.main([f"--results={RESULTS / 'libero_recipe'}", f"--run={RUN}", f"--output_dir={tmp_path}"])
+    saved = {g["group"]: g for g in json.loads((tmp_path / "ten_task_report.json").read_text())}
+    assert list(saved) == ["all ten", "three of the choice"] and saved["all ten"]["tasks"] == [2, 3, 9]
+    monitor = saved["all ten"]["rows"][0]
+    choice = load_benchmark("libero_recipe_choice")
+    expected = choice.run_criteria(
+        RESULTS / "libero_recipe", RUN, "context_phase_energy", tmp_path / "choice"
+    )
+    assert monitor["score"] == "context_phase_energy"
+    assert monitor["auroc_per_condition"] == pytest.approx(expected.auroc_per_condition)
+    assert monitor["balanced_accuracy"] == pytest.approx(expected.balanced_accuracy)
+    assert monitor["heldout_alarm_rate"] == pytest.approx(expected.heldout_alarm_rate)
