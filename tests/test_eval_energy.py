@@ -19,7 +19,11 @@ from lerobot_policy_ebvla.modeling_ebvla import EBVLAPolicy, EnergyReadout
 from lerobot_policy_ebvla.monitoring.baselines import available_scores
 from lerobot_policy_ebvla.monitoring.recorder import EnergyRecorder
 from lerobot_policy_ebvla.monitoring.records import read_energy_records, write_energy_records
-from lerobot_policy_ebvla.pipelines.eval_energy import env_perturbation, metaworld_eval_config
+from lerobot_policy_ebvla.pipelines.eval_energy import (
+    env_perturbation,
+    frames_read_every,
+    metaworld_eval_config,
+)
 
 from .conftest import tiny_batch, tiny_config
 
@@ -277,6 +281,21 @@ def test_metaworld_eval_config_applies_the_perturbation_and_the_extra_options(tm
     assert (cfg.env.perturbation, cfg.env.perturbation_severity) == ("light_dim", 4)
     assert cfg.env.task == "push-v3" and cfg.env.fast_render and cfg.env.max_episode_steps == 40
     assert (cfg.eval.n_episodes, cfg.eval.batch_size, cfg.seed) == (3, 1, 2000)
+
+
+def test_metaworld_eval_config_draws_only_the_frames_an_ebvla_policy_reads_unless_told(tmp_path):
+    config = tiny_config()
+    config.n_action_steps = 4
+    config.save_pretrained(tmp_path / "pretrained_model")
+    common = {"task": "push-v3", "device": "cpu", "max_episode_steps": 40, "n_episodes": 1, "seed": 0}
+
+    assert (
+        metaworld_eval_config(tmp_path / "pretrained_model", tmp_path / "a", **common).env.render_every == 4
+    )
+    told = metaworld_eval_config(tmp_path / "pretrained_model", tmp_path / "b", render_every=1, **common)
+    assert told.env.render_every == 1
+    # Diffusion Policy reads a history of frames: every one is drawn.
+    assert frames_read_every(SimpleNamespace(type="diffusion", n_action_steps=8)) == 1
 
 
 def test_recorder_records_the_joint_energys_context_term_apart(tmp_path):
