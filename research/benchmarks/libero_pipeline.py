@@ -244,6 +244,10 @@ def record(
             cmd.append(f"--placement_seed={placement_seed}")
         return run_logged(cmd, work / "logs" / f"record_{root.name}.log")
 
+    recorded_before = all(
+        (work / "data" / f"task{task}_from{first}" / "meta" / "recording_report.json").exists()
+        for task, first, _ in pieces
+    )
     start = time.time()
     with ThreadPoolExecutor(jobs) as pool:
         statuses = list(pool.map(record_piece, pieces))
@@ -279,8 +283,12 @@ def record(
         entry["attempts"] += report["n_attempted"]
         entry["kept"] += report["n_kept"]
         entry["steps_of_kept"] += [ep["n_steps"] for ep in report["episodes"] if ep["kept"]]
-    summary["seconds"] = round(time.time() - start, 1)
-    (work / "recording_summary.json").write_text(json.dumps(summary, indent=1))
+    # Pieces restored from saved results were recorded by an earlier session: its recording time stands, and
+    # aggregating them again adds nothing to it.
+    path = work / "recording_summary.json"
+    earlier = json.loads(path.read_text()).get("seconds", 0.0) if path.exists() else 0.0
+    summary["seconds"] = round(earlier + (0.0 if recorded_before else time.time() - start), 1)
+    path.write_text(json.dumps(summary, indent=1))
     return merged
 
 

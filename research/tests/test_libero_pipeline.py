@@ -527,3 +527,24 @@ def test_pipeline_records_trains_evaluates_and_packs_a_tiny_libero_object_run(tm
         assert f"eval/ebvla_paper/{condition}/task0/energy_records.jsonl" in names
     assert "train/ebvla_paper/pretrained_model/model.safetensors" in names
     assert not [name for name in names if name.endswith(".parquet")]
+
+
+def test_aggregating_restored_pieces_keeps_the_recordings_own_time(tmp_path, monkeypatch):
+    """A session that restores the recorded pieces aggregates them again: the summary keeps the recording's time,
+    which `save` would otherwise overwrite in the committed results."""
+    import lerobot.datasets.aggregate
+
+    work = tmp_path / "work"
+    report = {
+        "n_kept": 1,
+        "n_attempted": 2,
+        "success_rate_per_task": {"pick up the salad dressing": 0.5},
+        "episodes": [{"n_steps": 120, "kept": True}, {"n_steps": 300, "kept": False}],
+    }
+    write_json(work / "data" / "task2_from0" / "meta" / "recording_report.json", report)
+    write_json(work / "recording_summary.json", {"image_size": 128, "seconds": 8431.7})
+    monkeypatch.setattr(pipeline, "run_logged", lambda cmd, log: pytest.fail(f"recorded again: {cmd}"))
+    monkeypatch.setattr(lerobot.datasets.aggregate, "aggregate_datasets", lambda **kwargs: None)
+    pipeline.record(work, [2], 1, 128, jobs=1)
+    summary = json.loads((work / "recording_summary.json").read_text())
+    assert summary["seconds"] == 8431.7 and summary["tasks"]["2"]["kept"] == 1
