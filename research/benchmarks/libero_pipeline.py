@@ -190,6 +190,11 @@ def run_logged(cmd: list[str], log: Path, timeout_s: float | None = None) -> int
 # Record ------------------------------------------------------------------------------------------------------
 
 
+def piece_report(work: Path, task: int, first: int) -> Path:
+    """The recorder's report of a piece (task, first initial state): it exists once the piece is recorded."""
+    return work / "data" / f"task{task}_from{first}" / "meta" / "recording_report.json"
+
+
 def record(
     work: Path,
     tasks: list[int],
@@ -223,7 +228,7 @@ def record(
     def record_piece(piece: tuple[int, int, int]) -> int:
         task, first, n = piece
         root = work / "data" / f"task{task}_from{first}"
-        if (root / "meta" / "recording_report.json").exists():
+        if piece_report(work, task, first).exists():
             return 0
         cmd = [
             bin_path("ebvla-record-libero"),
@@ -244,17 +249,14 @@ def record(
             cmd.append(f"--placement_seed={placement_seed}")
         return run_logged(cmd, work / "logs" / f"record_{root.name}.log")
 
-    recorded_before = all(
-        (work / "data" / f"task{task}_from{first}" / "meta" / "recording_report.json").exists()
-        for task, first, _ in pieces
-    )
+    recorded_before = all(piece_report(work, task, first).exists() for task, first, _ in pieces)
     start = time.time()
     with ThreadPoolExecutor(jobs) as pool:
         statuses = list(pool.map(record_piece, pieces))
     print(f"record: {len(pieces)} pieces in {time.time() - start:.0f} s, exit statuses {statuses}")
     reports = {}
     for task, first, _ in pieces:
-        path = work / "data" / f"task{task}_from{first}" / "meta" / "recording_report.json"
+        path = piece_report(work, task, first)
         if path.exists():
             reports[(task, first)] = json.loads(path.read_text())
     kept = [key for key, report in reports.items() if report["n_kept"] > 0]

@@ -20,7 +20,12 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_policy_ebvla.monitoring.metrics import auroc
-from lerobot_policy_ebvla.monitoring.ood_report import ALL_CONDITIONS, OODReportConfig, score_ood_report
+from lerobot_policy_ebvla.monitoring.ood_report import (
+    ALL_CONDITIONS,
+    OODReportConfig,
+    OODScores,
+    score_ood_report,
+)
 from lerobot_policy_ebvla.monitoring.records import group_by_episode, read_energy_records, records_file_in
 
 SHIFTS = [f"{p}{s}" for p in ("pose", "distance", "rotation", "fov") for s in (5, 3, 1)] + ["light_dim5"]
@@ -48,12 +53,45 @@ class RunCriteria:
         return total > 0 and wins / total >= MIN_SUCCESS
 
 
-def heldout_success(run_dir: Path) -> tuple[int, int]:
+def rollout_successes(folders: list[Path]) -> tuple[int, int]:
+    """(successful rollouts, rollouts) over the record folders."""
     outcomes = []
-    for task in sorted((run_dir / "vanilla_heldout").glob("task*")):
-        episodes = group_by_episode(read_energy_records(records_file_in(task)))
+    for folder in folders:
+        episodes = group_by_episode(read_energy_records(records_file_in(folder)))
         outcomes += [episode[0].success for episode in episodes.values()]
     return sum(outcomes), len(outcomes)
+
+
+def heldout_success(run_dir: Path) -> tuple[int, int]:
+    return rollout_successes(sorted((run_dir / "vanilla_heldout").glob("task*")))
+
+
+@dataclass
+class AtThreshold:
+    """One score over the first chunks: its AUROC per condition, and its threshold T from the calibration rollouts
+    alone with the balanced accuracy and the held-out vanilla alarm rate it gives."""
+
+    auroc_per_condition: dict[str, float]
+    threshold: float
+    balanced_accuracy: float
+    heldout_alarm_rate: float
+
+
+def at_threshold(scored: OODScores, score: str, first_chunks: int = FIRST_CHUNKS) -> AtThreshold:
+    sets = scored.at(first_chunks)
+    threshold = scored.fit(score, first_chunks).threshold
+    negatives, shifted = sets.negatives[score], sets.positives[ALL_CONDITIONS][score]
+    alarm_rate = float(np.mean(negatives > threshold))
+    return AtThreshold(
+        {
+            condition: float(auroc(negatives, positives[score]))
+            for condition, positives in sets.positives.items()
+            if condition != ALL_CONDITIONS
+        },
+        threshold,
+        0.5 * (float(np.mean(shifted > threshold)) + 1.0 - alarm_rate),
+        alarm_rate,
+    )
 
 
 def run_criteria(results: Path, run: str, score: str, output_dir: Path) -> RunCriteria:
@@ -67,26 +105,15 @@ def run_criteria(results: Path, run: str, score: str, output_dir: Path) -> RunCr
         output_dir=output_dir,
         first_chunks=[FIRST_CHUNKS],
     )
-    scored = score_ood_report(cfg)
-    sets = scored.at(FIRST_CHUNKS)
-    threshold = scored.fit(score, FIRST_CHUNKS).threshold
-    negatives = sets.negatives[score]
-    per_condition = {
-        condition: float(auroc(negatives, positives[score]))
-        for condition, positives in sets.positives.items()
-        if condition != ALL_CONDITIONS
-    }
-    shifted = sets.positives[ALL_CONDITIONS][score]
-    alarm_rate = float(np.mean(negatives > threshold))
-    balanced = 0.5 * (float(np.mean(shifted > threshold)) + 1.0 - alarm_rate)
+    row = at_threshold(score_ood_report(cfg), score)
     return RunCriteria(
         run,
         score,
         heldout_success(run_dir),
-        per_condition,
-        min(per_condition.values()),
-        balanced,
-        alarm_rate,
+        row.auroc_per_condition,
+        min(row.auroc_per_condition.values()),
+        row.balanced_accuracy,
+        row.heldout_alarm_rate,
     )
 
 

@@ -25,11 +25,10 @@ from pathlib import Path
 
 import numpy as np
 import research_scores  # noqa: F401  (registers context_energy_two_sided and the other research scores)
-from libero_recipe_choice import monitor_score
+from libero_recipe_choice import at_threshold, monitor_score, rollout_successes
 
 from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_interval, wilson_interval
 from lerobot_policy_ebvla.monitoring.ood_report import ALL_CONDITIONS, OODReportConfig, score_ood_report
-from lerobot_policy_ebvla.monitoring.records import group_by_episode, read_energy_records, records_file_in
 
 TASK_GROUPS = {
     "all ten": (0, 1, 2, 3, 4, 5, 6, 7, 8, 9),
@@ -92,11 +91,7 @@ def task_folders(run_dir: Path, condition: str, tasks: tuple[int, ...]) -> list[
 
 
 def success(folders: list[Path]) -> Rate:
-    outcomes = []
-    for folder in folders:
-        episodes = group_by_episode(read_energy_records(records_file_in(folder)))
-        outcomes += [episode[0].success for episode in episodes.values()]
-    return Rate(int(sum(outcomes)), len(outcomes))
+    return Rate(*rollout_successes(folders))
 
 
 def shift_conditions(run_dir: Path) -> list[str]:
@@ -129,6 +124,7 @@ def score_rows(
         return score_ood_report(cfg)
 
     heldout = scored_against(HELDOUT)
+    # Only the fresh rollouts' scores are read from this second scoring: the threshold stays the calibration's.
     fresh = scored_against(FRESH).at(FIRST_CHUNKS) if task_folders(run_dir, FRESH, tasks) else None
     sets = heldout.at(FIRST_CHUNKS)
     rows, missing = [], []
@@ -136,25 +132,19 @@ def score_rows(
         if score not in sets.negatives:
             missing.append(score)
             continue
-        threshold = heldout.fit(score, FIRST_CHUNKS).threshold
-        negatives = sets.negatives[score]
-        positives = sets.positives[ALL_CONDITIONS][score]
-        alarm_rate = float(np.mean(negatives > threshold))
+        row = at_threshold(heldout, score, FIRST_CHUNKS)
+        negatives, positives = sets.negatives[score], sets.positives[ALL_CONDITIONS][score]
         rows.append(
             ScoreRow(
                 score=score,
                 pooled_auroc=float(auroc(negatives, positives)),
                 pooled_interval=bootstrap_auroc_interval(negatives, positives),
-                auroc_per_condition={
-                    c: float(auroc(negatives, p[score]))
-                    for c, p in sets.positives.items()
-                    if c != ALL_CONDITIONS
-                },
-                balanced_accuracy=0.5 * (float(np.mean(positives > threshold)) + 1.0 - alarm_rate),
-                heldout_alarm_rate=alarm_rate,
+                auroc_per_condition=row.auroc_per_condition,
+                balanced_accuracy=row.balanced_accuracy,
+                heldout_alarm_rate=row.heldout_alarm_rate,
                 fresh_alarm_rate=None
                 if fresh is None
-                else float(np.mean(fresh.negatives[score] > threshold)),
+                else float(np.mean(fresh.negatives[score] > row.threshold)),
             )
         )
     return rows, missing

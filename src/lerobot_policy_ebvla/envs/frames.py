@@ -23,14 +23,18 @@ def check_render_every(render_every: int) -> None:
 
 class FrameGate:
     """Stands in for a simulator's `render`: while `skip` is set, a camera that rendered before returns its last
-    frame instead of drawing a new one.
+    frame instead of drawing a new one. `restart()` at a reset and `advance()` at each policy step set `skip` for
+    the frames of step t with t % `every` != 0.
 
     Gating the render call itself (rather than rendering after the step) keeps the frames that are drawn identical
     to those of an ungated env: robosuite, for one, draws its cameras at a step's first physics substep.
     """
 
-    def __init__(self):
+    def __init__(self, every: int = 1):
+        check_render_every(every)
+        self.every = every
         self.skip = False
+        self._steps = 0
         self._last: dict[Any, np.ndarray] = {}
         self._gated: Any = None
         self._uncached = False
@@ -53,6 +57,15 @@ class FrameGate:
 
         simulator.render = gated_render
         self._gated = simulator
+
+    def restart(self) -> None:
+        """A reset: its frame is drawn, and policy steps count from it."""
+        self._steps, self.skip = 0, False
+
+    def advance(self) -> None:
+        """A policy step: its frame is drawn on every `every`-th step only."""
+        self._steps += 1
+        self.skip = self._steps % self.every != 0
 
     @contextmanager
     def uncached(self) -> Iterator[None]:

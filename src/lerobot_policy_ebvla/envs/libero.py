@@ -40,7 +40,7 @@ from lerobot.envs.utils import parse_camera_names
 from scipy.spatial.transform import Rotation
 
 from ..lerobot_private import get_libero_suite, lazy_async_vector_env, select_libero_task_ids
-from .frames import FrameGate, check_render_every
+from .frames import FrameGate
 from .lighting import LIGHT_INTENSITY_PERTURBATIONS, perturb_light_intensity
 from .perturbations import LIBERO_SENSOR_PERTURBATIONS, MAX_SEVERITY, check_libero_perturbation
 from .sensor import perturb_image
@@ -275,15 +275,14 @@ class LiberoEBVLAGymEnv(LiberoEnv):
         **kwargs: Any,
     ):
         check_libero_perturbation(perturbation, perturbation_severity)
-        check_render_every(render_every)
+        frames = FrameGate(render_every)  # checks render_every
         super().__init__(*args, **kwargs)
         self.perturbation = perturbation
         self.perturbation_severity = perturbation_severity
         self.render_every = render_every
-        self._frames = FrameGate()
-        # Settling steps of the reset still to come (LeRobot's `num_steps_wait`), then policy steps taken.
+        self._frames = frames
+        # Settling steps of the reset still to come (LeRobot's `num_steps_wait`); policy steps follow them.
         self._settling_left = 0
-        self._steps = 0
         self._perturbed_model: mujoco.MjModel | None = None
         # Draws the sensor noise; reseeded by `reset(seed=...)`.
         self._sensor_rng = np.random.default_rng(0)
@@ -315,8 +314,7 @@ class LiberoEBVLAGymEnv(LiberoEnv):
                 self._settling_left -= 1
                 self._frames.skip = self._settling_left > 0
             else:
-                self._steps += 1
-                self._frames.skip = self._steps % self.render_every != 0
+                self._frames.advance()
             return step_scene(action)
 
         self._env.reset = reset_scene_and_perturb
@@ -346,7 +344,8 @@ class LiberoEBVLAGymEnv(LiberoEnv):
         self._activate()
         self._sensor_rng = np.random.default_rng(seed)
         # Before the settling steps, frames are drawn for nobody (with none, the initial state's frame is read).
-        self._settling_left, self._steps = self.num_steps_wait, 0
+        self._settling_left = self.num_steps_wait
+        self._frames.restart()
         self._frames.skip = self.render_every > 1 and self.num_steps_wait > 0
         observation, info = super().reset(seed=seed, **kwargs)
         return observation, self._with_goal_distance(info)

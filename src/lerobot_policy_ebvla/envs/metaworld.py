@@ -28,7 +28,7 @@ import numpy as np
 from lerobot.envs.metaworld import DIFFICULTY_TO_TASKS, MetaworldEnv
 
 from ..lerobot_private import lazy_async_vector_env
-from .frames import FrameGate, check_render_every
+from .frames import FrameGate
 from .lighting import LIGHT_INTENSITY_PERTURBATIONS, perturb_light_intensity
 from .perturbations import CAMERA_PERTURBATIONS, MAX_SEVERITY, check_perturbation
 from .sensor import perturb_image
@@ -294,7 +294,7 @@ class MetaworldEBVLAGymEnv(MetaworldEnv):
         **kwargs: Any,
     ):
         check_perturbation(perturbation, perturbation_severity)
-        check_render_every(render_every)
+        self._frames = FrameGate(render_every)  # checks render_every
         if observation_size is not None:
             kwargs.update(observation_width=observation_size, observation_height=observation_size)
         super().__init__(task, **kwargs)
@@ -309,9 +309,6 @@ class MetaworldEBVLAGymEnv(MetaworldEnv):
         self._rng = np.random.default_rng(0)
         self._hand_init_pos: np.ndarray | None = None
         self.render_every = render_every
-        self._frames = FrameGate()
-        # Policy steps taken since the reset: the frame of step t is drawn when t % render_every == 0.
-        self._steps = 0
 
     def _ensure_env(self) -> None:
         if self._env is not None:
@@ -345,12 +342,11 @@ class MetaworldEBVLAGymEnv(MetaworldEnv):
                 self._env.mocap_low,
                 self._env.mocap_high,
             )
-        self._steps, self._frames.skip = 0, False
+        self._frames.restart()
         return super().reset(seed=seed, **kwargs)
 
     def step(self, action: np.ndarray) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
-        self._steps += 1
-        self._frames.skip = self._steps % self.render_every != 0
+        self._frames.advance()
         return super().step(action)
 
     def _prepare_frame(self) -> None:
