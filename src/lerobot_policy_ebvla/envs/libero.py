@@ -279,13 +279,17 @@ class LiberoEBVLAGymEnv(LiberoEnv):
         super().__init__(*args, **kwargs)
         self.perturbation = perturbation
         self.perturbation_severity = perturbation_severity
-        self.render_every = render_every
         self._frames = frames
         # Settling steps of the reset still to come (LeRobot's `num_steps_wait`); policy steps follow them.
         self._settling_left = 0
         self._perturbed_model: mujoco.MjModel | None = None
         # Draws the sensor noise; reseeded by `reset(seed=...)`.
         self._sensor_rng = np.random.default_rng(0)
+
+    @property
+    def render_every(self) -> int:
+        """`--env.render_every`: the frame gate's cadence."""
+        return self._frames.every
 
     def _perturb_current_model(self) -> None:
         """Perturbs the simulator's model once; a hard reset builds a new model, which is perturbed again."""

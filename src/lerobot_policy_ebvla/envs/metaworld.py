@@ -308,7 +308,11 @@ class MetaworldEBVLAGymEnv(MetaworldEnv):
         # Draws the pixel noise and the hand's displacement; reseeded by `reset(seed=...)`.
         self._rng = np.random.default_rng(0)
         self._hand_init_pos: np.ndarray | None = None
-        self.render_every = render_every
+
+    @property
+    def render_every(self) -> int:
+        """`--env.render_every`: the frame gate's cadence."""
+        return self._frames.every
 
     def _ensure_env(self) -> None:
         if self._env is not None:
