@@ -74,6 +74,11 @@ class ScoreRow:
     balanced_accuracy: float
     heldout_alarm_rate: float
     fresh_alarm_rate: float | None
+    # Added on 2026-11-28 after the rollouts, as context beside the pre-registered columns (no target reads them):
+    # what a user gets at T under each shift, and the pooled AUROC over whole episodes beside the first chunks'.
+    alarm_rate_per_condition: dict[str, float] = field(default_factory=dict)
+    whole_episode_auroc: float = float("nan")
+    whole_episode_interval: tuple[float, float] = (float("nan"), float("nan"))
 
 
 @dataclass
@@ -127,6 +132,7 @@ def score_rows(
     # Only the fresh rollouts' scores are read from this second scoring: the threshold stays the calibration's.
     fresh = scored_against(FRESH).at(FIRST_CHUNKS) if task_folders(run_dir, FRESH, tasks) else None
     sets = heldout.at(FIRST_CHUNKS)
+    whole = heldout.at(None)
     rows, missing = [], []
     for score in scores:
         if score not in sets.negatives:
@@ -134,6 +140,7 @@ def score_rows(
             continue
         row = at_threshold(heldout, score, FIRST_CHUNKS)
         negatives, positives = sets.negatives[score], sets.positives[ALL_CONDITIONS][score]
+        whole_negatives, whole_positives = whole.negatives[score], whole.positives[ALL_CONDITIONS][score]
         rows.append(
             ScoreRow(
                 score=score,
@@ -145,6 +152,13 @@ def score_rows(
                 fresh_alarm_rate=None
                 if fresh is None
                 else float(np.mean(fresh.negatives[score] > row.threshold)),
+                alarm_rate_per_condition={
+                    condition: float(np.mean(shifted_scores[score] > row.threshold))
+                    for condition, shifted_scores in sets.positives.items()
+                    if condition != ALL_CONDITIONS
+                },
+                whole_episode_auroc=float(auroc(whole_negatives, whole_positives)),
+                whole_episode_interval=bootstrap_auroc_interval(whole_negatives, whole_positives),
             )
         )
     return rows, missing
@@ -259,6 +273,27 @@ def markdown(run: str, reports: list[GroupReport]) -> str:
         lines += ["|---|" + "---:|" * len(report.rows)]
         lines += [
             f"| {c} | " + " | ".join(f"{r.auroc_per_condition[c]:.3f}" for r in report.rows) + " |"
+            for c in conditions
+        ]
+        lines += [
+            "",
+            "Added after the rollouts (no target reads them): each score's pooled AUROC over whole episodes beside "
+            "its first chunks', and the rate of rollouts alarmed at T (first 3 chunks) under each shift.",
+            "",
+            "| Score | AUROC, all shifts, first 3 chunks | whole episodes |",
+            "|---|---|---|",
+        ]
+        lines += [
+            f"| `{r.score}` | {r.pooled_auroc:.3f} | {r.whole_episode_auroc:.3f} "
+            f"[{r.whole_episode_interval[0]:.3f}, {r.whole_episode_interval[1]:.3f}] |"
+            for r in report.rows
+        ]
+        lines += ["", "| Alarmed at T | " + " | ".join(f"`{r.score}`" for r in report.rows) + " |"]
+        lines += ["|---|" + "---:|" * len(report.rows)]
+        lines += [
+            f"| {c} | "
+            + " | ".join(f"{100 * r.alarm_rate_per_condition[c]:.0f}%" for r in report.rows)
+            + " |"
             for c in conditions
         ]
         lines += ["", "| Target (the monitor's score) | Measured | Met |", "|---|---|---|"]

@@ -101,6 +101,9 @@ def test_alarms_are_counted_at_the_calibration_threshold_on_both_vanilla_sets(gr
     monitor = groups["all ten"]["rows"][0]
     # Half the shifted rollouts (pose) are far above T, the other half far below it.
     assert monitor["balanced_accuracy"] == pytest.approx(0.5 * (0.5 + 1.0 - monitor["heldout_alarm_rate"]))
+    # ... which the per-shift alarm rates say shift by shift.
+    assert monitor["alarm_rate_per_condition"] == {"light_dim 5": 0.0, "pose 5": 1.0}
+    assert 0.0 <= monitor["whole_episode_auroc"] <= 1.0
 
 
 def test_shift_folders_read_as_the_ood_reports_conditions():
