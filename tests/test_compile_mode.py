@@ -11,12 +11,14 @@ import os
 
 import pytest
 import torch
+from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS
 from torch.utils._pytree import tree_flatten, tree_unflatten
 
 from lerobot_policy_ebvla import EBVLAConfig, EBVLAPolicy, compile_ebvla
 from lerobot_policy_ebvla.compile_ebvla import compile_static
 from lerobot_policy_ebvla.modeling_ebvla import EBVLA
+from lerobot_policy_ebvla.presets import light_policy_config
 
 from .conftest import tiny_batch, tiny_config
 from .test_backbone_vlm import vlm_config, write_tiny_language_model
@@ -400,3 +402,41 @@ def test_compiled_vlm_training_step_gives_the_eager_loss_and_gradients(tmp_path)
     torch.testing.assert_close(compiled_loss, eager_loss, **TOL)
     assert any("lora_" in name for name in eager_grads)
     torch.testing.assert_close(compiled_grads, eager_grads, **TOL)
+
+
+def test_the_light_presets_training_step_compiled_by_inductor_gives_the_eager_loss_and_gradients():
+    """The main job's policy at its batch of 16 under `train_compile_mode="default"` on the CPU (inductor, no
+    stand-in backend): each block's keys and values, two views of one projection, once came back from the
+    compiled context encoder rebuilt with garbage sizes (a RuntimeError at the first step; 2026-11-28)."""
+    clear_compiled()
+    fields = {
+        "device": "cpu",
+        "input_features": {
+            "observation.image": PolicyFeature(FeatureType.VISUAL, (3, 64, 64)),
+            "observation.state": PolicyFeature(FeatureType.STATE, (4,)),
+        },
+        "output_features": {"action": PolicyFeature(FeatureType.ACTION, (4,))},
+        # Inside the compiled backbone inductor draws state dropout's mask from its own generator, and the
+        # contrastive pass's dtype follows the CPU: both off, the two steps compute the same function.
+        "resnet": {"state_dropout": 0.0},
+        "contrastive": {"dtype": "float32"},
+    }
+    policies = []
+    for mode in ("off", "default"):
+        torch.manual_seed(0)
+        policies.append(EBVLAPolicy(light_policy_config(**fields, train_compile_mode=mode)))
+    try:
+        batch = tiny_batch(policies[0].config, batch_size=16, seed=3)
+        results = []
+        for (
+            policy
+        ) in policies:  # the same draws for both: state dropout and E_c's corruptions use torch's RNG
+            torch.manual_seed(1)
+            results.append(training_step(policy, batch))
+        (eager_loss, eager_grads), (compiled_loss, compiled_grads) = results
+    finally:
+        clear_compiled()
+    assert torch.isfinite(compiled_loss)
+    torch.testing.assert_close(compiled_loss, eager_loss, atol=1e-4, rtol=1e-4)
+    assert compiled_grads.keys() == eager_grads.keys()
+    torch.testing.assert_close(compiled_grads, eager_grads, atol=1e-3, rtol=1e-3)

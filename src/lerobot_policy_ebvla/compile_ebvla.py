@@ -59,8 +59,19 @@ def head_energy(head: EBVLAEnergyHead, params: dict[str, Tensor], actions: Tenso
 
 
 def encode_context(model: nn.Module, batch: dict[str, Tensor], return_features: bool = False):
-    """`model.encode_context(batch, return_features)`, as a function torch.compile can take."""
-    return model.encode_context(batch, return_features)
+    """`model.encode_context(batch, return_features)`, as a function torch.compile can take.
+
+    Each block's keys and values are two views of one projection; returned as such, AOTAutograd rebuilds them
+    from their base after the compiled forward, and torch 2.11 on the CPU rebuilt them with garbage sizes in a
+    training step (`RuntimeError: shape '[93954964401046, ...]' is invalid`). Copies inside the graph leave no
+    output aliasing another."""
+    encoded = model.encode_context(batch, return_features)
+    kv, features = encoded if return_features else (encoded, None)
+    kv = [
+        (k.clone(memory_format=torch.contiguous_format), v.clone(memory_format=torch.contiguous_format))
+        for k, v in kv
+    ]
+    return (kv, features) if return_features else kv
 
 
 @functools.cache
