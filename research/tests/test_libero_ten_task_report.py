@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from lerobot_policy_ebvla.monitoring.records import EnergyRecord, write_energy_records
-from research.tests.conftest import load_benchmark
+from research.tests.conftest import RESULTS, load_benchmark
 
 report = load_benchmark("libero_ten_task_report")
 
@@ -128,3 +128,22 @@ def test_on_the_three_task_records_it_agrees_with_the_choice_and_leaves_out_the_
     assert monitor["auroc_per_condition"] == pytest.approx(expected.auroc_per_condition)
     assert monitor["balanced_accuracy"] == pytest.approx(expected.balanced_accuracy)
     assert monitor["heldout_alarm_rate"] == pytest.approx(expected.heldout_alarm_rate)
+
+
+def test_the_committed_ten_task_report_is_recomputed_from_the_committed_records(tmp_path):
+    """BENCHMARKS.md's ten-task figures (`ebvla_joint_fast_cpu`, 740 rollouts of 2026-11-28), from the records."""
+    results = RESULTS / "libero_object10"
+    report.main([f"--results={results}", f"--run={RUN}", f"--output_dir={tmp_path}"])
+    got = json.loads((tmp_path / "ten_task_report.json").read_text())
+    committed = results / "reports" / RUN / "ten_task" / "ten_task_report.json"
+    assert got == json.loads(committed.read_text())
+    ten = got[0]
+    assert ten["group"] == "all ten"
+    assert ten["success"]["fixed initial states"] == {"wins": 166, "n": 200}
+    assert ten["success"]["fresh placements"] == {"wins": 89, "n": 100}
+    rows = {row["score"]: row for row in ten["rows"]}
+    assert rows["context_phase_energy"]["pooled_auroc"] == pytest.approx(0.952, abs=5e-4)
+    assert rows["context_knn"]["pooled_auroc"] == pytest.approx(0.909, abs=5e-4)
+    assert rows["context_phase_energy"]["balanced_accuracy"] == pytest.approx(0.899, abs=5e-4)
+    assert rows["context_phase_energy"]["heldout_alarm_rate"] == 0.0
+    assert rows["context_phase_energy"]["alarm_rate_per_condition"]["light_dim 5"] == 0.0
