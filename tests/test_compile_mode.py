@@ -428,9 +428,8 @@ def test_the_light_presets_training_step_compiled_by_inductor_gives_the_eager_lo
     try:
         batch = tiny_batch(policies[0].config, batch_size=16, seed=3)
         results = []
-        for (
-            policy
-        ) in policies:  # the same draws for both: state dropout and E_c's corruptions use torch's RNG
+        # The same draws for both: E_c's corruptions and the MCMC chain's step sizes use torch's RNG.
+        for policy in policies:
             torch.manual_seed(1)
             results.append(training_step(policy, batch))
         (eager_loss, eager_grads), (compiled_loss, compiled_grads) = results
