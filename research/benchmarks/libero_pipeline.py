@@ -122,6 +122,28 @@ RUNS["ebvla_joint_fast_cpu"] = [
     "--policy.joint_energy.encoder_resize_shape=[48,48]",
     "--policy.joint_energy.gradient_penalty_every=4",
 ]
+
+
+# Runs that start from another run's saved weights, on their own work folder's dataset: a new AdamW (the finished
+# run's optimizer state is not kept) and a new cosine schedule, which LeRobot scales to the run's steps.
+@dataclass(frozen=True)
+class FineTune:
+    start: str  # the weights' `pretrained_model` folder, relative to the repository root
+    flags: tuple[str, ...] = ()
+
+
+REPOSITORY = Path(__file__).resolve().parents[2]
+FINE_TUNES = {
+    # D (2026-11-29, after the ten-task check): C's ten-task checkpoint (step 20,000) trained on with 44 more
+    # demonstrations each of tasks 1 and 5, the two whose grasps miss (cream cheese 8/20 and tomato sauce 9/20 on the
+    # fixed initial states, 6/10 and 3/10 on fresh placements; the object is never carried). Peak rate 1e-4, a
+    # fifth of C's, so that the other eight tasks keep what they learned.
+    "ebvla_joint_fast_cpu_more": FineTune(
+        "research/results/libero_object10/train/ebvla_joint_fast_cpu/last/pretrained_model",
+        ("--policy.optimizer_lr=1e-4",),
+    ),
+}
+RUNS["ebvla_joint_fast_cpu_more"] = RUNS["ebvla_joint_fast_cpu"]  # the flags its start was trained with
 RUNS["diffusion_cpu"] = [
     "--policy.type=diffusion",
     "--policy.pretrained_backbone_weights=null",
@@ -206,9 +228,15 @@ def record(
     keep_failed: bool = False,
     placement_seed: int | None = None,
     use_videos: bool = False,
+    more_episodes: dict[int, int] | None = None,
+    pieces_from: Path | None = None,
 ) -> Path:
     """Records each task in `parts` processes (each from its own initial states), then aggregates every part
     into `<work>/data/all`.
+
+    `more_episodes` adds demonstrations to some tasks (task -> count), in more pieces of the same size after the
+    `episodes_per_task` ones: with `placement_seed`, from placements no other piece used. Pieces a saved results
+    folder already holds (`pieces_from`, its `data/`: pieces recorded as video) are linked, not recorded again.
 
     `max_steps`, `keep_failed`, `placement_seed` and `use_videos` are the recorder's (tiny test runs keep the
     expert's unfinished episodes; with `placement_seed`, demonstrations start from freshly sampled placements, never
@@ -218,12 +246,13 @@ def record(
     if (merged / "meta" / "info.json").exists():
         print(f"record: {merged} exists")
         return merged
-    per_part = -(-episodes_per_task // parts)
-    pieces = [
-        (task, first, min(per_part, episodes_per_task - first))
-        for task in tasks
-        for first in range(0, episodes_per_task, per_part)
-    ]
+    pieces = record_pieces(tasks, episodes_per_task, parts, more_episodes or {})
+    for task, first, _ in pieces:
+        saved = None if pieces_from is None else pieces_from / "data" / f"task{task}_from{first}"
+        piece = work / "data" / f"task{task}_from{first}"
+        if saved is not None and (saved / "meta" / "recording_report.json").exists() and not piece.exists():
+            piece.parent.mkdir(parents=True, exist_ok=True)
+            piece.symlink_to(saved.resolve(), target_is_directory=True)
 
     def record_piece(piece: tuple[int, int, int]) -> int:
         task, first, n = piece
@@ -273,6 +302,8 @@ def record(
     summary = {
         "image_size": image_size,
         "episodes_per_task": episodes_per_task,
+        "more_episodes": {str(task): n for task, n in sorted((more_episodes or {}).items())},
+        "pieces_from": None if pieces_from is None else str(pieces_from),
         "placement_seed": placement_seed,
         "use_videos": use_videos,
         "tasks": {},
@@ -292,6 +323,19 @@ def record(
     summary["seconds"] = round(earlier + (0.0 if recorded_before else time.time() - start), 1)
     path.write_text(json.dumps(summary, indent=1))
     return merged
+
+
+def record_pieces(
+    tasks: list[int], episodes_per_task: int, parts: int, more_episodes: dict[int, int]
+) -> list[tuple[int, int, int]]:
+    """(task, first attempt, attempts) of each recorder process: `parts` per task, and for a task of
+    `more_episodes` as many more pieces of the same size as its extra attempts need."""
+    per_part = -(-episodes_per_task // parts)
+    pieces = []
+    for task in tasks:
+        total = episodes_per_task + more_episodes.get(task, 0)
+        pieces += [(task, first, min(per_part, total - first)) for first in range(0, total, per_part)]
+    return pieces
 
 
 # Train -------------------------------------------------------------------------------------------------------
@@ -315,10 +359,14 @@ def train_command(
     last = out / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
     if last.exists():
         return [bin_path("ebvla-train"), f"--config_path={last}", "--resume=true", f"--steps={steps}"]
-    image_size = json.loads((work / "recording_summary.json").read_text())["image_size"]
+    if run in FINE_TUNES:
+        fine_tune = FINE_TUNES[run]
+        policy = [f"--policy.path={REPOSITORY / fine_tune.start}", *fine_tune.flags]
+    else:
+        policy = run_args(run, json.loads((work / "recording_summary.json").read_text())["image_size"])
     return [
         bin_path("ebvla-train"),
-        *run_args(run, image_size),
+        *policy,
         f"--policy.device={device}",
         f"--dataset.repo_id={REPO_ID}",
         f"--dataset.root={work / 'data' / 'all'}",
@@ -644,12 +692,18 @@ def save_results(work: Path, results: Path) -> None:
         if (work / name).is_file():
             (results / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(work / name, results / name)
+    # Pieces linked from another results folder (`record`'s `pieces_from`) are saved there already.
+    recorded_here = [
+        report
+        for report in work.glob("data/*/meta/recording_report.json")
+        if not report.parents[1].is_symlink()
+    ]
     # Under a name of their own: restored into data/, a piece's report would mark it recorded without its frames.
-    for report in work.glob("data/*/meta/recording_report.json"):
+    for report in recorded_here:
         target = results / "recording_reports" / f"{report.parents[1].name}.json"
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(report, target)
-    for report in work.glob("data/*/meta/recording_report.json"):
+    for report in recorded_here:
         piece, target = report.parents[1], results / "data" / report.parents[1].name
         if (piece / "videos").is_dir() and not target.exists():
             shutil.copytree(piece, target)
@@ -831,6 +885,19 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--use_videos", action="store_true", help="record: frames as video (a dataset small enough to travel)"
     )
+    parser.add_argument(
+        "--more_episodes",
+        nargs="*",
+        default=[],
+        metavar="TASK=N",
+        help="record: N more expert attempts of TASK, after its --episodes_per_task",
+    )
+    parser.add_argument(
+        "--pieces_from",
+        type=Path,
+        default=None,
+        help="record: a saved results folder whose video pieces are linked instead of recorded again",
+    )
     parser.add_argument("--jobs", type=int, default=10, help="processes side by side (record, eval)")
     parser.add_argument("--runs", nargs="+", choices=list(RUNS), default=["ebvla_paper", "diffusion"])
     parser.add_argument(
@@ -911,6 +978,8 @@ def main(argv: list[str] | None = None) -> None:
             args.keep_failed,
             args.placement_seed,
             args.use_videos,
+            {int(task): int(n) for task, n in (item.split("=") for item in args.more_episodes)},
+            None if args.pieces_from is None else args.pieces_from.resolve(),
         )
     elif args.stage == "train":
         train(

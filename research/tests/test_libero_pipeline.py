@@ -548,3 +548,77 @@ def test_aggregating_restored_pieces_keeps_the_recordings_own_time(tmp_path, mon
     pipeline.record(work, [2], 1, 128, jobs=1)
     summary = json.loads((work / "recording_summary.json").read_text())
     assert summary["seconds"] == 8431.7 and summary["tasks"]["2"]["kept"] == 1
+
+
+def test_more_episodes_add_pieces_of_the_same_size_to_their_tasks_only():
+    assert pipeline.record_pieces([0, 1, 5], 44, 4, {1: 44, 5: 20}) == [
+        *[(0, first, 11) for first in (0, 11, 22, 33)],
+        *[(1, first, 11) for first in (0, 11, 22, 33, 44, 55, 66, 77)],
+        *[(5, first, 11) for first in (0, 11, 22, 33, 44)],
+        (5, 55, 9),
+    ]
+
+
+def test_pieces_a_results_folder_holds_are_linked_and_only_the_extra_ones_are_recorded(tmp_path, monkeypatch):
+    """A fine-tune's dataset: the saved video pieces of the first run, linked (never copied into the new results),
+    and the extra demonstrations recorded from the placement seeds after them."""
+    import lerobot.datasets.aggregate
+
+    saved = tmp_path / "results"
+    report = {
+        "n_kept": 11,
+        "n_attempted": 11,
+        "success_rate_per_task": {"pick up the cream cheese": 1.0},
+        "episodes": [{"n_steps": 160, "kept": True}] * 11,
+    }
+    for first in (0, 11):
+        write_json(saved / "data" / f"task1_from{first}" / "meta" / "recording_report.json", report)
+        video = saved / "data" / f"task1_from{first}" / "videos" / "observation.images.image" / "file-000.mp4"
+        video.parent.mkdir(parents=True)
+        video.write_bytes(b"frames")
+    work = tmp_path / "work"
+    commands = []
+
+    def record_piece(cmd, log):
+        commands.append(cmd)
+        first = next(int(arg.split("=")[1]) for arg in cmd if arg.startswith("--env.first_init_state="))
+        write_json(work / "data" / f"task1_from{first}" / "meta" / "recording_report.json", report)
+        return 0
+
+    aggregated = []
+    monkeypatch.setattr(pipeline, "run_logged", record_piece)
+    monkeypatch.setattr(
+        lerobot.datasets.aggregate, "aggregate_datasets", lambda **kwargs: aggregated.append(kwargs["roots"])
+    )
+    more = {"more_episodes": {1: 11}, "pieces_from": saved}
+    pipeline.record(work, [1], 22, 128, jobs=1, parts=2, placement_seed=100000, use_videos=True, **more)
+    # Attempt i of the extra piece starts from the placements of seed 100000 + 22 + i: none of the saved pieces'.
+    assert len(commands) == 1 and "--env.first_init_state=22" in commands[0]
+    assert "--placement_seed=100000" in commands[0]
+    assert [root.name for root in aggregated[0]] == ["task1_from0", "task1_from11", "task1_from22"]
+    assert (work / "data" / "task1_from0").resolve() == (saved / "data" / "task1_from0").resolve()
+    summary = json.loads((work / "recording_summary.json").read_text())
+    assert summary["more_episodes"] == {"1": 11} and summary["tasks"]["1"]["kept"] == 33
+
+    results = tmp_path / "fine_tune_results"
+    pipeline.save_results(work, results)
+    assert sorted(p.name for p in (results / "recording_reports").iterdir()) == ["task1_from22.json"]
+    assert not (results / "data" / "task1_from0").exists()
+
+
+def test_a_fine_tune_starts_from_its_saved_weights_with_its_own_rate_then_resumes_itself(work):
+    run = "ebvla_joint_fast_cpu_more"
+    fine_tune = pipeline.FINE_TUNES[run]
+    start = pipeline.REPOSITORY / fine_tune.start
+    assert (start / "model.safetensors").exists() and (start / "config.json").exists()
+    command = pipeline.train_command(work, run, 5000, 16, "cpu", 1)
+    assert command[1:3] == [f"--policy.path={start}", "--policy.optimizer_lr=1e-4"]
+    assert f"--dataset.root={work / 'data' / 'all'}" in command and "--steps=5000" in command
+    assert not any(arg.startswith("--policy.type") for arg in command)  # the saved config's, not new flags
+
+    checkpoint = fake_checkpoint(work, run)
+    assert pipeline.train_command(work, run, 5000, 16, "cpu", 1)[1:] == [
+        f"--config_path={checkpoint / 'train_config.json'}",
+        "--resume=true",
+        "--steps=5000",
+    ]
