@@ -214,6 +214,29 @@ def test_the_report_refuses_to_overwrite_a_failure_check_and_can_leave_it_out(
     assert "failure check" not in text and not (checkpoint / FAILURE_CALIBRATION_FILENAME).exists()
 
 
+def test_a_failure_check_fitted_on_the_successful_calibration_rollouts_leaves_the_failed_ones_out(
+    record_dirs, checkpoint, tmp_path
+):
+    # A calibration with 4 failed rollouts of 16, their final energies 1.5 above the others' from the first chunk.
+    calibration = write(tmp_path / "calibration", joint_rollouts(16, seed=10, fail_every=4, features=True))
+    dirs = (calibration, *record_dirs[1:])
+    check = ("--failure_score=final_energy", "--failure_chunks=3", f"--calibrate_to={checkpoint}")
+    text = report(dirs, tmp_path / "out", *check, "--failure_reference=successful")
+    successful = [e for e in load_episodes([calibration]).values() if e[0].success]
+    first_means = [np.mean([r.final_energy for r in episode[:3]]) for episode in successful]
+    saved = FailureCalibration.load(checkpoint)
+    assert saved.n_rollouts == 12 and saved.chunks == 3
+    assert saved.threshold == pytest.approx(np.mean(first_means) + np.std(first_means), rel=1e-5)
+    assert OODCalibration.load(checkpoint).n_rollouts == 16  # the OOD check still calibrates on every rollout
+    assert "first 3 chunks of the calibration rollouts that succeeded" in text
+
+    # Fitted on every calibration rollout, the failed ones raise mu_v and sigma_v: a higher threshold.
+    report(dirs, tmp_path / "vanilla", *check, "--overwrite_calibration=true")
+    assert FailureCalibration.load(checkpoint).threshold > saved.threshold + 0.5
+    with pytest.raises(ValueError, match="`failure_reference` must be one of"):
+        report(dirs, tmp_path / "bad", "--failure_reference=failed")
+
+
 def test_the_chunk_context_baseline_measures_to_the_nearest_successful_calibration_rollout():
     def episode(seed, feature_at_chunk_1, success=True):
         return [
@@ -250,7 +273,7 @@ def test_the_failure_check_gives_each_caught_failures_lead_to_its_onset():
     labels = np.array([True, True, True, False, False])
     flags = np.array([True, True, False, True, False])  # two failures caught, one success alarmed
     onsets = np.array([5.0, 3.0, 4.0, np.nan, np.nan])  # 1-based steps of the failures' last progress
-    cfg = SimpleNamespace(n_bootstrap=20, seed=0)
+    cfg = SimpleNamespace(n_bootstrap=20, seed=0, failure_reference="vanilla")
     rows = {"head_energy_two_sided": {"all": (np.arange(5.0), flags)}}
     text = format_failure_check(rows, {"all": labels}, 3, "head_energy_two_sided", cfg, onsets)
     # Decided at chunk 3: leads 5 - 3 = +2 and 3 - 3 = 0, both at or before the onset.

@@ -35,7 +35,7 @@ def failure_check_section(scored, fits: dict) -> str:
         }
 
     def alarms(name: str) -> np.ndarray:
-        return exceeds(scored.held_out(name, n), scored.fit(name, n).threshold)
+        return exceeds(scored.held_out(name, n), scored.fit_failure(name, n).threshold)
 
     failure, ood_score = scored.failure_score, scored.saved_score
     failure_alarms = alarms(failure)
@@ -52,7 +52,10 @@ def failure_check_section(scored, fits: dict) -> str:
         calibration = chunk_context_nn(scored.calibration_set, scored.calibration_set, n - 1)
         cfg = scored.cfg
         threshold = OODCalibration.fit(
-            calibration, k=cfg.k, false_alarm_rate=cfg.false_alarm_rate, rule=cfg.threshold_rule
+            calibration[scored.failure_reference_mask()],
+            k=cfg.k,
+            false_alarm_rate=cfg.false_alarm_rate,
+            rule=cfg.threshold_rule,
         ).threshold
         scores = chunk_context_nn(scored.calibration_set, {**vanilla, **ood}, n - 1)
         rows["chunk_context_nn"] = row(scores, exceeds(scores, threshold))
@@ -62,6 +65,14 @@ def failure_check_section(scored, fits: dict) -> str:
         dtype=float,
     )
     return format_failure_check(rows, labels, n, failure, scored.cfg, onsets)
+
+
+# What sets T of each row, by `OODReportConfig.failure_reference`.
+_REFERENCE_TEXT = {
+    "vanilla": "the calibration rollouts' first {n} chunks alone (vanilla; no failed rollout chooses anything)",
+    "successful": "the first {n} chunks of the calibration rollouts that succeeded (vanilla; the failed ones are "
+    "left out of mu_v and sigma_v)",
+}
 
 
 def format_failure_check(
@@ -80,8 +91,8 @@ def format_failure_check(
     lines = [
         f"## The monitor's failure check (Table IV at equal elapsed time), held out\n\n"
         f"The checkpoint's failure check, `{failure_score}` over each rollout's first {chunks} chunks, alarms when "
-        f"it exceeds T set on the calibration rollouts' first {chunks} chunks alone (vanilla; no failed rollout "
-        "chooses anything). Positives are the failed rollouts, negatives the successful ones. Each baseline "
+        f"it exceeds T set on {_REFERENCE_TEXT[cfg.failure_reference].format(n=chunks)}. Positives are the "
+        "failed rollouts, negatives the successful ones. Each baseline "
         "below decides the same way, its T from the same calibration rollouts and rule: `chunk_context_nn` is "
         f"the pooled context at chunk {chunks} against the successful calibration rollouts' at that chunk (no "
         f"energy). `monitor (either check)` is what `EnergyMonitor` raises by chunk {chunks}: its OOD check "

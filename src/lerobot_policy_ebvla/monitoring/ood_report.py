@@ -71,6 +71,9 @@ from .scores import (
 
 logger = logging.getLogger(__name__)
 
+# The calibration rollouts the failure check is fitted on (`OODReportConfig.failure_reference`).
+FAILURE_REFERENCES = ("vanilla", "successful")
+
 
 def checkpoint_monitor(checkpoint: Path | None) -> MonitorConfig | None:
     """How a pretrained_model folder is monitored (its config's `monitor`, whose unset scores a config gets from
@@ -147,6 +150,10 @@ class OODReportConfig:
     failure_score: str | None = None
     # N, the first chunks the failure check scores. None: the checkpoint's `monitor.failure_chunks` (3).
     failure_chunks: int | None = None
+    # The calibration rollouts the failure check's threshold (and each baseline's in its section) is fitted on:
+    # "vanilla", all of them, or "successful", those that succeeded. A failed calibration rollout's late chunks
+    # inflate sigma_v of a score that rises once a rollout goes wrong, and T then flags few failures.
+    failure_reference: str = "vanilla"
     # Replace an existing ood_calibration.json (and failure_calibration.json).
     overwrite_calibration: bool = False
 
@@ -166,6 +173,10 @@ class OODReportConfig:
             )
         if self.failure_chunks is not None and self.failure_chunks < 1:
             raise ValueError(f"`failure_chunks` must be >= 1, got {self.failure_chunks}.")
+        if self.failure_reference not in FAILURE_REFERENCES:
+            raise ValueError(
+                f"`failure_reference` must be one of {FAILURE_REFERENCES}, got {self.failure_reference!r}."
+            )
         if any(k < 1 for k in self.first_chunks) or self.table_iii_first_chunks < 0:
             raise ValueError(
                 f"`first_chunks` must be >= 1 and `table_iii_first_chunks` >= 0, got {self.first_chunks} "
@@ -247,8 +258,29 @@ class OODScores:
 
     def fit(self, name: str, first_chunks: int | None = None) -> OODCalibration:
         """The threshold statistics of a score on the calibration rollouts' scores over the same chunks."""
+        return self._fit(self.scores(self.calibration_chunks, name, first_chunks))
+
+    def fit_failure(self, name: str, first_chunks: int) -> OODCalibration:
+        """`fit` on the failure check's reference rollouts (`failure_reference`) only."""
+        return self._fit(
+            self.scores(self.calibration_chunks, name, first_chunks)[self.failure_reference_mask()]
+        )
+
+    def failure_reference_mask(self) -> np.ndarray:
+        """Which calibration rollouts (in `calibration_set` order) the failure check's thresholds are fitted on."""
+        successful = np.array([episode[0].success for episode in self.calibration_set.values()], dtype=bool)
+        if self.cfg.failure_reference == "vanilla":
+            return np.ones_like(successful)
+        if successful.sum() < 2:
+            raise ValueError(
+                f"`--failure_reference=successful` leaves {successful.sum()} successful calibration rollout(s) of "
+                f"{len(successful)}: at least 2 are needed for mu_v and sigma_v."
+            )
+        return successful
+
+    def _fit(self, calibration_scores: np.ndarray) -> OODCalibration:
         return OODCalibration.fit(
-            self.scores(self.calibration_chunks, name, first_chunks),
+            calibration_scores,
             k=self.cfg.k,
             aggregation=self.cfg.aggregation,
             false_alarm_rate=self.cfg.false_alarm_rate,
@@ -471,10 +503,10 @@ _DEFAULT_FAILURE_SCORE = "head_energy_two_sided"
 
 def _failure_calibration(scored: OODScores) -> FailureCalibration:
     """The failure check `--calibrate_to` saves: its score fitted on every calibration rollout, mu_v and sigma_v
-    those of the calibration rollouts' first N chunks (leave-one-out, as the report's)."""
+    those of the reference rollouts' first N chunks (`failure_reference`; leave-one-out, as the report's)."""
     cfg, name, n = scored.cfg, scored.failure_score, scored.failure_chunks
     score = SCORES[name].fit(vanilla_rollouts(scored.calibration_set, cfg.aggregation, cfg.knn_k))
-    return FailureCalibration.of(dataclasses.replace(scored.fit(name, n), score=score), n)
+    return FailureCalibration.of(dataclasses.replace(scored.fit_failure(name, n), score=score), n)
 
 
 def _beside_one_sided(names: list[str]) -> list[str]:

@@ -297,8 +297,9 @@ class FailureCalibration(OODCalibration):
     equal elapsed time), fitted like the OOD threshold on vanilla rollouts alone (`failure_calibration.json`).
 
     No failed rollout chooses it: mu_v and sigma_v (or the conformal quantile) are those of the vanilla
-    calibration rollouts' scores over their first `chunks` chunks, so the alarm says "these first chunks are
-    unlike a vanilla rollout's", and the report measures how often that means failure. It is decided once, at
+    calibration rollouts' scores over their first `chunks` chunks (or of those among them that succeeded:
+    `ebvla-ood-report --failure_reference=successful`), so the alarm says "these first chunks are unlike a
+    vanilla rollout's", and the report measures how often that means failure. It is decided once, at
     the end of chunk N, and kept for the episode (`EnergyMonitor`). The score is an energy score, the head's part
     of the joint energy by default (`monitor.failure_score`): it stores no features.
 
