@@ -1,0 +1,60 @@
+"""The failure check's decision chunk N, chosen on calibration rollouts alone (`failure_check_choice.py`)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from lerobot_policy_ebvla.monitoring.records import (
+    ENERGY_RECORDS_FILENAME,
+    EnergyRecord,
+    write_energy_records,
+)
+from research.tests.conftest import RESULTS, load_benchmark
+
+choice = load_benchmark("failure_check_choice")
+
+
+def rollout(seed: int, energies, success: bool) -> list[EnergyRecord]:
+    return [EnergyRecord(seed, c, 8 * c, 9.0, float(e), success, "t", seed) for c, e in enumerate(energies)]
+
+
+def test_the_chosen_n_is_the_first_at_which_failures_rise_above_the_successful_rollouts(tmp_path):
+    rng = np.random.default_rng(0)
+    # Every rollout alike for 6 chunks; a failed one's energy then rises by 3 (its grasp missed).
+    episodes = [rollout(i, rng.normal(0.0, 0.1, 16), success=True) for i in range(12)]
+    episodes += [
+        rollout(100 + i, np.r_[rng.normal(0.0, 0.1, 6), rng.normal(3.0, 0.1, 10)], success=False)
+        for i in range(4)
+    ]
+    picked = choice.choose(episodes)
+    rows = {row["chunks"]: row for row in picked["candidates"]}
+    assert rows[3]["balanced_accuracy"] < 0.7 and rows[10]["balanced_accuracy"] == pytest.approx(
+        1.0, abs=0.05
+    )
+    best = max(row["balanced_accuracy"] for row in picked["candidates"])
+    assert picked["chunks"] == min(n for n, row in rows.items() if row["balanced_accuracy"] == best)
+    assert picked["chunks"] > 6  # after the rollouts part
+    assert picked["report_options"][1] == f"--failure_chunks={picked['chunks']}"
+    # The threshold is the successful rollouts' mean + 1 std over the first N chunks: the failed ones set nothing.
+    successful = choice.first_chunk_means(episodes[:12], picked["chunks"])
+    assert rows[picked["chunks"]]["threshold"] == pytest.approx(successful.mean() + successful.std())
+
+    with pytest.raises(ValueError, match="needs failed and at least 2 successful"):
+        choice.choose(episodes[:12])
+
+    folder = tmp_path / "calibration"
+    write_energy_records(folder / ENERGY_RECORDS_FILENAME, [r for e in episodes for r in e])
+    choice.main([f"--calibration={folder}", f"--output={tmp_path / 'choice.json'}"])
+    assert json.loads((tmp_path / "choice.json").read_text())["chunks"] == picked["chunks"]
+
+
+@pytest.mark.skipif(
+    not (RESULTS / "libero_object10" / "eval").is_dir(), reason="the ten-task records are not committed here"
+)
+def test_on_cs_ten_task_calibration_rollouts_the_choice_is_chunk_12():
+    """The development figure libero_runs.md states ("D's failure check"), from C's committed calibration records."""
+    calibration = RESULTS / "libero_object10/eval/ebvla_joint_fast_cpu/vanilla_calib"
+    picked = choice.choose(list(choice.load_episodes([str(calibration / "task*")]).values()))
+    assert picked["chunks"] == 12 and picked["calibration_failed"] == 13
+    assert max(row["balanced_accuracy"] for row in picked["candidates"]) == pytest.approx(0.948, abs=5e-4)
