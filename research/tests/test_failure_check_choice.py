@@ -58,3 +58,24 @@ def test_on_cs_ten_task_calibration_rollouts_the_choice_is_chunk_12():
     picked = choice.choose(list(choice.load_episodes([str(calibration / "task*")]).values()))
     assert picked["chunks"] == 12 and picked["calibration_failed"] == 13
     assert max(row["balanced_accuracy"] for row in picked["candidates"]) == pytest.approx(0.948, abs=5e-4)
+
+
+@pytest.mark.skipif(
+    not (RESULTS / "libero_object10" / "eval").is_dir(), reason="the ten-task records are not committed here"
+)
+def test_the_committed_run_time_alarm_rates_are_what_the_shipped_monitor_gives_on_the_records(tmp_path):
+    """`runtime_alarms.json` (BENCHMARKS.md, "Ten tasks": what a user of C's monitor gets) recomputed."""
+    alarms = load_benchmark("runtime_alarm_rates")
+    run = RESULTS / "libero_object10"
+    committed = run / "reports/ebvla_joint_fast_cpu/runtime_alarms.json"
+    alarms.main(
+        [
+            f"--checkpoint={run / 'train/ebvla_joint_fast_cpu/last/pretrained_model'}",
+            f"--records={run / 'eval/ebvla_joint_fast_cpu'}",
+            f"--output={tmp_path / 'alarms.json'}",
+        ]
+    )
+    assert json.loads((tmp_path / "alarms.json").read_text()) == json.loads(committed.read_text())
+    heldout = json.loads(committed.read_text())["conditions"]["vanilla_heldout"]
+    # 200 held-out vanilla rollouts: 4 flagged at chunk 3, 45 at one of chunks 1-3, 67 at some chunk.
+    assert [heldout[key]["alarmed"] for key in ("at_chunk_3", "by_chunk_3", "ever")] == [4, 45, 67]

@@ -1,0 +1,90 @@
+"""What a user of a checkpoint's shipped monitor gets: `EnergyMonitor` replayed on recorded rollouts, chunk by chunk.
+
+The reports judge the OOD check as one decision on each rollout's first 3 chunks, T fitted on the calibration
+rollouts' first 3 chunks. At run time `EnergyMonitor` (and `EnergyOODMonitor`) compares the running score of the
+rollout so far, after every chunk, to the T saved in `ood_calibration.json`, which `ebvla-ood-report
+--calibrate_to` fits on whole calibration episodes. Here each recorded rollout is fed to the checkpoint's monitor
+as the policy would feed it, and per condition this counts the rollouts flagged unfamiliar at chunk 3, at any of
+chunks 1-3, and at any chunk of the episode, beside the failure check's alarms (decided at its chunk N).
+
+    python research/benchmarks/runtime_alarm_rates.py \\
+        --checkpoint=research/results/libero_object10/train/ebvla_joint_fast_cpu/last/pretrained_model \\
+        --records=outputs/libero10/eval/ebvla_joint_fast_cpu \\
+        --output=research/results/libero_object10/reports/ebvla_joint_fast_cpu/runtime_alarms.json
+"""
+
+import argparse
+import json
+from pathlib import Path
+
+from lerobot_policy_ebvla import EnergyMonitor
+from lerobot_policy_ebvla.monitoring.baselines import episode_readout
+from lerobot_policy_ebvla.monitoring.metrics import wilson_interval
+from lerobot_policy_ebvla.monitoring.records import load_episodes
+
+
+def replay(monitor: EnergyMonitor, episode: list) -> dict:
+    """The monitor's decisions on one recorded rollout, chunk by chunk."""
+    monitor.reset()
+    readout = episode_readout(episode)
+    unfamiliar, failing = [], None
+    for chunk in range(len(episode)):
+        (decision,) = monitor.update(readout.row(chunk))
+        unfamiliar.append(decision.unfamiliar.is_ood)
+        failing = decision.failing if decision.failing is not None else failing
+    return {
+        "at_chunk_3": unfamiliar[min(2, len(unfamiliar) - 1)],
+        "by_chunk_3": any(unfamiliar[:3]),
+        "ever": any(unfamiliar),
+        "failing": bool(failing),
+        "success": bool(episode[0].success),
+    }
+
+
+def rates(decisions: list[dict]) -> dict:
+    n = len(decisions)
+    row = {"rollouts": n, "successes": sum(d["success"] for d in decisions)}
+    for key in ("at_chunk_3", "by_chunk_3", "ever", "failing"):
+        k = sum(d[key] for d in decisions)
+        row[key] = {"alarmed": k, "rate": k / n, "wilson_95": list(wilson_interval(k, n))}
+    return row
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--checkpoint", type=Path, required=True, help="a pretrained_model folder with its monitor"
+    )
+    parser.add_argument(
+        "--records", type=Path, required=True, help="eval/<run>: one folder per condition and task"
+    )
+    parser.add_argument("--output", type=Path, default=None)
+    args = parser.parse_args(argv)
+    monitor = EnergyMonitor.from_pretrained(args.checkpoint)
+    result = {
+        "ood_score": monitor.ood.score.name,
+        "ood_threshold": monitor.ood.threshold,
+        "failure_check": None
+        if monitor.failure is None
+        else {"score": monitor.failure.score.name, "chunks": monitor.failure.chunks},
+        "conditions": {},
+    }
+    for folder in sorted(p for p in args.records.iterdir() if p.is_dir()):
+        episodes = load_episodes([str(folder / "task*")])
+        if episodes:
+            result["conditions"][folder.name] = rates([replay(monitor, e) for e in episodes.values()])
+    print(f"{'condition':18} {'n':>4} {'at chunk 3':>11} {'by chunk 3':>11} {'any chunk':>10} {'failing':>8}")
+    for name, row in result["conditions"].items():
+        cells = " ".join(
+            f"{row[key]['rate']:>10.0%}" for key in ("at_chunk_3", "by_chunk_3", "ever", "failing")
+        )
+        print(f"{name:18} {row['rollouts']:>4} {cells}")
+    if args.output is not None:
+        args.output.parent.mkdir(parents=True, exist_ok=True)
+        args.output.write_text(json.dumps(result, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
