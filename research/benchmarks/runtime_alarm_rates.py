@@ -7,6 +7,10 @@ rollout so far, after every chunk, to the T saved in `ood_calibration.json`, whi
 as the policy would feed it, and per condition this counts the rollouts flagged unfamiliar at chunk 3, at any of
 chunks 1-3, and at any chunk of the episode, beside the failure check's alarms (decided at its chunk N).
 
+`--refit_first_chunks=3` replays the same monitor with its OOD threshold refitted as the reports fit theirs: mu_v and
+sigma_v of the calibration rollouts' (`vanilla_calib`) scores over their first 3 chunks, the candidate fix of the
+gap between the two.
+
     python research/benchmarks/runtime_alarm_rates.py \\
         --checkpoint=research/results/libero_object10/train/ebvla_joint_fast_cpu/last/pretrained_model \\
         --records=outputs/libero10/eval/ebvla_joint_fast_cpu \\
@@ -14,13 +18,29 @@ chunks 1-3, and at any chunk of the episode, beside the failure check's alarms (
 """
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
 from lerobot_policy_ebvla import EnergyMonitor
 from lerobot_policy_ebvla.monitoring.baselines import episode_readout
 from lerobot_policy_ebvla.monitoring.metrics import wilson_interval
+from lerobot_policy_ebvla.monitoring.ood_report import OODReportConfig, score_ood_report
 from lerobot_policy_ebvla.monitoring.records import load_episodes
+
+
+def refit_on_first_chunks(monitor: EnergyMonitor, records: Path, chunks: int) -> EnergyMonitor:
+    """The monitor with its OOD check's mu_v and sigma_v those of the calibration rollouts' first `chunks` chunks."""
+    conditions = [p for p in records.iterdir() if p.is_dir() and not p.name.startswith("vanilla")]
+    cfg = OODReportConfig(
+        calibration=[str(records / "vanilla_calib" / "task*")],
+        vanilla=[str(records / "vanilla_heldout" / "task*")],
+        ood=[str(p / "task*") for p in conditions],
+        k=monitor.ood.k,
+    )
+    fit = score_ood_report(cfg).fit(monitor.ood.score.name, chunks)
+    ood = dataclasses.replace(monitor.ood, mu_v=fit.mu_v, sigma_v=fit.sigma_v, n_rollouts=fit.n_rollouts)
+    return EnergyMonitor(ood, monitor.failure)
 
 
 def replay(monitor: EnergyMonitor, episode: list) -> dict:
@@ -61,9 +81,18 @@ def main(argv=None) -> None:
         "--records", type=Path, required=True, help="eval/<run>: one folder per condition and task"
     )
     parser.add_argument("--output", type=Path, default=None)
+    parser.add_argument(
+        "--refit_first_chunks",
+        type=int,
+        default=None,
+        help="refit the OOD threshold on this many first chunks",
+    )
     args = parser.parse_args(argv)
     monitor = EnergyMonitor.from_pretrained(args.checkpoint)
+    if args.refit_first_chunks is not None:
+        monitor = refit_on_first_chunks(monitor, args.records, args.refit_first_chunks)
     result = {
+        "refit_first_chunks": args.refit_first_chunks,
         "ood_score": monitor.ood.score.name,
         "ood_threshold": monitor.ood.threshold,
         "failure_check": None

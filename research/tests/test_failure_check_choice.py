@@ -79,3 +79,17 @@ def test_the_committed_run_time_alarm_rates_are_what_the_shipped_monitor_gives_o
     heldout = json.loads(committed.read_text())["conditions"]["vanilla_heldout"]
     # 200 held-out vanilla rollouts: 4 flagged at chunk 3, 45 at one of chunks 1-3, 67 at some chunk.
     assert [heldout[key]["alarmed"] for key in ("at_chunk_3", "by_chunk_3", "ever")] == [4, 45, 67]
+
+    # With T refitted on the calibration rollouts' first 3 chunks, as the reports fit theirs.
+    alarms.main(
+        [
+            f"--checkpoint={run / 'train/ebvla_joint_fast_cpu/last/pretrained_model'}",
+            f"--records={run / 'eval/ebvla_joint_fast_cpu'}",
+            f"--output={tmp_path / 'first3.json'}",
+            "--refit_first_chunks=3",
+        ]
+    )
+    refitted = json.loads((tmp_path / "first3.json").read_text())
+    assert refitted == json.loads(committed.with_name("runtime_alarms_first3.json").read_text())
+    heldout = refitted["conditions"]["vanilla_heldout"]
+    assert [heldout[key]["alarmed"] for key in ("at_chunk_3", "by_chunk_3", "ever")] == [0, 7, 13]
