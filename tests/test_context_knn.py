@@ -283,7 +283,8 @@ def test_ood_report_saves_a_context_knn_calibration_of_the_reports_knn_score(rec
         "--score=context_knn",
     ]
     ood_report.main([*args, f"--knn_k={K}"])
-    assert "`--score=context_knn`" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "`--score=context_knn`" in out
     calibration = OODCalibration.load(checkpoint)
     assert calibration.score.name == "context_knn" and calibration.n_rollouts == 12
     assert calibration.score.neighbours.k == K and calibration.score.neighbours.n_chunks == 12 * 5
@@ -291,9 +292,16 @@ def test_ood_report_saves_a_context_knn_calibration_of_the_reports_knn_score(rec
     reference = fit_score_reference(calibration_set, knn_k=K)
     features = np.stack([r.context_feature for episode in calibration_set.values() for r in episode])
     np.testing.assert_array_equal(calibration.score.neighbours.features, features)
-    # mu_v and sigma_v are those of the report's knn score: the calibration rollouts leave-one-episode-out.
-    knn = episode_scores(calibration_set, "context_knn", reference=reference)
+    # mu_v and sigma_v are those of the report's knn score: the calibration rollouts leave-one-episode-out, over
+    # their first 3 chunks (the first-chunk Table III's fit, the threshold the report judges the score by).
+    knn = episode_scores(calibration_set, "context_knn", reference=reference, first_chunks=3)
     assert calibration.mu_v == pytest.approx(knn.mean()) and calibration.sigma_v == pytest.approx(knn.std())
+    # The report states the threshold it saved.
+    assert "over their first 3 chunks (the T the run-time monitor" in out
+    assert (
+        f"mu_v = {calibration.mu_v:.4g}, sigma_v = {calibration.sigma_v:.4g}, T = {calibration.threshold:.4g}"
+        in out
+    )
     # A held-out rollout scores at run time what it scores in the report.
     monitor = EnergyOODMonitor(calibration)
     held_out = episode_chunk_scores(vanilla, "context_knn", reference)

@@ -390,7 +390,11 @@ def test_the_report_saves_the_energy_and_context_calibration_its_tables_score(re
         for e in vanilla.values()
     ]
     np.testing.assert_allclose(scored, expected)
-    assert f"| energy_and_context | 12 | {calibration.mu_v:.4g} | {calibration.sigma_v:.4g} |" in text
+    # The report states the threshold it saved: fitted on the calibration rollouts' first 3 chunks.
+    saved = (
+        f"mu_v = {calibration.mu_v:.4g}, sigma_v = {calibration.sigma_v:.4g}, T = {calibration.threshold:.4g}"
+    )
+    assert "over their first 3 chunks" in text and saved in text
 
 
 def test_the_outcome_tables_show_what_knowing_the_conditions_alone_reaches(record_dirs, tmp_path):

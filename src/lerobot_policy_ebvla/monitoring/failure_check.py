@@ -16,10 +16,9 @@ from .metrics import BinaryRates, markdown_table, percent
 from .ood_sections import auroc_interval
 
 
-def failure_check_section(scored, fits: dict) -> str:
-    """The section of an OOD report's scores (`ood_report.OODScores`, with the whole-episode calibrations `fits` by
-    score name): the failure check and each baseline at its calibration threshold over the first N chunks, and
-    the monitor's two checks together."""
+def failure_check_section(scored) -> str:
+    """The section of an OOD report's scores (`ood_report.OODScores`): the failure check and each baseline at its
+    calibration threshold over the first N chunks, and the monitor's two checks together."""
     n, vanilla, ood = scored.failure_chunks, scored.vanilla, scored.ood
     failed = scored.held_out_failed()
     # Every set starts with the held-out vanilla rollouts: each takes as many rollouts as it has labels.
@@ -41,7 +40,7 @@ def failure_check_section(scored, fits: dict) -> str:
     failure_alarms = alarms(failure)
     rows = {
         "monitor (either check)": row(
-            None, exceeds(scored.held_out(ood_score, n), fits[ood_score].threshold) | failure_alarms
+            None, exceeds(scored.held_out(ood_score, n), scored.saved_fit().threshold) | failure_alarms
         )
     }
     for name in dict.fromkeys([failure, ood_score, "final_energy", *FEATURE_SCORES]):

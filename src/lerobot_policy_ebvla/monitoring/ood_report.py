@@ -260,6 +260,12 @@ class OODScores:
         """The threshold statistics of a score on the calibration rollouts' scores over the same chunks."""
         return self._fit(self.scores(self.calibration_chunks, name, first_chunks))
 
+    def saved_fit(self) -> OODCalibration:
+        """The OOD check `--calibrate_to` saves: the saved score fitted on the calibration rollouts' first
+        `table_iii_first_chunks` chunks (whole episodes when 0), the fit Table III on the first chunks judges it
+        by, so that the run-time monitor's T is the reported one."""
+        return self.fit(self.saved_score, self.cfg.table_iii_first_chunks or None)
+
     def fit_failure(self, name: str, first_chunks: int) -> OODCalibration:
         """`fit` on the failure check's reference rollouts (`failure_reference`) only."""
         return self._fit(
@@ -453,14 +459,14 @@ def write_scored_report(scored: OODScores) -> str:
         "## Calibration\n\n"
         + calibration_table(fits, negatives, cfg)
         + conformal_note(fits, cfg)
-        + _saved_score_note(cfg, scored.saved_score),
+        + _saved_score_note(cfg, scored),
         "## Energy vs success drop (final energy)\n\n"
         + success_table(vanilla, conditions, fits, negatives, positives, cfg),
         "## AUROC [bootstrap 95% interval] by score\n\n"
         + auroc_table(conditions, names, negatives, positives, cfg),
         first_chunks_section(by_length, vanilla, conditions, names, cfg),
         outcome_section(by_length, vanilla, scored.ood, names, cfg),
-        *([failure_check_section(scored, fits)] if scored.failure_score != "none" else []),
+        *([failure_check_section(scored)] if scored.failure_score != "none" else []),
         *table_iii_sections("Table III", fits, by_length[None], vanilla, conditions, names, cfg),
     ]
     if cfg.table_iii_first_chunks:
@@ -482,11 +488,12 @@ def write_scored_report(scored: OODScores) -> str:
     figures(cfg, fits, calibration_scores, negatives, positives, names)
     if cfg.calibrate_to is not None:
         # The run-time monitor scores chunks against a score fitted on every calibration rollout; mu_v and
-        # sigma_v are the report's: the calibration rollouts' scores, leave-one-episode-out where the score
-        # is fitted on them, as a new rollout's would be.
+        # sigma_v are the report's: the calibration rollouts' scores over their first chunks (`saved_fit`; a
+        # whole episode's mean varies less than a few chunks', and a T fitted on whole episodes flags a third
+        # of vanilla rollouts in their first chunks), leave-one-episode-out where the score is fitted on them.
         saved = scored.saved_score
         score = SCORES[saved].fit(vanilla_rollouts(scored.calibration_set, cfg.aggregation, cfg.knn_k))
-        calibration = dataclasses.replace(fits[saved], score=score)
+        calibration = dataclasses.replace(scored.saved_fit(), score=score)
         path = calibration.save(cfg.calibrate_to, overwrite=cfg.overwrite_calibration)
         logger.info(f"Saved the OOD calibration ({saved}, T = {calibration.threshold:.3f}) to {path}")
         if scored.failure_score != "none":
@@ -518,11 +525,18 @@ def _beside_one_sided(names: list[str]) -> list[str]:
     return ordered
 
 
-def _saved_score_note(cfg: OODReportConfig, saved_score: str) -> str:
-    """Which score a calibration saved by this report is of, and which table rows it is."""
-    default = ""
+def _saved_score_note(cfg: OODReportConfig, scored: OODScores) -> str:
+    """Which score a calibration saved by this report is of, which table rows it is, and its threshold."""
+    saved_score, default = scored.saved_score, ""
     if cfg.score is None and cfg.calibrate_to is not None:
         default = f"\n\nWithout `--score`, `--calibrate_to` saves the checkpoint's `monitor.score`: `{saved_score}`."
+    if cfg.calibrate_to is not None:
+        fit, chunks = scored.saved_fit(), cfg.table_iii_first_chunks
+        over = f"their first {chunks} chunks" if chunks else "whole episodes"
+        default += (
+            f"\n\nThe saved threshold is fitted on the calibration rollouts' `{saved_score}` over {over} (the T "
+            f"the run-time monitor compares each chunk's running score to): mu_v = {fit.mu_v:.4g}, sigma_v = {fit.sigma_v:.4g}, T = {fit.threshold:.4g}."
+        )
     what = {
         "context_distance": "of every table: the same features, fit and leave-one-episode-out calibration scores.",
         "context_knn": f"of every table (k = {cfg.knn_k}): the same features, standardization and "

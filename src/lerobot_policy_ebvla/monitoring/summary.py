@@ -110,29 +110,31 @@ def monitor_summary(scored) -> dict:
     saved with the checkpoint.
 
     `unfamiliar`: per shift, the OOD score's AUROC against the held-out vanilla rollouts over the first N chunks
-    and over whole episodes, and the rollouts alarmed at T by their end (vanilla's too). `failing` (a checkpoint
-    with a failure check): failed against successful rollouts over all of them, first N chunks: AUROC, and the
-    alarms at its T.
+    and over whole episodes, and the rollouts alarmed at the saved T over their first chunks
+    (`OODScores.saved_fit`: vanilla's too). `failing` (a checkpoint with a failure check): failed against
+    successful rollouts over all of them, first N chunks: AUROC, and the alarms at its T.
     """
     n = scored.failure_chunks
     ood, first, whole = scored.saved_score, scored.at(n), scored.at(None)
-    threshold = scored.fit(ood).threshold
+    ood_chunks = scored.cfg.table_iii_first_chunks or None
+    decided, threshold = scored.at(ood_chunks), scored.saved_fit().threshold
 
     def alarmed(scores) -> list[int]:
         return [int(exceeds(scores, threshold).sum()), len(scores)]
 
-    unfamiliar = {"vanilla": {"alarmed": alarmed(whole.negatives[ood])}}
+    unfamiliar = {"vanilla": {"alarmed": alarmed(decided.negatives[ood])}}
     for condition, scores in whole.positives.items():
         if condition != ALL_CONDITIONS:
             unfamiliar[condition] = {
                 "auroc_first_chunks": auroc(first.negatives[ood], first.positives[condition][ood]),
                 "auroc": auroc(whole.negatives[ood], scores[ood]),
-                "alarmed": alarmed(scores[ood]),
+                "alarmed": alarmed(decided.positives[condition][ood]),
             }
     summary = {
         "score": ood,
         "n_calibration": len(scored.calibration_set),
         "chunks": n,
+        "ood_chunks": ood_chunks,
         "unfamiliar": unfamiliar,
     }
     if scored.failure_score != "none":
