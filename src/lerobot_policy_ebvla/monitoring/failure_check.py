@@ -40,7 +40,7 @@ def failure_check_section(scored) -> str:
     failure_alarms = alarms(failure)
     rows = {
         "monitor (either check)": row(
-            None, exceeds(scored.held_out(ood_score, n), scored.saved_fit().threshold) | failure_alarms
+            None, exceeds(scored.held_out(ood_score, n), scored.saved_fit.threshold) | failure_alarms
         )
     }
     for name in dict.fromkeys([failure, ood_score, "final_energy", *FEATURE_SCORES]):

@@ -19,6 +19,7 @@ With context features, the scores include the combinations of the final energy a
 import dataclasses
 import logging
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -260,10 +261,12 @@ class OODScores:
         """The threshold statistics of a score on the calibration rollouts' scores over the same chunks."""
         return self._fit(self.scores(self.calibration_chunks, name, first_chunks))
 
+    @cached_property
     def saved_fit(self) -> OODCalibration:
         """The OOD check `--calibrate_to` saves: the saved score fitted on the calibration rollouts' first
         `table_iii_first_chunks` chunks (whole episodes when 0), the fit Table III on the first chunks judges it
-        by, so that the run-time monitor's T is the reported one."""
+        by, so that the run-time monitor's T is the reported one. Computed once: the report, its failure section and
+        `--calibrate_to` all read it."""
         return self.fit(self.saved_score, self.cfg.table_iii_first_chunks or None)
 
     def fit_failure(self, name: str, first_chunks: int) -> OODCalibration:
@@ -493,7 +496,7 @@ def write_scored_report(scored: OODScores) -> str:
         # of vanilla rollouts in their first chunks), leave-one-episode-out where the score is fitted on them.
         saved = scored.saved_score
         score = SCORES[saved].fit(vanilla_rollouts(scored.calibration_set, cfg.aggregation, cfg.knn_k))
-        calibration = dataclasses.replace(scored.saved_fit(), score=score)
+        calibration = dataclasses.replace(scored.saved_fit, score=score)
         path = calibration.save(cfg.calibrate_to, overwrite=cfg.overwrite_calibration)
         logger.info(f"Saved the OOD calibration ({saved}, T = {calibration.threshold:.3f}) to {path}")
         if scored.failure_score != "none":
@@ -531,11 +534,12 @@ def _saved_score_note(cfg: OODReportConfig, scored: OODScores) -> str:
     if cfg.score is None and cfg.calibrate_to is not None:
         default = f"\n\nWithout `--score`, `--calibrate_to` saves the checkpoint's `monitor.score`: `{saved_score}`."
     if cfg.calibrate_to is not None:
-        fit, chunks = scored.saved_fit(), cfg.table_iii_first_chunks
+        fit, chunks = scored.saved_fit, cfg.table_iii_first_chunks
         over = f"their first {chunks} chunks" if chunks else "whole episodes"
         default += (
             f"\n\nThe saved threshold is fitted on the calibration rollouts' `{saved_score}` over {over} (the T "
-            f"the run-time monitor compares each chunk's running score to): mu_v = {fit.mu_v:.4g}, sigma_v = {fit.sigma_v:.4g}, T = {fit.threshold:.4g}."
+            f"the run-time monitor compares each chunk's running score to): mu_v = {fit.mu_v:.4g}, "
+            f"sigma_v = {fit.sigma_v:.4g}, T = {fit.threshold:.4g}."
         )
     what = {
         "context_distance": "of every table: the same features, fit and leave-one-episode-out calibration scores.",

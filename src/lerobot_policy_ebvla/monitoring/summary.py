@@ -117,7 +117,7 @@ def monitor_summary(scored) -> dict:
     n = scored.failure_chunks
     ood, first, whole = scored.saved_score, scored.at(n), scored.at(None)
     ood_chunks = scored.cfg.table_iii_first_chunks or None
-    decided, threshold = scored.at(ood_chunks), scored.saved_fit().threshold
+    decided, threshold = scored.at(ood_chunks), scored.saved_fit.threshold
 
     def alarmed(scores) -> list[int]:
         return [int(exceeds(scores, threshold).sum()), len(scores)]
