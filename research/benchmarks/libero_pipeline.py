@@ -793,7 +793,12 @@ def success_table(work: Path) -> dict:
     return table
 
 
-def report(work: Path, runs: list[str], failure_calibration_shifts: tuple[str, ...] = ()) -> None:
+def report(
+    work: Path,
+    runs: list[str],
+    failure_calibration_shifts: tuple[str, ...] = (),
+    failure_choice: Path | None = None,
+) -> None:
     """Success per task, Table III (ebvla-ood-report) and Table IV (ebvla-failure-report) of each run.
 
     Table IV needs failures on both sides: a policy that rarely fails in vanilla gives its calibration none to
@@ -801,7 +806,12 @@ def report(work: Path, runs: list[str], failure_calibration_shifts: tuple[str, .
     calibration, and those under every other shift join the held-out episodes: the alarm is chosen on some
     shifts and reported on others, never on the rollouts it was chosen on. Without them, Table IV is vanilla
     calibration against held-out vanilla.
+
+    `failure_choice` (the JSON of `failure_check_choice.py`, chosen on the calibration rollouts alone) sets the
+    monitor's failure check in the OOD report and in what `--calibrate_to` saves. Rollouts from fresh placements
+    (`vanilla_fresh`) are held-out vanilla rollouts there too: no threshold is fitted on them.
     """
+    failure_options = [] if failure_choice is None else json.loads(failure_choice.read_text())["report_options"]
     table = success_table(work)
     (work / "success.json").write_text(json.dumps(table, indent=1))
     for run, conditions in table.items():
@@ -820,6 +830,7 @@ def report(work: Path, runs: list[str], failure_calibration_shifts: tuple[str, .
             p.name for p in folder.glob("*") if p.is_dir() and not p.name.startswith("vanilla")
         )
         calibration, heldout = (str(folder / name / "task*") for name in ("vanilla_calib", "vanilla_heldout"))
+        fresh = [str(folder / FRESH_CONDITION / "task*")] if (folder / FRESH_CONDITION).is_dir() else []
         # The checkpoint's own monitor (its config's scores), calibrated on the calibration rollouts as a user
         # would: the report's "monitor" rows are then what ships with it.
         checkpoint = work / "train" / run / "checkpoints" / "last" / "pretrained_model"
@@ -831,14 +842,15 @@ def report(work: Path, runs: list[str], failure_calibration_shifts: tuple[str, .
                 [
                     bin_path("ebvla-ood-report"),
                     f"--calibration=[{calibration}]",
-                    f"--vanilla=[{heldout}]",
+                    f"--vanilla=[{','.join([heldout, *fresh])}]",
                     f"--ood=[{','.join(str(folder / name / 'task*') for name in perturbed)}]",
                     f"--output_dir={work / 'reports' / run / 'ood'}",
                     *monitor,
+                    *failure_options,
                 ],
                 check=True,
             )
-        failure_calibration, failure_heldout = [calibration], [heldout]
+        failure_calibration, failure_heldout = [calibration], [heldout, *fresh]
         for name in perturbed if failure_calibration_shifts else []:
             side = (
                 failure_calibration
@@ -906,6 +918,12 @@ def main(argv: list[str] | None = None) -> None:
         default=[],
         help="report: the perturbations whose rollouts join Table IV's calibration (the others' join its held-out "
         "episodes); none: vanilla calibration only",
+    )
+    parser.add_argument(
+        "--failure_choice",
+        type=Path,
+        default=None,
+        help="report: failure_check_choice.py's JSON; its options set the monitor's failure check",
     )
     parser.add_argument("--steps", type=int, default=8000)
     parser.add_argument("--batch_size", type=int, default=32)
@@ -1018,7 +1036,7 @@ def main(argv: list[str] | None = None) -> None:
     elif args.stage == "pack":
         pack(work, args.archive or work / "libero_results.tar.gz")
     else:
-        report(work, args.runs, tuple(args.failure_calibration_shifts))
+        report(work, args.runs, tuple(args.failure_calibration_shifts), args.failure_choice)
     if args.stage in ("record", "train", "eval", "report"):
         log_timing(work, args.stage, time.time() - start, argv if argv is not None else sys.argv[1:])
 

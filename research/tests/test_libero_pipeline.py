@@ -203,6 +203,31 @@ def test_table_iv_chooses_its_alarm_on_some_shifts_and_reports_it_on_the_others(
     assert calibration.count("task*") == 1 and heldout.count("task*") == 1
 
 
+def test_the_chosen_failure_check_reaches_the_monitor_and_fresh_placements_are_held_out(tmp_path, monkeypatch):
+    for condition in ("vanilla_calib", "vanilla_heldout", "vanilla_fresh", "pose5"):
+        write_json(tmp_path / f"eval/ebvla_cpu/{condition}/task2/eval_info.json", eval_info([True, False]))
+    fake_checkpoint(tmp_path, "ebvla_cpu")
+    options = ["--failure_score=final_energy", "--failure_chunks=12", "--failure_reference=successful"]
+    choice = write_json(tmp_path / "failure_check_choice.json", {"chunks": 12, "report_options": options})
+    commands = []
+    monkeypatch.setattr(pipeline.subprocess, "run", lambda command, check: commands.append(command))
+
+    pipeline.report(tmp_path, ["ebvla_cpu"], failure_choice=choice)
+    ood = next(c for c in commands if c[0].endswith("ebvla-ood-report"))
+    assert ood[-3:] == options and any(a.startswith("--calibrate_to=") for a in ood)
+    vanilla = next(a for a in ood if a.startswith("--vanilla="))
+    calibration = next(a for a in ood if a.startswith("--calibration="))
+    assert "/vanilla_heldout/task*" in vanilla and "/vanilla_fresh/task*" in vanilla
+    assert "fresh" not in calibration and "fresh" not in next(a for a in ood if a.startswith("--ood="))
+    failure = next(c for c in commands if c[0].endswith("ebvla-failure-report"))
+    assert "/vanilla_fresh/task*" in next(a for a in failure if a.startswith("--records="))
+
+    commands.clear()
+    pipeline.report(tmp_path, ["ebvla_cpu"])  # without a choice: the checkpoint's own failure check
+    ood = next(c for c in commands if c[0].endswith("ebvla-ood-report"))
+    assert not any(a.startswith("--failure_") for a in ood)
+
+
 def test_pack_keeps_records_logs_and_ebvla_checkpoints_and_leaves_out_data_frames(work):
     kept = [
         "recording_summary.json",
