@@ -20,7 +20,7 @@ calibration rollouts of all ten tasks (the one monitor a user ships, whatever ta
 
 import argparse
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +28,12 @@ import research_scores  # noqa: F401  (registers context_energy_two_sided and th
 from libero_recipe_choice import at_threshold, monitor_score, rollout_successes
 
 from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_interval, wilson_interval
-from lerobot_policy_ebvla.monitoring.ood_report import ALL_CONDITIONS, OODReportConfig, score_ood_report
+from lerobot_policy_ebvla.monitoring.ood_report import (
+    ALL_CONDITIONS,
+    OODReportConfig,
+    OODScores,
+    score_ood_report,
+)
 
 TASK_GROUPS = {
     "all ten": (0, 1, 2, 3, 4, 5, 6, 7, 8, 9),
@@ -110,27 +115,51 @@ def condition_name(folder: str) -> str:
     return f"{stem} {folder[len(stem) :]}"
 
 
+def score_all_tasks(run_dir: Path, negatives: str, scores: list[str], output_dir: Path) -> OODScores:
+    """Every score of one vanilla set (`negatives`) and of every shift, over all the evaluated tasks, with T fitted
+    on the calibration rollouts of all ten tasks. Scored once: each group's rows come from its tasks' rollouts in
+    it (`of_tasks`), so the calibration's leave-one-out fits, most of the report's time, are made once."""
+    tasks = TASK_GROUPS["all ten"]
+    cfg = OODReportConfig(
+        calibration=[str(p) for p in task_folders(run_dir, CALIBRATION, tasks)],
+        vanilla=[str(p) for p in task_folders(run_dir, negatives, tasks)],
+        ood=[str(p) for c in shift_conditions(run_dir) for p in task_folders(run_dir, c, tasks)],
+        score=scores[0],
+        output_dir=output_dir,
+        first_chunks=[FIRST_CHUNKS],
+    )
+    return score_ood_report(cfg)
+
+
+def of_tasks(scored: OODScores, tasks: tuple[int, ...]) -> OODScores:
+    """`scored` with only the held-out and perturbed rollouts of `tasks` (their records' `task<i>` folders), in
+    the same order: the scores a report of those tasks' folders alone gives, with the same calibration."""
+    folders = {f"task{t}" for t in tasks}
+
+    def keep(episodes: dict) -> dict:
+        return {key: value for key, value in episodes.items() if Path(key[0]).parent.name in folders}
+
+    conditions = {c: kept for c, episodes in scored.conditions.items() if (kept := keep(episodes))}
+    return replace(
+        scored,
+        vanilla=keep(scored.vanilla),
+        ood=keep(scored.ood),
+        conditions=conditions,
+        vanilla_chunks={name: keep(chunks) for name, chunks in scored.vanilla_chunks.items()},
+        condition_chunks={
+            c: {name: keep(chunks) for name, chunks in scored.condition_chunks[c].items()} for c in conditions
+        },
+        _scored={},
+    )
+
+
 def score_rows(
-    run_dir: Path, tasks: tuple[int, ...], scores: list[str], output_dir: Path
+    heldout: OODScores, fresh: OODScores | None, scores: list[str]
 ) -> tuple[list[ScoreRow], list[str]]:
-    """Each score's Table III row for one group of tasks, and the scores the records could not give."""
-    calibration = [str(p) for p in task_folders(run_dir, CALIBRATION, TASK_GROUPS["all ten"])]
-    shifted = [str(p) for c in shift_conditions(run_dir) for p in task_folders(run_dir, c, tasks)]
-
-    def scored_against(negatives: str):
-        cfg = OODReportConfig(
-            calibration=calibration,
-            vanilla=[str(p) for p in task_folders(run_dir, negatives, tasks)],
-            ood=shifted,
-            score=scores[0],
-            output_dir=output_dir,
-            first_chunks=[FIRST_CHUNKS],
-        )
-        return score_ood_report(cfg)
-
-    heldout = scored_against(HELDOUT)
-    # Only the fresh rollouts' scores are read from this second scoring: the threshold stays the calibration's.
-    fresh = scored_against(FRESH).at(FIRST_CHUNKS) if task_folders(run_dir, FRESH, tasks) else None
+    """Each score's Table III row for one group of tasks (`of_tasks` of the held-out and the fresh scoring), and
+    the scores the records could not give. Only the fresh rollouts' scores are read from `fresh`: the threshold
+    stays the calibration's."""
+    fresh_sets = None if fresh is None or not fresh.vanilla else fresh.at(FIRST_CHUNKS)
     sets = heldout.at(FIRST_CHUNKS)
     whole = heldout.at(None)
     rows, missing = [], []
@@ -150,8 +179,8 @@ def score_rows(
                 balanced_accuracy=row.balanced_accuracy,
                 heldout_alarm_rate=row.heldout_alarm_rate,
                 fresh_alarm_rate=None
-                if fresh is None
-                else float(np.mean(fresh.negatives[score] > row.threshold)),
+                if fresh_sets is None
+                else float(np.mean(fresh_sets.negatives[score] > row.threshold)),
                 alarm_rate_per_condition={
                     condition: float(np.mean(shifted_scores[score] > row.threshold))
                     for condition, shifted_scores in sets.positives.items()
@@ -226,7 +255,9 @@ def check_targets(report: GroupReport, monitor: str) -> list[tuple[str, str, boo
     return targets
 
 
-def group_report(run_dir: Path, group: str, scores: list[str], output_dir: Path) -> GroupReport:
+def group_report(
+    run_dir: Path, group: str, scores: list[str], heldout: OODScores, fresh: OODScores | None
+) -> GroupReport:
     # The group's tasks that were evaluated: all of them once the queue is done.
     tasks = tuple(t for t in TASK_GROUPS[group] if (run_dir / HELDOUT / f"task{t}").is_dir())
     rates = {"fixed initial states": success(task_folders(run_dir, HELDOUT, tasks))}
@@ -237,7 +268,9 @@ def group_report(run_dir: Path, group: str, scores: list[str], output_dir: Path)
         condition_name(c): success(task_folders(run_dir, c, tasks)) for c in shift_conditions(run_dir)
     }
     report = GroupReport(group, tasks, rates, per_condition)
-    report.rows, missing = score_rows(run_dir, tasks, scores, output_dir / group.replace(" ", "_"))
+    report.rows, missing = score_rows(
+        of_tasks(heldout, tasks), None if fresh is None else of_tasks(fresh, tasks), scores
+    )
     if missing:
         print(f"{group}: the records give no {missing}")
     report.targets = check_targets(report, scores[0])
@@ -322,7 +355,13 @@ def main(argv: list[str] | None = None) -> None:
     evaluated = [g for g, tasks in TASK_GROUPS.items() if task_folders(run_dir, HELDOUT, tasks)]
     for group in TASK_GROUPS.keys() - set(evaluated):
         print(f"{group}: no held-out rollouts of its tasks yet, left out")
-    reports = [group_report(run_dir, group, scores, args.output_dir) for group in evaluated]
+    heldout = score_all_tasks(run_dir, HELDOUT, scores, args.output_dir)
+    fresh = (
+        score_all_tasks(run_dir, FRESH, scores, args.output_dir)
+        if task_folders(run_dir, FRESH, TASK_GROUPS["all ten"])
+        else None
+    )
+    reports = [group_report(run_dir, group, scores, heldout, fresh) for group in evaluated]
     args.output_dir.mkdir(parents=True, exist_ok=True)
     text = markdown(args.run, reports)
     (args.output_dir / "ten_task_report.md").write_text(text)

@@ -87,10 +87,15 @@ class PhaseStatistics:
             )
         floor = max(PHASE_SIGMA_FLOOR * float(pooled.std()), MIN_SIGMA)
         previous = (float(pooled.mean()), max(float(pooled.std()), floor))
+        # One row per episode, NaN past its end: column t holds the episodes' chunk-t energies in episode order,
+        # the same values in the same order as a loop over the episodes would gather (so the same mean and std),
+        # without a Python step per episode and index (a leave-one-out report fits this thousands of times).
+        by_index = np.full((len(series), max(len(s) for s in series)), np.nan)
+        for row, energies in zip(by_index, series, strict=True):
+            row[: len(energies)] = energies
         means, stds = [], []
-        for t in range(max(len(s) for s in series)):
-            at_t = np.array([s[t] for s in series if len(s) > t])
-            at_t = at_t[np.isfinite(at_t)]
+        for column in by_index.T:
+            at_t = column[np.isfinite(column)]
             if at_t.size:
                 previous = (float(at_t.mean()), max(float(at_t.std()), floor))
             means.append(previous[0])
