@@ -33,6 +33,11 @@ Rows (`--policies`):
     ebvla-lazy-penalty-4   the penalty on one step in 4 at 4 times its weight (`joint_energy.gradient_penalty_every=4`)
     ebvla-ec-32px          E_c's own encoder at 32 px (`joint_energy.encoder_resize_shape=[32,32]`), the policy's at 64
     ebvla-ec-32px-lazy-4   both
+    ebvla-32px             the policy's frames and E_c's at 32 px (`resnet.resize_shape=[32,32]`): smaller frames
+    ebvla-32px-lazy-4-fewer-negatives  that, the penalty on one step in 4, and 7 mismatched chunks and 4 noisy copies
+                           as contrastive candidates: every lever that keeps the preset's terms
+    ebvla-ec-on-context    E_c on the policy's own pooled context, detached (`joint_energy.target="context"`): no
+                           second encoder, no image-gradient penalty
     ebvla-compiled         the light policy with `train_compile_mode="default"` (inductor: the backbone pass and the
                            K - 1 warm-up MCMC steps compiled; compilation happens in the warm-up steps)
     ebvla-channels-last    the light policy with its weights in channels-last order (the convolutions then run
@@ -85,6 +90,16 @@ EBVLA_ROWS: dict[str, dict] = {
     "ebvla-lazy-penalty-4": {"joint_energy": {"gradient_penalty_every": 4}},
     "ebvla-ec-32px": {"joint_energy": {"encoder_resize_shape": (32, 32)}},
     "ebvla-ec-32px-lazy-4": {"joint_energy": {"encoder_resize_shape": (32, 32), "gradient_penalty_every": 4}},
+    "ebvla-32px": {"resnet": {"resize_shape": (32, 32)}},
+    "ebvla-32px-lazy-4-fewer-negatives": {
+        "resnet": {"resize_shape": (32, 32)},
+        "joint_energy": {"gradient_penalty_every": 4},
+        "contrastive": {"mismatched": 7, "negatives": 4},
+    },
+    "ebvla-ec-on-context": {
+        "joint_energy": {"target": "context", "gradient_penalty": 0.0},
+        "monitor": {"score": "final_energy"},
+    },
     "ebvla-compiled": {"train_compile_mode": "default"},
     "ebvla-channels-last": {},  # the weights are made channels-last in `build_row`
 }
