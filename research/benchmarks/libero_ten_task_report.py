@@ -115,14 +115,14 @@ def condition_name(folder: str) -> str:
     return f"{stem} {folder[len(stem) :]}"
 
 
-def score_all_tasks(run_dir: Path, negatives: str, scores: list[str], output_dir: Path) -> OODScores:
-    """Every score of one vanilla set (`negatives`) and of every shift, over all the evaluated tasks, with T fitted
-    on the calibration rollouts of all ten tasks. Scored once: each group's rows come from its tasks' rollouts in
-    it (`of_tasks`), so the calibration's leave-one-out fits, most of the report's time, are made once."""
+def score_all_tasks(run_dir: Path, scores: list[str], output_dir: Path) -> OODScores:
+    """Every score of the held-out and fresh vanilla rollouts and of every shift, over all the evaluated tasks, with
+    T fitted on the calibration rollouts of all ten tasks. Scored once: each group's rows come from its own rollouts
+    in it (`held_out_of`), so the calibration's leave-one-out fits, most of the report's time, are made once."""
     tasks = TASK_GROUPS["all ten"]
     cfg = OODReportConfig(
         calibration=[str(p) for p in task_folders(run_dir, CALIBRATION, tasks)],
-        vanilla=[str(p) for p in task_folders(run_dir, negatives, tasks)],
+        vanilla=[str(p) for c in (HELDOUT, FRESH) for p in task_folders(run_dir, c, tasks)],
         ood=[str(p) for c in shift_conditions(run_dir) for p in task_folders(run_dir, c, tasks)],
         score=scores[0],
         output_dir=output_dir,
@@ -131,21 +131,28 @@ def score_all_tasks(run_dir: Path, negatives: str, scores: list[str], output_dir
     return score_ood_report(cfg)
 
 
-def of_tasks(scored: OODScores, tasks: tuple[int, ...]) -> OODScores:
-    """`scored` with only the held-out and perturbed rollouts of `tasks` (their records' `task<i>` folders), in
-    the same order: the scores a report of those tasks' folders alone gives, with the same calibration."""
+def held_out_of(scored: OODScores, tasks: tuple[int, ...], vanilla: str) -> OODScores:
+    """`scored` with only the rollouts of `tasks` (their records' `task<i>` folders), its vanilla ones those of the
+    `vanilla` condition folder, in the same order: the scores a report of those folders alone gives, with the
+    same calibration."""
     folders = {f"task{t}" for t in tasks}
 
-    def keep(episodes: dict) -> dict:
-        return {key: value for key, value in episodes.items() if Path(key[0]).parent.name in folders}
+    def keep(episodes: dict, vanilla_only: bool = False) -> dict:
+        def kept(record_file: str) -> bool:
+            task = Path(record_file).parent
+            return task.name in folders and (not vanilla_only or task.parent.name == vanilla)
+
+        return {key: value for key, value in episodes.items() if kept(key[0])}
 
     conditions = {c: kept for c, episodes in scored.conditions.items() if (kept := keep(episodes))}
     return replace(
         scored,
-        vanilla=keep(scored.vanilla),
+        vanilla=keep(scored.vanilla, vanilla_only=True),
         ood=keep(scored.ood),
         conditions=conditions,
-        vanilla_chunks={name: keep(chunks) for name, chunks in scored.vanilla_chunks.items()},
+        vanilla_chunks={
+            name: keep(chunks, vanilla_only=True) for name, chunks in scored.vanilla_chunks.items()
+        },
         condition_chunks={
             c: {name: keep(chunks) for name, chunks in scored.condition_chunks[c].items()} for c in conditions
         },
@@ -153,13 +160,11 @@ def of_tasks(scored: OODScores, tasks: tuple[int, ...]) -> OODScores:
     )
 
 
-def score_rows(
-    heldout: OODScores, fresh: OODScores | None, scores: list[str]
-) -> tuple[list[ScoreRow], list[str]]:
-    """Each score's Table III row for one group of tasks (`of_tasks` of the held-out and the fresh scoring), and
+def score_rows(heldout: OODScores, fresh: OODScores, scores: list[str]) -> tuple[list[ScoreRow], list[str]]:
+    """Each score's Table III row for one group of tasks (`held_out_of` the held-out and the fresh rollouts), and
     the scores the records could not give. Only the fresh rollouts' scores are read from `fresh`: the threshold
     stays the calibration's."""
-    fresh_sets = None if fresh is None or not fresh.vanilla else fresh.at(FIRST_CHUNKS)
+    fresh_sets = fresh.at(FIRST_CHUNKS) if fresh.vanilla else None
     sets = heldout.at(FIRST_CHUNKS)
     whole = heldout.at(None)
     rows, missing = [], []
@@ -255,9 +260,7 @@ def check_targets(report: GroupReport, monitor: str) -> list[tuple[str, str, boo
     return targets
 
 
-def group_report(
-    run_dir: Path, group: str, scores: list[str], heldout: OODScores, fresh: OODScores | None
-) -> GroupReport:
+def group_report(run_dir: Path, group: str, scores: list[str], scored: OODScores) -> GroupReport:
     # The group's tasks that were evaluated: all of them once the queue is done.
     tasks = tuple(t for t in TASK_GROUPS[group] if (run_dir / HELDOUT / f"task{t}").is_dir())
     rates = {"fixed initial states": success(task_folders(run_dir, HELDOUT, tasks))}
@@ -269,7 +272,7 @@ def group_report(
     }
     report = GroupReport(group, tasks, rates, per_condition)
     report.rows, missing = score_rows(
-        of_tasks(heldout, tasks), None if fresh is None else of_tasks(fresh, tasks), scores
+        held_out_of(scored, tasks, HELDOUT), held_out_of(scored, tasks, FRESH), scores
     )
     if missing:
         print(f"{group}: the records give no {missing}")
@@ -355,13 +358,8 @@ def main(argv: list[str] | None = None) -> None:
     evaluated = [g for g, tasks in TASK_GROUPS.items() if task_folders(run_dir, HELDOUT, tasks)]
     for group in TASK_GROUPS.keys() - set(evaluated):
         print(f"{group}: no held-out rollouts of its tasks yet, left out")
-    heldout = score_all_tasks(run_dir, HELDOUT, scores, args.output_dir)
-    fresh = (
-        score_all_tasks(run_dir, FRESH, scores, args.output_dir)
-        if task_folders(run_dir, FRESH, TASK_GROUPS["all ten"])
-        else None
-    )
-    reports = [group_report(run_dir, group, scores, heldout, fresh) for group in evaluated]
+    scored = score_all_tasks(run_dir, scores, args.output_dir)
+    reports = [group_report(run_dir, group, scores, scored) for group in evaluated]
     args.output_dir.mkdir(parents=True, exist_ok=True)
     text = markdown(args.run, reports)
     (args.output_dir / "ten_task_report.md").write_text(text)
