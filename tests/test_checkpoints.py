@@ -49,13 +49,15 @@ def logged_losses(log: str) -> dict[int, float]:
 def test_resuming_a_lerobot_checkpoint_continues_the_steps_with_the_same_losses(tmp_path):
     root = tmp_path / "data"
     write_tiny_dataset(root)
-    seed = ["--seed=7"]
-    straight = lerobot_train(root, tmp_path / "straight", *seed, steps=4, save_freq=2)
+    straight = lerobot_train(root, tmp_path / "straight", "--seed=7", steps=4, save_freq=2)
     assert straight.returncode == 0, straight.stderr[-3000:]
+    halfway = tmp_path / "straight" / "checkpoints" / "000002"
+    saved_at_4 = (
+        tmp_path / "straight" / "checkpoints" / "000004" / "pretrained_model" / "model.safetensors"
+    ).read_bytes()
 
-    first_half = lerobot_train(root, tmp_path / "resumed", *seed, steps=2, save_freq=2)
-    assert first_half.returncode == 0, first_half.stderr[-3000:]
-    config_path = tmp_path / "resumed" / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
+    # Resumed from the halfway checkpoint into a folder of its own, as a user resumes someone else's run.
+    config_path = halfway / "pretrained_model" / "train_config.json"
     resumed = lerobot_train(
         root, tmp_path / "resumed", "--resume=true", f"--config_path={config_path}", steps=4, save_freq=2
     )
@@ -70,6 +72,10 @@ def test_resuming_a_lerobot_checkpoint_continues_the_steps_with_the_same_losses(
     assert (
         tmp_path / "resumed" / "checkpoints" / "000004" / "pretrained_model" / "model.safetensors"
     ).is_file()
+    # The run resumed from is left as it was.
+    assert (
+        tmp_path / "straight" / "checkpoints" / "000004" / "pretrained_model" / "model.safetensors"
+    ).read_bytes() == saved_at_4
 
 
 def _saved(policy, path: Path) -> Path:
