@@ -14,6 +14,12 @@ calibration rollouts of all ten tasks (the one monitor a user ships, whatever ta
   the balanced accuracy at T, and the alarm rate at T on held-out vanilla and on fresh placements;
 - the issue's targets for the run's saved monitor score, each met or missed with its number.
 
+With `--failure_choice` (the JSON of `failure_check_choice.py`, chosen on the calibration rollouts alone; added on
+2026-11-29 for D, before its report), each group also gets Table IV at equal elapsed time: the monitor's failure
+check and the baselines (`failure_check.failure_check_decisions`) on the group's held-out vanilla rollouts (fixed
+states 10-29 and fresh placements, as pre-registered in research/docs/libero_runs.md, "D's failure check"), with
+each caught failure's lead to its onset and to the episode's end, and the issue's two Table IV targets.
+
     python research/benchmarks/libero_ten_task_report.py --results=research/results/libero_object10 \\
         --run=ebvla_joint_fast_cpu --output_dir=research/results/libero_object10/reports/ebvla_joint_fast_cpu/ten_task
 """
@@ -27,7 +33,13 @@ import numpy as np
 import research_scores  # noqa: F401  (registers context_energy_two_sided and the other research scores)
 from libero_recipe_choice import at_threshold, monitor_score, rollout_successes
 
-from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_interval, wilson_interval
+from lerobot_policy_ebvla.monitoring.failure_check import failure_check_decisions, failure_onsets
+from lerobot_policy_ebvla.monitoring.metrics import (
+    BinaryRates,
+    auroc,
+    bootstrap_auroc_interval,
+    wilson_interval,
+)
 from lerobot_policy_ebvla.monitoring.ood_report import (
     ALL_CONDITIONS,
     OODReportConfig,
@@ -51,6 +63,9 @@ MIN_AUROC = 0.5
 MIN_AUROC_WHERE_SUCCESS_FALLS = 0.85
 SUCCESS_DROP = 0.20
 MAX_ALARM_RATE = 0.10
+# Its Table IV targets, on held-out vanilla rollouts.
+MIN_FAILURE_BALANCED_ACCURACY = 0.80
+FAILURE_BASELINE = "chunk_context_nn"
 # Its success targets, over all ten tasks.
 MIN_SUCCESS_FIXED_STATES = 0.90
 MIN_SUCCESS_FRESH = 0.80
@@ -87,6 +102,26 @@ class ScoreRow:
 
 
 @dataclass
+class FailureRow:
+    """One row of Table IV at equal elapsed time: a score's decision over the first N chunks at its calibration T,
+    failed (positives) against successful (negatives) held-out vanilla rollouts."""
+
+    score: str
+    failed_alarmed: int
+    failed: int
+    successful_alarmed: int
+    successful: int
+    balanced_accuracy: float
+    auroc: float | None  # None: the monitor's decision combined from two thresholds
+    auroc_interval: tuple[float, float] | None
+    # Over the caught failures: how many were caught at or before their onset, and the median chunks from the
+    # alarm (chunk N) to the onset and to the episode's last chunk.
+    caught_before_onset: int
+    median_lead_to_onset: float
+    median_lead_to_end: float
+
+
+@dataclass
 class GroupReport:
     group: str
     tasks: tuple[int, ...]
@@ -94,6 +129,7 @@ class GroupReport:
     success_per_condition: dict[str, Rate]
     rows: list[ScoreRow] = field(default_factory=list)
     targets: list[tuple[str, str, bool]] = field(default_factory=list)
+    failure_rows: list[FailureRow] = field(default_factory=list)
 
 
 def task_folders(run_dir: Path, condition: str, tasks: tuple[int, ...]) -> list[Path]:
@@ -115,7 +151,23 @@ def condition_name(folder: str) -> str:
     return f"{stem} {folder[len(stem) :]}"
 
 
-def score_all_tasks(run_dir: Path, scores: list[str], output_dir: Path) -> OODScores:
+def failure_options(choice: Path | None) -> dict:
+    """The `OODReportConfig` fields of the failure check `failure_check_choice.py` chose (none: no Table IV)."""
+    if choice is None:
+        return {}
+    options = dict(
+        o.removeprefix("--").split("=", 1) for o in json.loads(choice.read_text())["report_options"]
+    )
+    return {
+        "failure_score": options["failure_score"],
+        "failure_chunks": int(options["failure_chunks"]),
+        "failure_reference": options["failure_reference"],
+    }
+
+
+def score_all_tasks(
+    run_dir: Path, scores: list[str], output_dir: Path, failure_check: dict | None = None
+) -> OODScores:
     """Every score of the held-out and fresh vanilla rollouts and of every shift, over all the evaluated tasks, with
     T fitted on the calibration rollouts of all ten tasks. Scored once: each group's rows come from its own rollouts
     in it (`held_out_of`), so the calibration's leave-one-out fits, most of the report's time, are made once."""
@@ -127,20 +179,21 @@ def score_all_tasks(run_dir: Path, scores: list[str], output_dir: Path) -> OODSc
         score=scores[0],
         output_dir=output_dir,
         first_chunks=[FIRST_CHUNKS],
+        **(failure_check or {}),
     )
     return score_ood_report(cfg)
 
 
-def held_out_of(scored: OODScores, tasks: tuple[int, ...], vanilla: str) -> OODScores:
+def held_out_of(scored: OODScores, tasks: tuple[int, ...], vanilla: tuple[str, ...]) -> OODScores:
     """`scored` with only the rollouts of `tasks` (their records' `task<i>` folders), its vanilla ones those of the
-    `vanilla` condition folder, in the same order: the scores a report of those folders alone gives, with the
+    `vanilla` condition folders, in the same order: the scores a report of those folders alone gives, with the
     same calibration."""
     folders = {f"task{t}" for t in tasks}
 
     def keep(episodes: dict, vanilla_only: bool = False) -> dict:
         def kept(record_file: str) -> bool:
             task = Path(record_file).parent
-            return task.name in folders and (not vanilla_only or task.parent.name == vanilla)
+            return task.name in folders and (not vanilla_only or task.parent.name in vanilla)
 
         return {key: value for key, value in episodes.items() if kept(key[0])}
 
@@ -156,7 +209,6 @@ def held_out_of(scored: OODScores, tasks: tuple[int, ...], vanilla: str) -> OODS
         condition_chunks={
             c: {name: keep(chunks) for name, chunks in scored.condition_chunks[c].items()} for c in conditions
         },
-        _scored={},
     )
 
 
@@ -196,6 +248,64 @@ def score_rows(heldout: OODScores, fresh: OODScores, scores: list[str]) -> tuple
             )
         )
     return rows, missing
+
+
+def failure_rows(scored: OODScores) -> list[FailureRow]:
+    """Table IV at equal elapsed time on `scored`'s held-out vanilla rollouts: the monitor's failure check and each
+    baseline at its calibration T over the first N chunks (`failure_check_decisions`)."""
+    n_vanilla, n = len(scored.vanilla), scored.failure_chunks
+    failed = scored.held_out_failed()[:n_vanilla]
+    onsets = failure_onsets(scored)[:n_vanilla]
+    lengths = np.array([len(episode) for episode in scored.vanilla.values()], dtype=float)
+    rows = []
+    for label, (scores, flags) in failure_check_decisions(scored).items():
+        flags = flags[:n_vanilla]
+        rates = BinaryRates.from_flags(flags[~failed], flags[failed])
+        caught = failed & flags
+        to_onset, to_end = onsets[caught] - n, lengths[caught] - n
+        if scores is not None:
+            scores = scores[:n_vanilla]
+        rows.append(
+            FailureRow(
+                score=label,
+                failed_alarmed=rates.tp,
+                failed=rates.n_positive,
+                successful_alarmed=rates.fp,
+                successful=rates.fp + rates.tn,
+                balanced_accuracy=rates.balanced_accuracy,
+                auroc=None if scores is None else float(auroc(scores[~failed], scores[failed])),
+                auroc_interval=None
+                if scores is None
+                else bootstrap_auroc_interval(scores[~failed], scores[failed]),
+                caught_before_onset=int(np.sum(to_onset >= 0)),
+                median_lead_to_onset=float(np.median(to_onset)) if to_onset.size else float("nan"),
+                median_lead_to_end=float(np.median(to_end)) if to_end.size else float("nan"),
+            )
+        )
+    return rows
+
+
+def failure_targets(rows: list[FailureRow], failure_score: str) -> list[tuple[str, str, bool]]:
+    """The issue's Table IV targets for the monitor's failure check."""
+    by_score = {row.score: row for row in rows}
+    check = by_score[failure_score]
+    targets = [
+        (
+            f"Table IV: balanced accuracy >= {100 * MIN_FAILURE_BALANCED_ACCURACY:.0f}% held out",
+            f"{100 * check.balanced_accuracy:.1f}%",
+            check.balanced_accuracy >= MIN_FAILURE_BALANCED_ACCURACY,
+        )
+    ]
+    if FAILURE_BASELINE in by_score:
+        baseline, (low, high) = by_score[FAILURE_BASELINE], check.auroc_interval
+        targets.append(
+            (
+                f"Table IV: not below {FAILURE_BASELINE} outside its interval",
+                f"{check.auroc:.3f} [{low:.3f}, {high:.3f}] against {baseline.auroc:.3f}",
+                baseline.auroc <= high,
+            )
+        )
+    return targets
 
 
 def check_targets(report: GroupReport, monitor: str) -> list[tuple[str, str, bool]]:
@@ -260,7 +370,9 @@ def check_targets(report: GroupReport, monitor: str) -> list[tuple[str, str, boo
     return targets
 
 
-def group_report(run_dir: Path, group: str, scores: list[str], scored: OODScores) -> GroupReport:
+def group_report(
+    run_dir: Path, group: str, scores: list[str], scored: OODScores, with_failure: bool = False
+) -> GroupReport:
     # The group's tasks that were evaluated: all of them once the queue is done.
     tasks = tuple(t for t in TASK_GROUPS[group] if (run_dir / HELDOUT / f"task{t}").is_dir())
     rates = {"fixed initial states": success(task_folders(run_dir, HELDOUT, tasks))}
@@ -272,15 +384,45 @@ def group_report(run_dir: Path, group: str, scores: list[str], scored: OODScores
     }
     report = GroupReport(group, tasks, rates, per_condition)
     report.rows, missing = score_rows(
-        held_out_of(scored, tasks, HELDOUT), held_out_of(scored, tasks, FRESH), scores
+        held_out_of(scored, tasks, (HELDOUT,)), held_out_of(scored, tasks, (FRESH,)), scores
     )
     if missing:
         print(f"{group}: the records give no {missing}")
     report.targets = check_targets(report, scores[0])
+    if with_failure:
+        report.failure_rows = failure_rows(held_out_of(scored, tasks, (HELDOUT, FRESH)))
+        report.targets += failure_targets(report.failure_rows, scored.failure_score)
     return report
 
 
-def markdown(run: str, reports: list[GroupReport]) -> str:
+def failure_markdown(report: GroupReport, failure_score: str, chunks: int) -> list[str]:
+    lines = [
+        "",
+        f"Table IV at equal elapsed time: each score over the first {chunks} chunks at its calibration T (the "
+        f"monitor's failure check: `{failure_score}`), failed against successful held-out vanilla rollouts "
+        "(states 10-29 and fresh placements). Leads: chunks from the alarm at chunk "
+        f"{chunks} to the caught failure's onset (its object's last progress toward the goal; negative once it had "
+        "begun) and to the episode's last chunk.",
+        "",
+        "| Score | Failed alarmed | Successful alarmed | Bal. acc. | AUROC [95% CI] | Caught at or before onset "
+        "| Median lead to onset / to end |",
+        "|---|---:|---:|---:|---|---:|---|",
+    ]
+    for row in report.failure_rows:
+        interval = (
+            "-"
+            if row.auroc is None
+            else f"{row.auroc:.3f} [{row.auroc_interval[0]:.3f}, {row.auroc_interval[1]:.3f}]"
+        )
+        lines.append(
+            f"| `{row.score}` | {row.failed_alarmed}/{row.failed} | {row.successful_alarmed}/{row.successful} "
+            f"| {100 * row.balanced_accuracy:.1f}% | {interval} | {row.caught_before_onset}/{row.failed_alarmed} "
+            f"| {row.median_lead_to_onset:+.0f} / {row.median_lead_to_end:+.0f} |"
+        )
+    return lines
+
+
+def markdown(run: str, reports: list[GroupReport], failure_check: dict | None = None) -> str:
     lines = [f"# The ten-task check of `{run}`", ""]
     lines.append(
         f"First {FIRST_CHUNKS} chunks; T = mu_v + 1 sigma_v on the calibration rollouts of all ten tasks; AUROCs of "
@@ -332,6 +474,8 @@ def markdown(run: str, reports: list[GroupReport]) -> str:
             + " |"
             for c in conditions
         ]
+        if report.failure_rows:
+            lines += failure_markdown(report, failure_check["failure_score"], failure_check["failure_chunks"])
         lines += ["", "| Target (the monitor's score) | Measured | Met |", "|---|---|---|"]
         lines += [f"| {t} | {m} | {'yes' if ok else '**no**'} |" for t, m, ok in report.targets]
     return "\n".join(lines) + "\n"
@@ -346,6 +490,12 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--run", required=True)
     parser.add_argument("--output_dir", type=Path, default=Path("outputs/libero_ten_task_report"))
+    parser.add_argument(
+        "--failure_choice",
+        type=Path,
+        default=None,
+        help="failure_check_choice.py's JSON: adds Table IV with the failure check it chose",
+    )
     args = parser.parse_args(argv)
     run_dir = args.results / "eval" / args.run
     if not (run_dir / HELDOUT).is_dir():
@@ -358,14 +508,15 @@ def main(argv: list[str] | None = None) -> None:
     evaluated = [g for g, tasks in TASK_GROUPS.items() if task_folders(run_dir, HELDOUT, tasks)]
     for group in TASK_GROUPS.keys() - set(evaluated):
         print(f"{group}: no held-out rollouts of its tasks yet, left out")
-    scored = score_all_tasks(run_dir, scores, args.output_dir)
-    reports = [group_report(run_dir, group, scores, scored) for group in evaluated]
+    failure_check = failure_options(args.failure_choice)
+    scored = score_all_tasks(run_dir, scores, args.output_dir, failure_check)
+    reports = [group_report(run_dir, group, scores, scored, bool(failure_check)) for group in evaluated]
     args.output_dir.mkdir(parents=True, exist_ok=True)
-    text = markdown(args.run, reports)
+    text = markdown(args.run, reports, failure_check)
     (args.output_dir / "ten_task_report.md").write_text(text)
-    (args.output_dir / "ten_task_report.json").write_text(
-        json.dumps([asdict(r) for r in reports], indent=1, default=str)
-    )
+    # Without a failure check the JSON keeps the shape of the reports written before Table IV was added.
+    saved = [{k: v for k, v in asdict(r).items() if k != "failure_rows" or failure_check} for r in reports]
+    (args.output_dir / "ten_task_report.json").write_text(json.dumps(saved, indent=1, default=str))
     print(text)
 
 

@@ -60,6 +60,16 @@ def test_on_cs_ten_task_calibration_rollouts_the_choice_is_chunk_12():
     assert max(row["balanced_accuracy"] for row in picked["candidates"]) == pytest.approx(0.948, abs=5e-4)
 
 
+def test_ds_committed_choice_is_recomputed_from_its_calibration_rollouts_alone():
+    """D's failure check (libero_runs.md, "D's failure check"), chosen before its report: N = 10."""
+    folder = RESULTS / "libero_object10_more/eval/ebvla_joint_fast_cpu_more/vanilla_calib"
+    picked = choice.choose(list(choice.load_episodes([str(folder / "task*")]).values()))
+    committed = RESULTS / "libero_object10_more/reports/ebvla_joint_fast_cpu_more/failure_check_choice.json"
+    assert json.loads(json.dumps(picked)) == json.loads(committed.read_text())
+    assert picked["chunks"] == 10 and picked["calibration_failed"] == 13
+    assert picked["calibration_rollouts"] == 100
+
+
 @pytest.mark.skipif(
     not (RESULTS / "libero_object10" / "eval").is_dir(), reason="the ten-task records are not committed here"
 )

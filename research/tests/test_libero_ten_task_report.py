@@ -35,7 +35,8 @@ def write_results(root):
                     chunk_index=chunk,
                     env_step=8 * chunk,
                     initial_energy=10.0,
-                    final_energy=float(rng.normal()),
+                    # A failed rollout's final energy rises once its grasp has missed (from chunk 1).
+                    final_energy=float(rng.normal() + (4.0 if chunk and not outcomes[episode] else 0.0)),
                     success=outcomes[episode],
                     task=f"task {task}",
                     seed=seed,
@@ -43,6 +44,8 @@ def write_results(root):
                     severity=severity,
                     context_energy=float(rng.normal() + offset),
                     context_feature=(rng.normal(size=4) + feature_offset).astype(np.float32),
+                    # The object comes 5 cm closer each chunk, a failed one only until chunk 1.
+                    goal_distance=0.3 - 0.05 * (chunk if outcomes[episode] else min(chunk, 1)),
                 )
                 for episode, seed in enumerate(seeds)
                 for chunk in range(3)
@@ -104,6 +107,39 @@ def test_alarms_are_counted_at_the_calibration_threshold_on_both_vanilla_sets(gr
     # ... which the per-shift alarm rates say shift by shift.
     assert monitor["alarm_rate_per_condition"] == {"light_dim 5": 0.0, "pose 5": 1.0}
     assert 0.0 <= monitor["whole_episode_auroc"] <= 1.0
+
+
+def test_table_iv_counts_the_failures_of_held_out_and_fresh_vanilla_at_the_chosen_check(tmp_path):
+    root = write_results(tmp_path / "results")
+    choice = tmp_path / "failure_check_choice.json"
+    options = ["--failure_score=final_energy", "--failure_chunks=3", "--failure_reference=successful"]
+    choice.write_text(json.dumps({"chunks": 3, "report_options": options}))
+    report.main(
+        [
+            f"--results={root}",
+            f"--run={RUN}",
+            f"--output_dir={tmp_path / 'out'}",
+            f"--failure_choice={choice}",
+        ]
+    )
+    groups = {g["group"]: g for g in json.loads((tmp_path / "out" / "ten_task_report.json").read_text())}
+    for name, n_tasks in (("all ten", 10), ("seven untouched", 7), ("three of the choice", 3)):
+        rows = {row["score"]: row for row in groups[name]["failure_rows"]}
+        assert list(rows)[:2] == ["monitor (either check)", "final_energy"] and "chunk_context_nn" in rows
+        check = rows["final_energy"]
+        # One failed rollout per task in the held-out states and one in the fresh placements; the shifted
+        # rollouts are not vanilla and count nowhere here.
+        assert (check["failed"], check["successful"]) == (2 * n_tasks, 7 * n_tasks)
+        # Mean over chunks 0-2 of a failure: 8/3 above the successes', far above mu + 1 sigma.
+        assert check["failed_alarmed"] == 2 * n_tasks and check["auroc"] == 1.0
+        assert check["balanced_accuracy"] > 0.8 and rows["monitor (either check)"]["auroc"] is None
+        # Caught at chunk 3, one chunk after their onset (step 2: their last progress), their last chunk.
+        assert check["caught_before_onset"] == 0
+        assert (check["median_lead_to_onset"], check["median_lead_to_end"]) == (-1.0, 0.0)
+        targets = {t: (m, ok) for t, m, ok in groups[name]["targets"]}
+        assert targets["Table IV: balanced accuracy >= 80% held out"][1] is True
+        assert targets["Table IV: not below chunk_context_nn outside its interval"][1] is True
+    assert "| `final_energy` | 20/20 | " in (tmp_path / "out" / "ten_task_report.md").read_text()
 
 
 def test_shift_folders_read_as_the_ood_reports_conditions():

@@ -19,19 +19,28 @@ from .ood_sections import auroc_interval
 def failure_check_section(scored) -> str:
     """The section of an OOD report's scores (`ood_report.OODScores`): the failure check and each baseline at its
     calibration threshold over the first N chunks, and the monitor's two checks together."""
-    n, vanilla, ood = scored.failure_chunks, scored.vanilla, scored.ood
     failed = scored.held_out_failed()
     # Every set starts with the held-out vanilla rollouts: each takes as many rollouts as it has labels.
     labels = {
-        "held-out vanilla rollouts": failed[: len(vanilla)],
+        "held-out vanilla rollouts": failed[: len(scored.vanilla)],
         "held-out vanilla and perturbed rollouts together": failed,
     }
-
-    def row(scores: np.ndarray | None, flags: np.ndarray) -> dict:
-        return {
+    rows = {
+        label: {
             title: (None if scores is None else scores[: len(set_labels)], flags[: len(set_labels)])
             for title, set_labels in labels.items()
         }
+        for label, (scores, flags) in failure_check_decisions(scored).items()
+    }
+    return format_failure_check(
+        rows, labels, scored.failure_chunks, scored.failure_score, scored.cfg, failure_onsets(scored)
+    )
+
+
+def failure_check_decisions(scored) -> dict[str, tuple[np.ndarray | None, np.ndarray]]:
+    """By row label, each held-out rollout's score over its first N chunks (None for the monitor's combined
+    decision) and whether it is alarmed at the row's calibration threshold, in `held_out_failed`'s order."""
+    n, vanilla, ood = scored.failure_chunks, scored.vanilla, scored.ood
 
     def alarms(name: str) -> np.ndarray:
         return exceeds(scored.held_out(name, n), scored.fit_failure(name, n).threshold)
@@ -39,14 +48,14 @@ def failure_check_section(scored) -> str:
     failure, ood_score = scored.failure_score, scored.saved_score
     failure_alarms = alarms(failure)
     rows = {
-        "monitor (either check)": row(
-            None, exceeds(scored.held_out(ood_score, n), scored.saved_fit.threshold) | failure_alarms
+        "monitor (either check)": (
+            None,
+            exceeds(scored.held_out(ood_score, n), scored.saved_fit.threshold) | failure_alarms,
         )
     }
     for name in dict.fromkeys([failure, ood_score, "final_energy", *FEATURE_SCORES]):
         if name in scored.names:
-            flags = failure_alarms if name == failure else alarms(name)
-            rows[name] = row(scored.held_out(name, n), flags)
+            rows[name] = (scored.held_out(name, n), failure_alarms if name == failure else alarms(name))
     if scored.reference.features:
         calibration = chunk_context_nn(scored.calibration_set, scored.calibration_set, n - 1)
         cfg = scored.cfg
@@ -57,13 +66,15 @@ def failure_check_section(scored) -> str:
             rule=cfg.threshold_rule,
         ).threshold
         scores = chunk_context_nn(scored.calibration_set, {**vanilla, **ood}, n - 1)
-        rows["chunk_context_nn"] = row(scores, exceeds(scores, threshold))
-    # Where the records carry goal distances (LIBERO), how far each caught failure's alarm came before its onset.
-    onsets = np.array(
-        [np.nan if (o := failure_onset(e)) is None else o for e in [*vanilla.values(), *ood.values()]],
-        dtype=float,
-    )
-    return format_failure_check(rows, labels, n, failure, scored.cfg, onsets)
+        rows["chunk_context_nn"] = (scores, exceeds(scores, threshold))
+    return rows
+
+
+def failure_onsets(scored) -> np.ndarray:
+    """Each held-out rollout's failure onset (`lead_time.failure_onset`, 1-based step; NaN where the records carry
+    no goal distances), in `held_out_failed`'s order."""
+    episodes = [*scored.vanilla.values(), *scored.ood.values()]
+    return np.array([np.nan if (o := failure_onset(e)) is None else o for e in episodes], dtype=float)
 
 
 # What sets T of each row, by `OODReportConfig.failure_reference`.

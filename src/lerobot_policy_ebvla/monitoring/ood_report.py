@@ -242,7 +242,8 @@ class OODScores:
     calibration_chunks: dict
     vanilla_chunks: dict
     condition_chunks: dict[str, dict]
-    _scored: dict = field(default_factory=dict, repr=False)
+    # A cache of `at`; not an argument, so that `dataclasses.replace` starts an empty one.
+    _scored: dict = field(default_factory=dict, init=False, repr=False)
 
     def scores(self, chunks: dict, name: str, first_chunks: int | None = None) -> np.ndarray:
         """The rollout scores of one set (its chunk scores by name), over whole episodes or first chunks."""
