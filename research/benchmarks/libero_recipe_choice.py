@@ -142,9 +142,12 @@ def clause_4_misses(chosen: RunCriteria) -> list[str]:
 
 
 def monitor_score(results: Path, run: str) -> str:
-    """The score the run's checkpoint saved (`monitor.score`), "final_energy" for one saved before it existed."""
-    config = results / "train" / run / "last" / "pretrained_model" / "config.json"
-    saved = json.loads(config.read_text()) if config.exists() else {}
+    """The score the run's checkpoint saved (`monitor.score`), "final_energy" for one saved before it existed.
+    `results` is saved results (`train/<run>/last`) or a work folder (`train/<run>/checkpoints/last`)."""
+    run_dir = results / "train" / run
+    configs = [run_dir / "last" / "pretrained_model" / "config.json"]
+    configs.append(run_dir / "checkpoints" / "last" / "pretrained_model" / "config.json")
+    saved = next((json.loads(c.read_text()) for c in configs if c.exists()), {})
     return saved.get("monitor", {}).get("score", "final_energy")
 
 

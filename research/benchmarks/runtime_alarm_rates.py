@@ -2,14 +2,15 @@
 
 The reports judge the OOD check as one decision on each rollout's first 3 chunks, T fitted on the calibration
 rollouts' first 3 chunks. At run time `EnergyMonitor` (and `EnergyOODMonitor`) compares the running score of the
-rollout so far, after every chunk, to the T saved in `ood_calibration.json`, which `ebvla-ood-report
---calibrate_to` fits on whole calibration episodes. Here each recorded rollout is fed to the checkpoint's monitor
-as the policy would feed it, and per condition this counts the rollouts flagged unfamiliar at chunk 3, at any of
-chunks 1-3, and at any chunk of the episode, beside the failure check's alarms (decided at its chunk N).
+rollout so far, after every chunk, to the T saved in `ood_calibration.json` (`ebvla-ood-report --calibrate_to`
+fitted it on whole calibration episodes until 2026-11-29, C's saved T; since then on the first 3 chunks, as the
+reports do). Here each recorded rollout is fed to the checkpoint's monitor as the policy would feed it, and per
+condition this counts the rollouts flagged unfamiliar at chunk 3, at any of chunks 1-3, and at any chunk of the
+episode, beside the failure check's alarms (decided at its chunk N).
 
 `--refit_first_chunks=3` replays the same monitor with its OOD threshold refitted as the reports fit theirs: mu_v and
-sigma_v of the calibration rollouts' (`vanilla_calib`) scores over their first 3 chunks, the candidate fix of the
-gap between the two.
+sigma_v of the calibration rollouts' (`vanilla_calib`) scores over their first 3 chunks (for a checkpoint
+calibrated before the fix, such as C).
 
     python research/benchmarks/runtime_alarm_rates.py \\
         --checkpoint=research/results/libero_object10/train/ebvla_joint_fast_cpu/last/pretrained_model \\

@@ -68,3 +68,11 @@ def test_candidate_c_is_recomputed_from_its_records_and_the_committed_choice_mat
     assert committed["chosen"] == choice.choose([got]).run == "ebvla_joint_fast_cpu"
     assert committed["clause_4_misses"] == choice.clause_4_misses(got)
     assert set(committed["not_run"]) == {"ebvla_joint_cpu", "ebvla_joint_all_cpu"}
+
+
+def test_the_monitor_score_is_read_from_saved_results_and_from_a_work_folder(tmp_path):
+    assert choice.monitor_score(tmp_path, "run") == "final_energy"  # saved before `monitor` existed
+    config = tmp_path / "train" / "run" / "checkpoints" / "last" / "pretrained_model" / "config.json"
+    config.parent.mkdir(parents=True)
+    config.write_text(json.dumps({"monitor": {"score": "context_phase_energy"}}))
+    assert choice.monitor_score(tmp_path, "run") == "context_phase_energy"
