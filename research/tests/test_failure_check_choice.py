@@ -103,3 +103,23 @@ def test_the_committed_run_time_alarm_rates_are_what_the_shipped_monitor_gives_o
     assert refitted == json.loads(committed.with_name("runtime_alarms_first3.json").read_text())
     heldout = refitted["conditions"]["vanilla_heldout"]
     assert [heldout[key]["alarmed"] for key in ("at_chunk_3", "by_chunk_3", "ever")] == [0, 7, 13]
+
+
+def test_ds_committed_run_time_alarm_rates_are_what_its_shipped_monitor_gives_on_the_records(tmp_path):
+    """D's `runtime_alarms.json` (BENCHMARKS.md: 35 / 67 / 94 of 200 held-out vanilla rollouts) recomputed."""
+    alarms = load_benchmark("runtime_alarm_rates")
+    run = RESULTS / "libero_object10_more"
+    committed = run / "reports/ebvla_joint_fast_cpu_more/runtime_alarms.json"
+    alarms.main(
+        [
+            f"--checkpoint={run / 'train/ebvla_joint_fast_cpu_more/last/pretrained_model'}",
+            f"--records={run / 'eval/ebvla_joint_fast_cpu_more'}",
+            f"--output={tmp_path / 'alarms.json'}",
+        ]
+    )
+    got = json.loads((tmp_path / "alarms.json").read_text())
+    assert got == json.loads(committed.read_text())
+    assert got["failure_check"] == {"score": "final_energy", "chunks": 10}
+    heldout, fresh = got["conditions"]["vanilla_heldout"], got["conditions"]["vanilla_fresh"]
+    assert [heldout[key]["alarmed"] for key in ("at_chunk_3", "by_chunk_3", "ever")] == [35, 67, 94]
+    assert [fresh[key]["alarmed"] for key in ("at_chunk_3", "by_chunk_3", "ever")] == [0, 0, 5]

@@ -203,7 +203,9 @@ def test_table_iv_chooses_its_alarm_on_some_shifts_and_reports_it_on_the_others(
     assert calibration.count("task*") == 1 and heldout.count("task*") == 1
 
 
-def test_the_chosen_failure_check_reaches_the_monitor_and_fresh_placements_are_held_out(tmp_path, monkeypatch):
+def test_the_chosen_failure_check_reaches_the_monitor_and_fresh_placements_are_held_out(
+    tmp_path, monkeypatch
+):
     for condition in ("vanilla_calib", "vanilla_heldout", "vanilla_fresh", "pose5"):
         write_json(tmp_path / f"eval/ebvla_cpu/{condition}/task2/eval_info.json", eval_info([True, False]))
     fake_checkpoint(tmp_path, "ebvla_cpu")

@@ -183,3 +183,30 @@ def test_the_committed_ten_task_report_is_recomputed_from_the_committed_records(
     assert rows["context_phase_energy"]["balanced_accuracy"] == pytest.approx(0.899, abs=5e-4)
     assert rows["context_phase_energy"]["heldout_alarm_rate"] == 0.0
     assert rows["context_phase_energy"]["alarm_rate_per_condition"]["light_dim 5"] == 0.0
+
+
+def test_ds_committed_ten_task_report_is_recomputed_from_the_committed_records(tmp_path):
+    """BENCHMARKS.md's figures of D (`ebvla_joint_fast_cpu_more`, 2026-11-29), Tables III and IV, from the records."""
+    results, run = RESULTS / "libero_object10_more", "ebvla_joint_fast_cpu_more"
+    reports = results / "reports" / run
+    report.main(
+        [
+            f"--results={results}",
+            f"--run={run}",
+            f"--output_dir={tmp_path}",
+            f"--failure_choice={reports / 'failure_check_choice.json'}",
+        ]
+    )
+    got = json.loads((tmp_path / "ten_task_report.json").read_text())
+    assert got == json.loads((reports / "ten_task" / "ten_task_report.json").read_text())
+    ten = got[0]
+    assert ten["success"]["fixed initial states"] == {"wins": 183, "n": 200}
+    assert ten["success"]["fresh placements"] == {"wins": 98, "n": 100}
+    failure = {row["score"]: row for row in ten["failure_rows"]}
+    check, baseline = failure["final_energy"], failure["chunk_context_nn"]
+    assert (check["failed_alarmed"], check["failed"], check["successful_alarmed"]) == (14, 19, 21)
+    assert check["balanced_accuracy"] == pytest.approx(0.831, abs=5e-4)
+    # The feature distance at chunk 10 beats the energy's failure check, outside its interval.
+    assert baseline["auroc"] > check["auroc_interval"][1]
+    rows = {row["score"]: row for row in ten["rows"]}
+    assert list(rows)[0] == "context_phase_energy"
