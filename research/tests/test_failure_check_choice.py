@@ -70,36 +70,36 @@ def test_ds_committed_choice_is_recomputed_from_its_calibration_rollouts_alone()
     assert picked["calibration_rollouts"] == 100
 
 
+def replayed_alarms(results: str, run: str, output, *extra: str) -> dict:
+    """`runtime_alarm_rates.py` on a committed run: its shipped monitor replayed on its committed records."""
+    root = RESULTS / results
+    load_benchmark("runtime_alarm_rates").main(
+        [
+            f"--checkpoint={root / 'train' / run / 'last' / 'pretrained_model'}",
+            f"--records={root / 'eval' / run}",
+            f"--output={output}",
+            *extra,
+        ]
+    )
+    return json.loads(output.read_text())
+
+
 @pytest.mark.skipif(
     not (RESULTS / "libero_object10" / "eval").is_dir(), reason="the ten-task records are not committed here"
 )
 def test_the_committed_run_time_alarm_rates_are_what_the_shipped_monitor_gives_on_the_records(tmp_path):
     """`runtime_alarms.json` (BENCHMARKS.md, "Ten tasks": what a user of C's monitor gets) recomputed."""
-    alarms = load_benchmark("runtime_alarm_rates")
-    run = RESULTS / "libero_object10"
-    committed = run / "reports/ebvla_joint_fast_cpu/runtime_alarms.json"
-    alarms.main(
-        [
-            f"--checkpoint={run / 'train/ebvla_joint_fast_cpu/last/pretrained_model'}",
-            f"--records={run / 'eval/ebvla_joint_fast_cpu'}",
-            f"--output={tmp_path / 'alarms.json'}",
-        ]
-    )
-    assert json.loads((tmp_path / "alarms.json").read_text()) == json.loads(committed.read_text())
-    heldout = json.loads(committed.read_text())["conditions"]["vanilla_heldout"]
+    committed = RESULTS / "libero_object10/reports/ebvla_joint_fast_cpu/runtime_alarms.json"
+    got = replayed_alarms("libero_object10", "ebvla_joint_fast_cpu", tmp_path / "alarms.json")
+    assert got == json.loads(committed.read_text())
+    heldout = got["conditions"]["vanilla_heldout"]
     # 200 held-out vanilla rollouts: 4 flagged at chunk 3, 45 at one of chunks 1-3, 67 at some chunk.
     assert [heldout[key]["alarmed"] for key in ("at_chunk_3", "by_chunk_3", "ever")] == [4, 45, 67]
 
     # With T refitted on the calibration rollouts' first 3 chunks, as the reports fit theirs.
-    alarms.main(
-        [
-            f"--checkpoint={run / 'train/ebvla_joint_fast_cpu/last/pretrained_model'}",
-            f"--records={run / 'eval/ebvla_joint_fast_cpu'}",
-            f"--output={tmp_path / 'first3.json'}",
-            "--refit_first_chunks=3",
-        ]
+    refitted = replayed_alarms(
+        "libero_object10", "ebvla_joint_fast_cpu", tmp_path / "first3.json", "--refit_first_chunks=3"
     )
-    refitted = json.loads((tmp_path / "first3.json").read_text())
     assert refitted == json.loads(committed.with_name("runtime_alarms_first3.json").read_text())
     heldout = refitted["conditions"]["vanilla_heldout"]
     assert [heldout[key]["alarmed"] for key in ("at_chunk_3", "by_chunk_3", "ever")] == [0, 7, 13]
@@ -107,17 +107,8 @@ def test_the_committed_run_time_alarm_rates_are_what_the_shipped_monitor_gives_o
 
 def test_ds_committed_run_time_alarm_rates_are_what_its_shipped_monitor_gives_on_the_records(tmp_path):
     """D's `runtime_alarms.json` (BENCHMARKS.md: 35 / 67 / 94 of 200 held-out vanilla rollouts) recomputed."""
-    alarms = load_benchmark("runtime_alarm_rates")
-    run = RESULTS / "libero_object10_more"
-    committed = run / "reports/ebvla_joint_fast_cpu_more/runtime_alarms.json"
-    alarms.main(
-        [
-            f"--checkpoint={run / 'train/ebvla_joint_fast_cpu_more/last/pretrained_model'}",
-            f"--records={run / 'eval/ebvla_joint_fast_cpu_more'}",
-            f"--output={tmp_path / 'alarms.json'}",
-        ]
-    )
-    got = json.loads((tmp_path / "alarms.json").read_text())
+    committed = RESULTS / "libero_object10_more/reports/ebvla_joint_fast_cpu_more/runtime_alarms.json"
+    got = replayed_alarms("libero_object10_more", "ebvla_joint_fast_cpu_more", tmp_path / "alarms.json")
     assert got == json.loads(committed.read_text())
     assert got["failure_check"] == {"score": "final_energy", "chunks": 10}
     heldout, fresh = got["conditions"]["vanilla_heldout"], got["conditions"]["vanilla_fresh"]
