@@ -449,6 +449,9 @@ FRESH_CONDITION = "vanilla_fresh"
 FRESH_PLACEMENT_SEED = 200000
 # The vanilla jobs of each ebvla run: the monitor's calibration, then the held-out rollouts.
 VANILLA_CONDITIONS = ("vanilla_calib", "vanilla_heldout")
+# Held-out vanilla rollouts from the fixed initial states after the held-out ones, run last: a second held-out set
+# for a threshold rule chosen after the first was looked at (research/docs/libero_runs.md, "D's threshold rule").
+CONFIRM_CONDITION = "vanilla_confirm"
 
 
 @dataclass(frozen=True)
@@ -478,6 +481,7 @@ def eval_jobs(
     calibration: int | None = None,
     fresh: int = 0,
     vanilla_conditions: tuple[str, ...] = VANILLA_CONDITIONS,
+    confirm: int = 0,
 ) -> list[EvalJob]:
     """The evaluation queue, most needed first: vanilla calibration and held-out rollouts of the `ebvla` runs,
     then the camera perturbations of the `ebvla` runs in the order of `conditions`; the other policies (no
@@ -490,7 +494,8 @@ def eval_jobs(
 
     `fresh` vanilla rollouts per task of each `ebvla` run come last (`vanilla_fresh`): from placements LIBERO
     samples with seeds `FRESH_PLACEMENT_SEED` + i, which neither the fixed initial states nor the recordings
-    (seeds 100000 + i) use: success off the states every other job starts from.
+    (seeds 100000 + i) use: success off the states every other job starts from. `confirm` vanilla rollouts per
+    task (`vanilla_confirm`, needs `calibration`) follow them, from the fixed states after the held-out ones.
 
     `vanilla_conditions` keeps some of the vanilla calibration and held-out jobs (none: `()`), for a machine that
     runs the rest while another runs those (the queue with no `conditions`): the two queues together are the
@@ -536,6 +541,14 @@ def eval_jobs(
         for run in ebvla_runs
         for task in tasks
         if fresh
+    ]
+    if confirm and calibration is None:
+        raise ValueError("`confirm` rollouts start after the held-out states: give `calibration` too.")
+    queue += [
+        EvalJob(run, CONFIRM_CONDITION, task, calibration + vanilla, confirm, 4000)
+        for run in ebvla_runs
+        for task in tasks
+        if confirm
     ]
     return queue
 
@@ -951,6 +964,12 @@ def main(argv: list[str] | None = None) -> None:
         default=0,
         help="eval: vanilla episodes per task of each ebvla run from fresh placements (seeds 200000 + i), last",
     )
+    parser.add_argument(
+        "--confirm",
+        type=int,
+        default=0,
+        help="eval: vanilla episodes per task of each ebvla run from the fixed states after the held-out ones, last",
+    )
     parser.add_argument("--perturbed", type=int, default=5, help="episodes per task and camera condition")
     parser.add_argument(
         "--vanilla_conditions",
@@ -1029,6 +1048,7 @@ def main(argv: list[str] | None = None) -> None:
             args.calibration,
             args.fresh,
             tuple(args.vanilla_conditions),
+            args.confirm,
         )
         remaining = args.deadline_s - (time.time() - start)
         statuses = evaluate(work, jobs, args.device, args.jobs, remaining, args.episode_length)
