@@ -237,6 +237,19 @@ def test_a_failure_check_fitted_on_the_successful_calibration_rollouts_leaves_th
         report(dirs, tmp_path / "bad", "--failure_reference=failed")
 
 
+def test_the_failure_check_keeps_eq_5_while_the_ood_threshold_is_conformal(record_dirs, checkpoint, tmp_path):
+    calibration = write(tmp_path / "calibration", joint_rollouts(24, seed=10, features=True))
+    dirs = (calibration, *record_dirs[1:])
+    rules = ("--threshold_rule=conformal", "--failure_threshold_rule=mean_std", "--false_alarm_rate=0.1")
+    text = report(dirs, tmp_path / "out", "--failure_score=final_energy", f"--calibrate_to={checkpoint}", *rules)
+    ood, failure = OODCalibration.load(checkpoint), FailureCalibration.load(checkpoint)
+    assert ood.rule == "conformal" and ood.threshold == ood.conformal_threshold
+    assert failure.rule == "mean_std" and failure.threshold == pytest.approx(failure.mu_v + failure.sigma_v)
+    assert "(the conformal quantile at alpha = 10.0%)" in text
+    with pytest.raises(ValueError, match="`failure_threshold_rule` must be one of"):
+        report(dirs, tmp_path / "bad", "--failure_threshold_rule=quantile")
+
+
 def test_the_chunk_context_baseline_measures_to_the_nearest_successful_calibration_rollout():
     def episode(seed, feature_at_chunk_1, success=True):
         return [

@@ -811,6 +811,7 @@ def report(
     runs: list[str],
     failure_calibration_shifts: tuple[str, ...] = (),
     failure_choice: Path | None = None,
+    threshold_rule: str = "mean_std",
 ) -> None:
     """Success per task, Table III (ebvla-ood-report) and Table IV (ebvla-failure-report) of each run.
 
@@ -822,7 +823,11 @@ def report(
 
     `failure_choice` (the JSON of `failure_check_choice.py`, chosen on the calibration rollouts alone) sets the
     monitor's failure check in the OOD report and in what `--calibrate_to` saves. Rollouts from fresh placements
-    (`vanilla_fresh`) are held-out vanilla rollouts there too: no threshold is fitted on them.
+    (`vanilla_fresh`) are held-out vanilla rollouts there too: no threshold is fitted on them, nor on the
+    confirmation rollouts (`vanilla_confirm`).
+
+    `threshold_rule` is the rule of the OOD threshold the checkpoint's monitor ships (Eq. 5 or the conformal
+    quantile); the failure check keeps Eq. 5, the rule `failure_check_choice.py` chooses at.
     """
     failure_options = [] if failure_choice is None else json.loads(failure_choice.read_text())["report_options"]
     table = success_table(work)
@@ -843,7 +848,11 @@ def report(
             p.name for p in folder.glob("*") if p.is_dir() and not p.name.startswith("vanilla")
         )
         calibration, heldout = (str(folder / name / "task*") for name in ("vanilla_calib", "vanilla_heldout"))
-        fresh = [str(folder / FRESH_CONDITION / "task*")] if (folder / FRESH_CONDITION).is_dir() else []
+        fresh = [
+            str(folder / name / "task*")
+            for name in (FRESH_CONDITION, CONFIRM_CONDITION)
+            if (folder / name).is_dir()
+        ]
         # The checkpoint's own monitor (its config's scores), calibrated on the calibration rollouts as a user
         # would: the report's "monitor" rows are then what ships with it.
         checkpoint = work / "train" / run / "checkpoints" / "last" / "pretrained_model"
@@ -860,6 +869,8 @@ def report(
                     f"--output_dir={work / 'reports' / run / 'ood'}",
                     *monitor,
                     *failure_options,
+                    f"--threshold_rule={threshold_rule}",
+                    "--failure_threshold_rule=mean_std",
                 ],
                 check=True,
             )
@@ -937,6 +948,12 @@ def main(argv: list[str] | None = None) -> None:
         type=Path,
         default=None,
         help="report: failure_check_choice.py's JSON; its options set the monitor's failure check",
+    )
+    parser.add_argument(
+        "--threshold_rule",
+        choices=("mean_std", "conformal"),
+        default="mean_std",
+        help="report: the rule of the OOD threshold the checkpoint ships (the failure check keeps mean_std)",
     )
     parser.add_argument("--steps", type=int, default=8000)
     parser.add_argument("--batch_size", type=int, default=32)
@@ -1056,7 +1073,9 @@ def main(argv: list[str] | None = None) -> None:
     elif args.stage == "pack":
         pack(work, args.archive or work / "libero_results.tar.gz")
     else:
-        report(work, args.runs, tuple(args.failure_calibration_shifts), args.failure_choice)
+        report(
+            work, args.runs, tuple(args.failure_calibration_shifts), args.failure_choice, args.threshold_rule
+        )
     if args.stage in ("record", "train", "eval", "report"):
         log_timing(work, args.stage, time.time() - start, argv if argv is not None else sys.argv[1:])
 

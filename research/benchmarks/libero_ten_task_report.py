@@ -20,6 +20,11 @@ check and the baselines (`failure_check.failure_check_decisions`) on the group's
 states 10-29 and fresh placements, as pre-registered in research/docs/libero_runs.md, "D's failure check"), with
 each caught failure's lead to its onset and to the episode's end, and the issue's two Table IV targets.
 
+With `--threshold_rule=conformal` (added on 2026-11-29 for D, research/docs/libero_runs.md "D's threshold rule") T is
+the conformal quantile of the calibration rollouts' scores at alpha = 5 %, the failure check keeping Eq. 5; the
+confirmation rollouts (`vanilla_confirm`, fixed states 30-49), where evaluated, get their own alarm rate and balanced
+accuracy at T against all shifts, with the two targets that rule was fixed for.
+
     python research/benchmarks/libero_ten_task_report.py --results=research/results/libero_object10 \\
         --run=ebvla_joint_fast_cpu --output_dir=research/results/libero_object10/reports/ebvla_joint_fast_cpu/ten_task
 """
@@ -53,6 +58,7 @@ TASK_GROUPS = {
     "three of the choice": (2, 3, 9),
 }
 CALIBRATION, HELDOUT, FRESH = "vanilla_calib", "vanilla_heldout", "vanilla_fresh"
+CONFIRM = "vanilla_confirm"
 FIRST_CHUNKS = 3
 # Beside the run's saved monitor score: the two-sided E_c named by the choice as the light miss's next candidate
 # (pre-registered here, looked at on tasks 2, 3 and 9 only), the feature baselines, and the paper's energy.
@@ -99,6 +105,10 @@ class ScoreRow:
     alarm_rate_per_condition: dict[str, float] = field(default_factory=dict)
     whole_episode_auroc: float = float("nan")
     whole_episode_interval: tuple[float, float] = (float("nan"), float("nan"))
+    # The confirmation rollouts (fixed states 30-49), where evaluated: alarms at T, and the balanced accuracy of
+    # their alarm rate against all shifts' catch rate.
+    confirm_alarm_rate: float | None = None
+    confirm_balanced_accuracy: float | None = None
 
 
 @dataclass
@@ -166,7 +176,11 @@ def failure_options(choice: Path | None) -> dict:
 
 
 def score_all_tasks(
-    run_dir: Path, scores: list[str], output_dir: Path, failure_check: dict | None = None
+    run_dir: Path,
+    scores: list[str],
+    output_dir: Path,
+    failure_check: dict | None = None,
+    threshold_rule: str = "mean_std",
 ) -> OODScores:
     """Every score of the held-out and fresh vanilla rollouts and of every shift, over all the evaluated tasks, with
     T fitted on the calibration rollouts of all ten tasks. Scored once: each group's rows come from its own rollouts
@@ -174,11 +188,13 @@ def score_all_tasks(
     tasks = TASK_GROUPS["all ten"]
     cfg = OODReportConfig(
         calibration=[str(p) for p in task_folders(run_dir, CALIBRATION, tasks)],
-        vanilla=[str(p) for c in (HELDOUT, FRESH) for p in task_folders(run_dir, c, tasks)],
+        vanilla=[str(p) for c in (HELDOUT, FRESH, CONFIRM) for p in task_folders(run_dir, c, tasks)],
         ood=[str(p) for c in shift_conditions(run_dir) for p in task_folders(run_dir, c, tasks)],
         score=scores[0],
         output_dir=output_dir,
         first_chunks=[FIRST_CHUNKS],
+        threshold_rule=threshold_rule,
+        failure_threshold_rule="mean_std",
         **(failure_check or {}),
     )
     return score_ood_report(cfg)
@@ -212,11 +228,14 @@ def held_out_of(scored: OODScores, tasks: tuple[int, ...], vanilla: tuple[str, .
     )
 
 
-def score_rows(heldout: OODScores, fresh: OODScores, scores: list[str]) -> tuple[list[ScoreRow], list[str]]:
-    """Each score's Table III row for one group of tasks (`held_out_of` the held-out and the fresh rollouts), and
-    the scores the records could not give. Only the fresh rollouts' scores are read from `fresh`: the threshold
-    stays the calibration's."""
+def score_rows(
+    heldout: OODScores, fresh: OODScores, confirm: OODScores, scores: list[str]
+) -> tuple[list[ScoreRow], list[str]]:
+    """Each score's Table III row for one group of tasks (`held_out_of` the held-out, the fresh and the confirmation
+    rollouts), and the scores the records could not give. Only the vanilla rollouts' scores are read from `fresh`
+    and `confirm`: the threshold stays the calibration's."""
     fresh_sets = fresh.at(FIRST_CHUNKS) if fresh.vanilla else None
+    confirm_sets = confirm.at(FIRST_CHUNKS) if confirm.vanilla else None
     sets = heldout.at(FIRST_CHUNKS)
     whole = heldout.at(None)
     rows, missing = [], []
@@ -226,6 +245,9 @@ def score_rows(heldout: OODScores, fresh: OODScores, scores: list[str]) -> tuple
             continue
         row = at_threshold(heldout, score, FIRST_CHUNKS)
         negatives, positives = sets.negatives[score], sets.positives[ALL_CONDITIONS][score]
+        confirm_rate = (
+            None if confirm_sets is None else float(np.mean(confirm_sets.negatives[score] > row.threshold))
+        )
         whole_negatives, whole_positives = whole.negatives[score], whole.positives[ALL_CONDITIONS][score]
         rows.append(
             ScoreRow(
@@ -245,6 +267,10 @@ def score_rows(heldout: OODScores, fresh: OODScores, scores: list[str]) -> tuple
                 },
                 whole_episode_auroc=float(auroc(whole_negatives, whole_positives)),
                 whole_episode_interval=bootstrap_auroc_interval(whole_negatives, whole_positives),
+                confirm_alarm_rate=confirm_rate,
+                confirm_balanced_accuracy=None
+                if confirm_rate is None
+                else 0.5 * (float(np.mean(positives > row.threshold)) + 1.0 - confirm_rate),
             )
         )
     return rows, missing
@@ -340,6 +366,19 @@ def check_targets(report: GroupReport, monitor: str) -> list[tuple[str, str, boo
             row.heldout_alarm_rate <= MAX_ALARM_RATE,
         ),
     ]
+    if row.confirm_alarm_rate is not None:
+        targets += [
+            (
+                f"confirmation (states 30-49): balanced accuracy at T >= {100 * MIN_BALANCED_ACCURACY:.0f}%",
+                f"{100 * row.confirm_balanced_accuracy:.1f}%",
+                row.confirm_balanced_accuracy >= MIN_BALANCED_ACCURACY,
+            ),
+            (
+                f"confirmation (states 30-49): alarms <= {100 * MAX_ALARM_RATE:.0f}%",
+                f"{100 * row.confirm_alarm_rate:.1f}%",
+                row.confirm_alarm_rate <= MAX_ALARM_RATE,
+            ),
+        ]
     if "context_knn" in rows:
         knn = rows["context_knn"]
         targets.append(
@@ -378,13 +417,15 @@ def group_report(
     rates = {"fixed initial states": success(task_folders(run_dir, HELDOUT, tasks))}
     if task_folders(run_dir, FRESH, tasks):
         rates["fresh placements"] = success(task_folders(run_dir, FRESH, tasks))
+    if task_folders(run_dir, CONFIRM, tasks):
+        rates["confirmation (states 30-49)"] = success(task_folders(run_dir, CONFIRM, tasks))
     rates["calibration (states 0-9)"] = success(task_folders(run_dir, CALIBRATION, tasks))
     per_condition = {
         condition_name(c): success(task_folders(run_dir, c, tasks)) for c in shift_conditions(run_dir)
     }
     report = GroupReport(group, tasks, rates, per_condition)
     report.rows, missing = score_rows(
-        held_out_of(scored, tasks, (HELDOUT,)), held_out_of(scored, tasks, (FRESH,)), scores
+        *(held_out_of(scored, tasks, (vanilla,)) for vanilla in (HELDOUT, FRESH, CONFIRM)), scores
     )
     if missing:
         print(f"{group}: the records give no {missing}")
@@ -422,10 +463,33 @@ def failure_markdown(report: GroupReport, failure_score: str, chunks: int) -> li
     return lines
 
 
-def markdown(run: str, reports: list[GroupReport], failure_check: dict | None = None) -> str:
+def confirmation_markdown(report: GroupReport) -> list[str]:
+    """The confirmation rollouts' rows, where they were evaluated."""
+    if not report.rows or report.rows[0].confirm_alarm_rate is None:
+        return []
+    lines = [
+        "",
+        "| Score, at the same T | Alarms: confirmation vanilla (states 30-49) | Bal. acc.: states 30-49 against all shifts |",
+        "|---|---:|---:|",
+    ]
+    return lines + [
+        f"| `{r.score}` | {100 * r.confirm_alarm_rate:.1f}% | {100 * r.confirm_balanced_accuracy:.1f}% |"
+        for r in report.rows
+    ]
+
+
+def markdown(
+    run: str, reports: list[GroupReport], failure_check: dict | None = None, threshold_rule: str = "mean_std"
+) -> str:
     lines = [f"# The ten-task check of `{run}`", ""]
+    rule = (
+        "the conformal quantile at alpha = 5 % of the calibration rollouts of all ten tasks (the failure check: "
+        "mu_v + 1 sigma_v)"
+        if threshold_rule == "conformal"
+        else "mu_v + 1 sigma_v on the calibration rollouts of all ten tasks"
+    )
     lines.append(
-        f"First {FIRST_CHUNKS} chunks; T = mu_v + 1 sigma_v on the calibration rollouts of all ten tasks; AUROCs of "
+        f"First {FIRST_CHUNKS} chunks; T = {rule}; AUROCs of "
         "held-out vanilla (states 10-29) against the shifts, intervals bootstrap 95 %; success intervals Wilson 95 %."
     )
     for report in reports:
@@ -446,6 +510,7 @@ def markdown(run: str, reports: list[GroupReport], failure_check: dict | None = 
                 f"| {100 * row.balanced_accuracy:.1f}% | {100 * row.heldout_alarm_rate:.1f}% | {fresh} "
                 f"| {worst} {row.auroc_per_condition[worst]:.3f} |"
             )
+        lines += confirmation_markdown(report)
         conditions = list(report.rows[0].auroc_per_condition) if report.rows else []
         lines += ["", "| Condition | " + " | ".join(f"`{r.score}`" for r in report.rows) + " |"]
         lines += ["|---|" + "---:|" * len(report.rows)]
@@ -481,6 +546,17 @@ def markdown(run: str, reports: list[GroupReport], failure_check: dict | None = 
     return "\n".join(lines) + "\n"
 
 
+def saved_json(reports: list[GroupReport], failure_check: dict | None) -> list[dict]:
+    """The reports as JSON. Without a failure check or confirmation rollouts it keeps the shape of the reports
+    written before Table IV and the confirmation were added."""
+    saved = [{k: v for k, v in asdict(r).items() if k != "failure_rows" or failure_check} for r in reports]
+    for report in saved:
+        for row in report["rows"]:
+            if row["confirm_alarm_rate"] is None:
+                del row["confirm_alarm_rate"], row["confirm_balanced_accuracy"]
+    return saved
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -496,6 +572,12 @@ def main(argv: list[str] | None = None) -> None:
         default=None,
         help="failure_check_choice.py's JSON: adds Table IV with the failure check it chose",
     )
+    parser.add_argument(
+        "--threshold_rule",
+        choices=("mean_std", "conformal"),
+        default="mean_std",
+        help="the OOD threshold T: mu_v + 1 sigma_v, or the conformal quantile at alpha = 5 %%",
+    )
     args = parser.parse_args(argv)
     run_dir = args.results / "eval" / args.run
     if not (run_dir / HELDOUT).is_dir():
@@ -509,14 +591,14 @@ def main(argv: list[str] | None = None) -> None:
     for group in TASK_GROUPS.keys() - set(evaluated):
         print(f"{group}: no held-out rollouts of its tasks yet, left out")
     failure_check = failure_options(args.failure_choice)
-    scored = score_all_tasks(run_dir, scores, args.output_dir, failure_check)
+    scored = score_all_tasks(run_dir, scores, args.output_dir, failure_check, args.threshold_rule)
     reports = [group_report(run_dir, group, scores, scored, bool(failure_check)) for group in evaluated]
     args.output_dir.mkdir(parents=True, exist_ok=True)
-    text = markdown(args.run, reports, failure_check)
+    text = markdown(args.run, reports, failure_check, args.threshold_rule)
     (args.output_dir / "ten_task_report.md").write_text(text)
-    # Without a failure check the JSON keeps the shape of the reports written before Table IV was added.
-    saved = [{k: v for k, v in asdict(r).items() if k != "failure_rows" or failure_check} for r in reports]
-    (args.output_dir / "ten_task_report.json").write_text(json.dumps(saved, indent=1, default=str))
+    (args.output_dir / "ten_task_report.json").write_text(
+        json.dumps(saved_json(reports, failure_check), indent=1, default=str)
+    )
     print(text)
 
 

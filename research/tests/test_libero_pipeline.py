@@ -206,7 +206,7 @@ def test_table_iv_chooses_its_alarm_on_some_shifts_and_reports_it_on_the_others(
 def test_the_chosen_failure_check_reaches_the_monitor_and_fresh_placements_are_held_out(
     tmp_path, monkeypatch
 ):
-    for condition in ("vanilla_calib", "vanilla_heldout", "vanilla_fresh", "pose5"):
+    for condition in ("vanilla_calib", "vanilla_heldout", "vanilla_fresh", "vanilla_confirm", "pose5"):
         write_json(tmp_path / f"eval/ebvla_cpu/{condition}/task2/eval_info.json", eval_info([True, False]))
     fake_checkpoint(tmp_path, "ebvla_cpu")
     options = ["--failure_score=final_energy", "--failure_chunks=12", "--failure_reference=successful"]
@@ -214,20 +214,24 @@ def test_the_chosen_failure_check_reaches_the_monitor_and_fresh_placements_are_h
     commands = []
     monkeypatch.setattr(pipeline.subprocess, "run", lambda command, check: commands.append(command))
 
-    pipeline.report(tmp_path, ["ebvla_cpu"], failure_choice=choice)
+    pipeline.report(tmp_path, ["ebvla_cpu"], failure_choice=choice, threshold_rule="conformal")
     ood = next(c for c in commands if c[0].endswith("ebvla-ood-report"))
-    assert ood[-3:] == options and any(a.startswith("--calibrate_to=") for a in ood)
+    assert ood[-5:-2] == options and any(a.startswith("--calibrate_to=") for a in ood)
+    # The OOD threshold ships the conformal quantile; the failure check keeps the rule it was chosen at.
+    assert ood[-2:] == ["--threshold_rule=conformal", "--failure_threshold_rule=mean_std"]
     vanilla = next(a for a in ood if a.startswith("--vanilla="))
     calibration = next(a for a in ood if a.startswith("--calibration="))
-    assert "/vanilla_heldout/task*" in vanilla and "/vanilla_fresh/task*" in vanilla
-    assert "fresh" not in calibration and "fresh" not in next(a for a in ood if a.startswith("--ood="))
+    assert all(f"/{c}/task*" in vanilla for c in ("vanilla_heldout", "vanilla_fresh", "vanilla_confirm"))
+    assert "fresh" not in calibration and "confirm" not in calibration
+    assert "vanilla" not in next(a for a in ood if a.startswith("--ood="))
     failure = next(c for c in commands if c[0].endswith("ebvla-failure-report"))
     assert "/vanilla_fresh/task*" in next(a for a in failure if a.startswith("--records="))
 
     commands.clear()
     pipeline.report(tmp_path, ["ebvla_cpu"])  # without a choice: the checkpoint's own failure check
     ood = next(c for c in commands if c[0].endswith("ebvla-ood-report"))
-    assert not any(a.startswith("--failure_") for a in ood)
+    assert not any(a.startswith(("--failure_score", "--failure_chunks", "--failure_reference")) for a in ood)
+    assert "--threshold_rule=mean_std" in ood
 
 
 def test_pack_keeps_records_logs_and_ebvla_checkpoints_and_leaves_out_data_frames(work):
@@ -320,6 +324,16 @@ def test_fresh_placement_rollouts_come_last_from_seeds_no_recording_or_initial_s
     assert pipeline.FRESH_PLACEMENT_SEED >= 100000 + 1000  # beyond any recording's seeds (100000 + attempt)
     held_out = pipeline.eval_command(work, jobs[1], "cpu")
     assert "--env.init_states=false" not in held_out
+
+
+def test_confirmation_rollouts_come_last_from_the_fixed_states_after_the_held_out_ones():
+    jobs = pipeline.eval_jobs(["ebvla_cpu", "diffusion"], [2, 3], 20, 5, (("pose", 5),), calibration=10, confirm=20)
+    confirm = [job for job in jobs if job.condition == pipeline.CONFIRM_CONDITION]
+    assert jobs[-2:] == confirm
+    assert [(j.run, j.task, j.first, j.n) for j in confirm] == [("ebvla_cpu", 2, 30, 20), ("ebvla_cpu", 3, 30, 20)]
+    assert len({job.seed for job in jobs if job.condition.startswith("vanilla")}) == 3
+    with pytest.raises(ValueError, match="give `calibration`"):
+        pipeline.eval_jobs(["ebvla_cpu"], [2], 20, 5, confirm=20)
 
 
 def test_cpu_runs_resize_their_cameras_and_diffusion_crops_by_ratio():

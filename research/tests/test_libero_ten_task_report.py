@@ -22,9 +22,9 @@ SETS = {
 }
 
 
-def write_results(root):
+def write_results(root, sets=SETS):
     rng = np.random.default_rng(0)
-    for folder, (seeds, offset, feature_offset, outcomes) in SETS.items():
+    for folder, (seeds, offset, feature_offset, outcomes) in sets.items():
         perturbation, severity = (
             ("none", 0) if folder.startswith("vanilla") else (folder.rstrip("0123456789"), int(folder[-1]))
         )
@@ -140,6 +140,45 @@ def test_table_iv_counts_the_failures_of_held_out_and_fresh_vanilla_at_the_chose
         assert targets["Table IV: balanced accuracy >= 80% held out"][1] is True
         assert targets["Table IV: not below chunk_context_nn outside its interval"][1] is True
     assert "| `final_energy` | 20/20 | " in (tmp_path / "out" / "ten_task_report.md").read_text()
+
+
+def test_confirmation_rollouts_get_their_own_alarms_at_the_conformal_t_and_stay_out_of_table_iv(tmp_path):
+    # States 30-35: the last of each task's six has E_c far above vanilla (alarmed at any T).
+    confirm = (range(30, 36), 0.0, 0.0, [True] * 6)
+    root = write_results(tmp_path / "results", {**SETS, "vanilla_confirm": confirm})
+    for task in range(10):
+        path = root / "eval" / RUN / "vanilla_confirm" / f"task{task}" / "energy_records.jsonl"
+        lines = [json.loads(line) for line in path.read_text().splitlines()]
+        for line in lines:
+            line["context_energy"] += 20.0 if line["episode_index"] == 5 else 0.0
+        path.write_text("".join(json.dumps(line) + "\n" for line in lines))
+    choice = tmp_path / "failure_check_choice.json"
+    options = ["--failure_score=final_energy", "--failure_chunks=3", "--failure_reference=successful"]
+    choice.write_text(json.dumps({"chunks": 3, "report_options": options}))
+    out = tmp_path / "out"
+    args = [f"--results={root}", f"--run={RUN}", f"--output_dir={out}", f"--failure_choice={choice}"]
+    report.main([*args, "--threshold_rule=conformal"])
+    groups = {g["group"]: g for g in json.loads((out / "ten_task_report.json").read_text())}
+    monitor = groups["all ten"]["rows"][0]
+    assert groups["all ten"]["success"]["confirmation (states 30-49)"] == {"wins": 60, "n": 60}
+    assert 1 / 6 <= monitor["confirm_alarm_rate"] < 0.5
+    caught = np.mean(list(monitor["alarm_rate_per_condition"].values()))  # two shifts of equal size
+    assert monitor["confirm_balanced_accuracy"] == pytest.approx(
+        0.5 * (caught + 1.0 - monitor["confirm_alarm_rate"])
+    )
+    targets = {t: (m, ok) for t, m, ok in groups["all ten"]["targets"]}
+    assert targets["confirmation (states 30-49): alarms <= 10%"][1] is False
+    # Table IV stays on the held-out states and fresh placements, its failure check at Eq. 5.
+    check = {row["score"]: row for row in groups["all ten"]["failure_rows"]}["final_energy"]
+    assert (check["failed"], check["successful"]) == (20, 70)
+    text = (out / "ten_task_report.md").read_text()
+    assert "T = the conformal quantile at alpha = 5 %" in text and "Alarms: confirmation vanilla" in text
+
+    # Eq. 5's T sits lower than the 95 % quantile of 60 calibration rollouts: more held-out alarms.
+    report.main([*args, f"--output_dir={tmp_path / 'eq5'}"])
+    eq5 = json.loads((tmp_path / "eq5" / "ten_task_report.json").read_text())[0]["rows"][0]
+    assert eq5["heldout_alarm_rate"] >= monitor["heldout_alarm_rate"]
+    assert eq5["confirm_alarm_rate"] >= monitor["confirm_alarm_rate"]
 
 
 def test_shift_folders_read_as_the_ood_reports_conditions():

@@ -63,7 +63,7 @@ def failure_check_decisions(scored) -> dict[str, tuple[np.ndarray | None, np.nda
             calibration[scored.failure_reference_mask()],
             k=cfg.k,
             false_alarm_rate=cfg.false_alarm_rate,
-            rule=cfg.threshold_rule,
+            rule=cfg.failure_rule,
         ).threshold
         scores = chunk_context_nn(scored.calibration_set, {**vanilla, **ood}, n - 1)
         rows["chunk_context_nn"] = (scores, exceeds(scores, threshold))

@@ -144,6 +144,9 @@ class OODReportConfig:
     k: float = 1.0
     # Threshold the policy's monitor applies from the saved calibration: mean_std (Eq. 5) or conformal.
     threshold_rule: str = "mean_std"
+    # The failure check's threshold rule (and its baselines' in the report). None: `threshold_rule`. A failure
+    # check chosen at Eq. 5's T keeps it while the OOD threshold is the conformal quantile.
+    failure_threshold_rule: str | None = None
     # The energy score of the monitor's failure check, fitted on the same calibration rollouts' first
     # `failure_chunks` chunks, reported held out against the baselines and saved as failure_calibration.json with
     # `calibrate_to`. None: the checkpoint's `monitor.failure_score`, or without a checkpoint
@@ -158,14 +161,18 @@ class OODReportConfig:
     # Replace an existing ood_calibration.json (and failure_calibration.json).
     overwrite_calibration: bool = False
 
+    @property
+    def failure_rule(self) -> str:
+        """The threshold rule of the failure check and of its baselines."""
+        return self.threshold_rule if self.failure_threshold_rule is None else self.failure_threshold_rule
+
     def validate(self) -> None:
         # Not __post_init__: draccus would wrap the ValueError in a less readable ParsingError.
         if self.aggregation not in SCORE_AGGREGATIONS:
             raise ValueError(f"`aggregation` must be one of {SCORE_AGGREGATIONS}, got {self.aggregation!r}.")
-        if self.threshold_rule not in THRESHOLD_RULES:
-            raise ValueError(
-                f"`threshold_rule` must be one of {THRESHOLD_RULES}, got {self.threshold_rule!r}."
-            )
+        for name, rule in (("threshold_rule", self.threshold_rule), ("failure_threshold_rule", self.failure_rule)):
+            if rule not in THRESHOLD_RULES:
+                raise ValueError(f"`{name}` must be one of {THRESHOLD_RULES}, got {rule!r}.")
         if self.score is not None and self.score not in SCORES:
             raise ValueError(f"`score` must be one of {tuple(SCORES)}, got {self.score!r}.")
         if self.failure_score not in (None, "none") and self.failure_score not in SCORES:
@@ -273,7 +280,8 @@ class OODScores:
     def fit_failure(self, name: str, first_chunks: int) -> OODCalibration:
         """`fit` on the failure check's reference rollouts (`failure_reference`) only."""
         return self._fit(
-            self.scores(self.calibration_chunks, name, first_chunks)[self.failure_reference_mask()]
+            self.scores(self.calibration_chunks, name, first_chunks)[self.failure_reference_mask()],
+            self.cfg.failure_rule,
         )
 
     def failure_reference_mask(self) -> np.ndarray:
@@ -288,13 +296,13 @@ class OODScores:
             )
         return successful
 
-    def _fit(self, calibration_scores: np.ndarray) -> OODCalibration:
+    def _fit(self, calibration_scores: np.ndarray, rule: str | None = None) -> OODCalibration:
         return OODCalibration.fit(
             calibration_scores,
             k=self.cfg.k,
             aggregation=self.cfg.aggregation,
             false_alarm_rate=self.cfg.false_alarm_rate,
-            rule=self.cfg.threshold_rule,
+            rule=self.cfg.threshold_rule if rule is None else rule,
         )
 
     def held_out(self, name: str, first_chunks: int | None = None) -> np.ndarray:
@@ -540,7 +548,12 @@ def _saved_score_note(cfg: OODReportConfig, scored: OODScores) -> str:
         default += (
             f"\n\nThe saved threshold is fitted on the calibration rollouts' `{saved_score}` over {over} (the T "
             f"the run-time monitor compares each chunk's running score to): mu_v = {fit.mu_v:.4g}, "
-            f"sigma_v = {fit.sigma_v:.4g}, T = {fit.threshold:.4g}."
+            f"sigma_v = {fit.sigma_v:.4g}, T = {fit.threshold:.4g}"
+            + (
+                f" (the conformal quantile at alpha = {percent(fit.false_alarm_rate)})."
+                if fit.rule == "conformal"
+                else "."
+            )
         )
     what = {
         "context_distance": "of every table: the same features, fit and leave-one-episode-out calibration scores.",
