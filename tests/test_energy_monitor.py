@@ -241,7 +241,9 @@ def test_the_failure_check_keeps_eq_5_while_the_ood_threshold_is_conformal(recor
     calibration = write(tmp_path / "calibration", joint_rollouts(24, seed=10, features=True))
     dirs = (calibration, *record_dirs[1:])
     rules = ("--threshold_rule=conformal", "--failure_threshold_rule=mean_std", "--false_alarm_rate=0.1")
-    text = report(dirs, tmp_path / "out", "--failure_score=final_energy", f"--calibrate_to={checkpoint}", *rules)
+    text = report(
+        dirs, tmp_path / "out", "--failure_score=final_energy", f"--calibrate_to={checkpoint}", *rules
+    )
     ood, failure = OODCalibration.load(checkpoint), FailureCalibration.load(checkpoint)
     assert ood.rule == "conformal" and ood.threshold == ood.conformal_threshold
     assert failure.rule == "mean_std" and failure.threshold == pytest.approx(failure.mu_v + failure.sigma_v)

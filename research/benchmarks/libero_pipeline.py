@@ -829,7 +829,9 @@ def report(
     `threshold_rule` is the rule of the OOD threshold the checkpoint's monitor ships (Eq. 5 or the conformal
     quantile); the failure check keeps Eq. 5, the rule `failure_check_choice.py` chooses at.
     """
-    failure_options = [] if failure_choice is None else json.loads(failure_choice.read_text())["report_options"]
+    failure_options = (
+        [] if failure_choice is None else json.loads(failure_choice.read_text())["report_options"]
+    )
     table = success_table(work)
     (work / "success.json").write_text(json.dumps(table, indent=1))
     for run, conditions in table.items():

@@ -140,6 +140,8 @@ class GroupReport:
     rows: list[ScoreRow] = field(default_factory=list)
     targets: list[tuple[str, str, bool]] = field(default_factory=list)
     failure_rows: list[FailureRow] = field(default_factory=list)
+    # Table IV on the confirmation rollouts (fixed states 30-49), where evaluated.
+    confirm_failure_rows: list[FailureRow] = field(default_factory=list)
 
 
 def task_folders(run_dir: Path, condition: str, tasks: tuple[int, ...]) -> list[Path]:
@@ -311,13 +313,15 @@ def failure_rows(scored: OODScores) -> list[FailureRow]:
     return rows
 
 
-def failure_targets(rows: list[FailureRow], failure_score: str) -> list[tuple[str, str, bool]]:
-    """The issue's Table IV targets for the monitor's failure check."""
+def failure_targets(
+    rows: list[FailureRow], failure_score: str, where: str = "held out"
+) -> list[tuple[str, str, bool]]:
+    """The issue's Table IV targets for the monitor's failure check, on the rollouts `where` names."""
     by_score = {row.score: row for row in rows}
     check = by_score[failure_score]
     targets = [
         (
-            f"Table IV: balanced accuracy >= {100 * MIN_FAILURE_BALANCED_ACCURACY:.0f}% held out",
+            f"Table IV: balanced accuracy >= {100 * MIN_FAILURE_BALANCED_ACCURACY:.0f}% {where}",
             f"{100 * check.balanced_accuracy:.1f}%",
             check.balanced_accuracy >= MIN_FAILURE_BALANCED_ACCURACY,
         )
@@ -326,7 +330,8 @@ def failure_targets(rows: list[FailureRow], failure_score: str) -> list[tuple[st
         baseline, (low, high) = by_score[FAILURE_BASELINE], check.auroc_interval
         targets.append(
             (
-                f"Table IV: not below {FAILURE_BASELINE} outside its interval",
+                f"Table IV: not below {FAILURE_BASELINE} outside its interval"
+                + ("" if where == "held out" else f" ({where})"),
                 f"{check.auroc:.3f} [{low:.3f}, {high:.3f}] against {baseline.auroc:.3f}",
                 baseline.auroc <= high,
             )
@@ -433,15 +438,25 @@ def group_report(
     if with_failure:
         report.failure_rows = failure_rows(held_out_of(scored, tasks, (HELDOUT, FRESH)))
         report.targets += failure_targets(report.failure_rows, scored.failure_score)
+        if task_folders(run_dir, CONFIRM, tasks):
+            report.confirm_failure_rows = failure_rows(held_out_of(scored, tasks, (CONFIRM,)))
+            report.targets += failure_targets(
+                report.confirm_failure_rows, scored.failure_score, "on the confirmation (states 30-49)"
+            )
     return report
 
 
-def failure_markdown(report: GroupReport, failure_score: str, chunks: int) -> list[str]:
+def failure_markdown(
+    rows: list[FailureRow],
+    failure_score: str,
+    chunks: int,
+    rollouts: str = "states 10-29 and fresh placements",
+) -> list[str]:
     lines = [
         "",
         f"Table IV at equal elapsed time: each score over the first {chunks} chunks at its calibration T (the "
         f"monitor's failure check: `{failure_score}`), failed against successful held-out vanilla rollouts "
-        "(states 10-29 and fresh placements). Leads: chunks from the alarm at chunk "
+        f"({rollouts}). Leads: chunks from the alarm at chunk "
         f"{chunks} to the caught failure's onset (its object's last progress toward the goal; negative once it had "
         "begun) and to the episode's last chunk.",
         "",
@@ -449,7 +464,7 @@ def failure_markdown(report: GroupReport, failure_score: str, chunks: int) -> li
         "| Median lead to onset / to end |",
         "|---|---:|---:|---:|---|---:|---|",
     ]
-    for row in report.failure_rows:
+    for row in rows:
         interval = (
             "-"
             if row.auroc is None
@@ -540,7 +555,12 @@ def markdown(
             for c in conditions
         ]
         if report.failure_rows:
-            lines += failure_markdown(report, failure_check["failure_score"], failure_check["failure_chunks"])
+            check = (failure_check["failure_score"], failure_check["failure_chunks"])
+            lines += failure_markdown(report.failure_rows, *check)
+            if report.confirm_failure_rows:
+                lines += failure_markdown(
+                    report.confirm_failure_rows, *check, "the confirmation: states 30-49"
+                )
         lines += ["", "| Target (the monitor's score) | Measured | Met |", "|---|---|---|"]
         lines += [f"| {t} | {m} | {'yes' if ok else '**no**'} |" for t, m, ok in report.targets]
     return "\n".join(lines) + "\n"
@@ -549,7 +569,14 @@ def markdown(
 def saved_json(reports: list[GroupReport], failure_check: dict | None) -> list[dict]:
     """The reports as JSON. Without a failure check or confirmation rollouts it keeps the shape of the reports
     written before Table IV and the confirmation were added."""
-    saved = [{k: v for k, v in asdict(r).items() if k != "failure_rows" or failure_check} for r in reports]
+    saved = [
+        {
+            k: v
+            for k, v in asdict(r).items()
+            if (k != "failure_rows" or failure_check) and (k != "confirm_failure_rows" or v)
+        }
+        for r in reports
+    ]
     for report in saved:
         for row in report["rows"]:
             if row["confirm_alarm_rate"] is None:

@@ -49,6 +49,48 @@ def test_the_chosen_n_is_the_first_at_which_failures_rise_above_the_successful_r
     assert json.loads((tmp_path / "choice.json").read_text())["chunks"] == picked["chunks"]
 
 
+def joint_rollout(seed: int, context_energies, success: bool) -> list[EnergyRecord]:
+    rng = np.random.default_rng(seed)
+    return [
+        EnergyRecord(
+            seed, c, 8 * c, 9.0, float(rng.normal(0.0, 0.1)), success, "t", seed, context_energy=float(e)
+        )
+        for c, e in enumerate(context_energies)
+    ]
+
+
+def test_with_scores_and_development_rollouts_the_energy_that_sees_the_failures_is_chosen():
+    rng = np.random.default_rng(1)
+
+    # The final energy knows nothing of the failures; E_c rises from chunk 8 in the failed rollouts only.
+    def episodes(first, n_ok, n_failed):
+        ok = [joint_rollout(first + i, rng.normal(0.0, 0.1, 16), True) for i in range(n_ok)]
+        failed = [
+            joint_rollout(first + 100 + i, np.r_[rng.normal(0.0, 0.1, 8), rng.normal(2.0, 0.1, 8)], False)
+            for i in range(n_failed)
+        ]
+        return ok + failed
+
+    calibration, development = episodes(0, 12, 3), episodes(1000, 20, 5)
+    scores = ("final_energy", "context_phase_energy")
+    picked = choice.choose(calibration, scores=scores, development=development)
+    assert picked["score"] == "context_phase_energy" and picked["chunks"] >= 10
+    assert picked["report_options"][0] == "--failure_score=context_phase_energy"
+    assert (picked["development_rollouts"], picked["development_failed"]) == (25, 5)
+    rows = {(row["score"], row["chunks"]): row for row in picked["candidates"]}
+    assert len(rows) == 2 * len(choice.CANDIDATES)
+    assert rows["context_phase_energy", picked["chunks"]]["balanced_accuracy"] > 0.9
+    assert max(row["balanced_accuracy"] for (s, _), row in rows.items() if s == "final_energy") < 0.8
+    # T comes from the successful calibration rollouts alone: the development ones judge, they set nothing.
+    alone = choice.choose(calibration, scores=scores)
+    assert all(
+        a["threshold"] == pytest.approx(b["threshold"])
+        for a, b in zip(alone["candidates"], picked["candidates"], strict=True)
+    )
+    with pytest.raises(ValueError, match="The failure check reads one of"):
+        choice.choose(calibration, scores=("context_knn",))
+
+
 @pytest.mark.skipif(
     not (RESULTS / "libero_object10" / "eval").is_dir(), reason="the ten-task records are not committed here"
 )

@@ -327,10 +327,15 @@ def test_fresh_placement_rollouts_come_last_from_seeds_no_recording_or_initial_s
 
 
 def test_confirmation_rollouts_come_last_from_the_fixed_states_after_the_held_out_ones():
-    jobs = pipeline.eval_jobs(["ebvla_cpu", "diffusion"], [2, 3], 20, 5, (("pose", 5),), calibration=10, confirm=20)
+    jobs = pipeline.eval_jobs(
+        ["ebvla_cpu", "diffusion"], [2, 3], 20, 5, (("pose", 5),), calibration=10, confirm=20
+    )
     confirm = [job for job in jobs if job.condition == pipeline.CONFIRM_CONDITION]
     assert jobs[-2:] == confirm
-    assert [(j.run, j.task, j.first, j.n) for j in confirm] == [("ebvla_cpu", 2, 30, 20), ("ebvla_cpu", 3, 30, 20)]
+    assert [(j.run, j.task, j.first, j.n) for j in confirm] == [
+        ("ebvla_cpu", 2, 30, 20),
+        ("ebvla_cpu", 3, 30, 20),
+    ]
     assert len({job.seed for job in jobs if job.condition.startswith("vanilla")}) == 3
     with pytest.raises(ValueError, match="give `calibration`"):
         pipeline.eval_jobs(["ebvla_cpu"], [2], 20, 5, confirm=20)

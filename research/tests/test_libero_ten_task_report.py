@@ -143,8 +143,8 @@ def test_table_iv_counts_the_failures_of_held_out_and_fresh_vanilla_at_the_chose
 
 
 def test_confirmation_rollouts_get_their_own_alarms_at_the_conformal_t_and_stay_out_of_table_iv(tmp_path):
-    # States 30-35: the last of each task's six has E_c far above vanilla (alarmed at any T).
-    confirm = (range(30, 36), 0.0, 0.0, [True] * 6)
+    # States 30-35: the last of each task's six fails, its E_c far above vanilla (alarmed at any T).
+    confirm = (range(30, 36), 0.0, 0.0, [True] * 5 + [False])
     root = write_results(tmp_path / "results", {**SETS, "vanilla_confirm": confirm})
     for task in range(10):
         path = root / "eval" / RUN / "vanilla_confirm" / f"task{task}" / "energy_records.jsonl"
@@ -160,7 +160,7 @@ def test_confirmation_rollouts_get_their_own_alarms_at_the_conformal_t_and_stay_
     report.main([*args, "--threshold_rule=conformal"])
     groups = {g["group"]: g for g in json.loads((out / "ten_task_report.json").read_text())}
     monitor = groups["all ten"]["rows"][0]
-    assert groups["all ten"]["success"]["confirmation (states 30-49)"] == {"wins": 60, "n": 60}
+    assert groups["all ten"]["success"]["confirmation (states 30-49)"] == {"wins": 50, "n": 60}
     assert 1 / 6 <= monitor["confirm_alarm_rate"] < 0.5
     caught = np.mean(list(monitor["alarm_rate_per_condition"].values()))  # two shifts of equal size
     assert monitor["confirm_balanced_accuracy"] == pytest.approx(
@@ -168,9 +168,12 @@ def test_confirmation_rollouts_get_their_own_alarms_at_the_conformal_t_and_stay_
     )
     targets = {t: (m, ok) for t, m, ok in groups["all ten"]["targets"]}
     assert targets["confirmation (states 30-49): alarms <= 10%"][1] is False
-    # Table IV stays on the held-out states and fresh placements, its failure check at Eq. 5.
+    # Table IV on the held-out states and fresh placements, its failure check at Eq. 5, and on the confirmation.
     check = {row["score"]: row for row in groups["all ten"]["failure_rows"]}["final_energy"]
     assert (check["failed"], check["successful"]) == (20, 70)
+    confirmed = {row["score"]: row for row in groups["all ten"]["confirm_failure_rows"]}["final_energy"]
+    assert (confirmed["failed"], confirmed["successful"]) == (10, 50) and confirmed["failed_alarmed"] == 10
+    assert targets["Table IV: balanced accuracy >= 80% on the confirmation (states 30-49)"][1] is True
     text = (out / "ten_task_report.md").read_text()
     assert "T = the conformal quantile at alpha = 5 %" in text and "Alarms: confirmation vanilla" in text
 

@@ -170,7 +170,10 @@ class OODReportConfig:
         # Not __post_init__: draccus would wrap the ValueError in a less readable ParsingError.
         if self.aggregation not in SCORE_AGGREGATIONS:
             raise ValueError(f"`aggregation` must be one of {SCORE_AGGREGATIONS}, got {self.aggregation!r}.")
-        for name, rule in (("threshold_rule", self.threshold_rule), ("failure_threshold_rule", self.failure_rule)):
+        for name, rule in (
+            ("threshold_rule", self.threshold_rule),
+            ("failure_threshold_rule", self.failure_rule),
+        ):
             if rule not in THRESHOLD_RULES:
                 raise ValueError(f"`{name}` must be one of {THRESHOLD_RULES}, got {rule!r}.")
         if self.score is not None and self.score not in SCORES:
