@@ -148,11 +148,33 @@ def test_the_committed_run_time_alarm_rates_are_what_the_shipped_monitor_gives_o
 
 
 def test_ds_committed_run_time_alarm_rates_are_what_its_shipped_monitor_gives_on_the_records(tmp_path):
-    """D's `runtime_alarms.json` (BENCHMARKS.md: 35 / 67 / 94 of 200 held-out vanilla rollouts) recomputed."""
+    """D's `runtime_alarms.json` (BENCHMARKS.md: its shipped monitor, the conformal T and the second failure check,
+    replayed chunk by chunk) recomputed."""
     committed = RESULTS / "libero_object10_more/reports/ebvla_joint_fast_cpu_more/runtime_alarms.json"
     got = replayed_alarms("libero_object10_more", "ebvla_joint_fast_cpu_more", tmp_path / "alarms.json")
     assert got == json.loads(committed.read_text())
-    assert got["failure_check"] == {"score": "final_energy", "chunks": 10}
-    heldout, fresh = got["conditions"]["vanilla_heldout"], got["conditions"]["vanilla_fresh"]
-    assert [heldout[key]["alarmed"] for key in ("at_chunk_3", "by_chunk_3", "ever")] == [35, 67, 94]
-    assert [fresh[key]["alarmed"] for key in ("at_chunk_3", "by_chunk_3", "ever")] == [0, 0, 5]
+    assert got["failure_check"] == {"score": "context_phase_energy", "chunks": 16}
+    keys = ("at_chunk_3", "by_chunk_3", "ever")
+    conditions = got["conditions"]
+    assert [conditions["vanilla_heldout"][key]["alarmed"] for key in keys] == [11, 52, 70]
+    assert [conditions["vanilla_confirm"][key]["alarmed"] for key in keys] == [15, 54, 82]
+    assert [conditions["vanilla_fresh"][key]["alarmed"] for key in keys] == [0, 0, 3]
+
+
+def test_ds_second_failure_check_is_recomputed_from_the_rollouts_it_was_chosen_on():
+    """`failure_check_choice_development.json` (libero_runs.md, "D's second failure check"): chosen on the calibration,
+    held-out and fresh rollouts, before the confirmation rollouts existed."""
+    folder = RESULTS / "libero_object10_more/eval/ebvla_joint_fast_cpu_more"
+    episodes = lambda name: list(choice.load_episodes([str(folder / name / "task*")]).values())  # noqa: E731
+    picked = choice.choose(
+        episodes("vanilla_calib"),
+        scores=("final_energy", "context_phase_energy", "head_energy_two_sided"),
+        development=episodes("vanilla_heldout") + episodes("vanilla_fresh"),
+    )
+    committed = (
+        RESULTS
+        / "libero_object10_more/reports/ebvla_joint_fast_cpu_more/failure_check_choice_development.json"
+    )
+    assert json.loads(json.dumps(picked)) == json.loads(committed.read_text())
+    assert (picked["score"], picked["chunks"]) == ("context_phase_energy", 16)
+    assert (picked["development_rollouts"], picked["development_failed"]) == (300, 19)

@@ -227,8 +227,9 @@ def test_the_committed_ten_task_report_is_recomputed_from_the_committed_records(
     assert rows["context_phase_energy"]["alarm_rate_per_condition"]["light_dim 5"] == 0.0
 
 
-def test_ds_committed_ten_task_report_is_recomputed_from_the_committed_records(tmp_path):
-    """BENCHMARKS.md's figures of D (`ebvla_joint_fast_cpu_more`, 2026-11-29), Tables III and IV, from the records."""
+def ds_report(tmp_path, choice: str, folder: str) -> list[dict]:
+    """D's ten-task report (`ebvla_joint_fast_cpu_more`, 2026-11-29) at its shipped conformal T with one failure
+    check, recomputed from the committed records and compared with the committed one."""
     results, run = RESULTS / "libero_object10_more", "ebvla_joint_fast_cpu_more"
     reports = results / "reports" / run
     report.main(
@@ -236,19 +237,49 @@ def test_ds_committed_ten_task_report_is_recomputed_from_the_committed_records(t
             f"--results={results}",
             f"--run={run}",
             f"--output_dir={tmp_path}",
-            f"--failure_choice={reports / 'failure_check_choice.json'}",
+            f"--failure_choice={reports / choice}",
+            "--threshold_rule=conformal",
         ]
     )
     got = json.loads((tmp_path / "ten_task_report.json").read_text())
-    assert got == json.loads((reports / "ten_task" / "ten_task_report.json").read_text())
-    ten = got[0]
+    assert got == json.loads((reports / folder / "ten_task_report.json").read_text())
+    return got
+
+
+def test_ds_committed_ten_task_report_is_recomputed_from_the_committed_records(tmp_path):
+    """BENCHMARKS.md's figures of D: success, Table III at the conformal T (held out and on the confirmation
+    rollouts, fixed states 30-49) and Table IV of its first failure check."""
+    ten = ds_report(tmp_path, "failure_check_choice.json", "ten_task")[0]
     assert ten["success"]["fixed initial states"] == {"wins": 183, "n": 200}
     assert ten["success"]["fresh placements"] == {"wins": 98, "n": 100}
+    assert ten["success"]["confirmation (states 30-49)"] == {"wins": 170, "n": 200}
+    rows = {row["score"]: row for row in ten["rows"]}
+    monitor = rows["context_phase_energy"]
+    assert list(rows)[0] == "context_phase_energy" and len(monitor["auroc_per_condition"]) == 17
+    assert monitor["pooled_auroc"] == pytest.approx(0.956, abs=5e-4)
+    assert rows["context_knn"]["pooled_auroc"] == pytest.approx(0.901, abs=5e-4)
+    # The rule's targets on the confirmation rollouts, which nothing was chosen on.
+    assert (monitor["confirm_alarm_rate"], monitor["heldout_alarm_rate"]) == (0.075, 0.055)
+    assert monitor["confirm_balanced_accuracy"] == pytest.approx(0.908, abs=5e-4)
     failure = {row["score"]: row for row in ten["failure_rows"]}
     check, baseline = failure["final_energy"], failure["chunk_context_nn"]
     assert (check["failed_alarmed"], check["failed"], check["successful_alarmed"]) == (14, 19, 21)
     assert check["balanced_accuracy"] == pytest.approx(0.831, abs=5e-4)
-    # The feature distance at chunk 10 beats the energy's failure check, outside its interval.
+    # The feature distance at chunk 10 beats the energy's failure check, outside its interval, on both sets.
     assert baseline["auroc"] > check["auroc_interval"][1]
-    rows = {row["score"]: row for row in ten["rows"]}
-    assert list(rows)[0] == "context_phase_energy"
+    confirmed = {row["score"]: row for row in ten["confirm_failure_rows"]}
+    assert (confirmed["final_energy"]["failed_alarmed"], confirmed["final_energy"]["failed"]) == (25, 30)
+    assert confirmed["chunk_context_nn"]["auroc"] > confirmed["final_energy"]["auroc_interval"][1]
+
+
+def test_ds_second_failure_check_is_recomputed_and_beats_the_first_on_the_confirmation(tmp_path):
+    """D's second failure check (`context_phase_energy` over 16 chunks), which the checkpoint ships: its rule was to
+    ship it if its balanced accuracy on the confirmation rollouts is at least the first's (86.7 %)."""
+    ten = ds_report(tmp_path, "failure_check_choice_development.json", "ten_task_second_check")[0]
+    confirmed = {row["score"]: row for row in ten["confirm_failure_rows"]}
+    check, baseline = confirmed["context_phase_energy"], confirmed["chunk_context_nn"]
+    assert (check["failed_alarmed"], check["failed"], check["successful_alarmed"]) == (26, 30, 16)
+    assert (
+        check["balanced_accuracy"] == pytest.approx(0.886, abs=5e-4) and check["balanced_accuracy"] >= 0.867
+    )
+    assert baseline["auroc"] > check["auroc_interval"][1]
