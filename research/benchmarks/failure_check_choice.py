@@ -91,29 +91,17 @@ def choose(
     if unknown:
         raise ValueError(f"The failure check reads one of {FAILURE_SCORES[1:]}; got {unknown}.")
     rows = []
-    for score in scores:
+    for rank, score in enumerate(scores):
         for n, values in calibration_scores(episodes, score, candidates, development).items():
             reference = values[: failed.size][~failed]
             threshold = float(reference.mean() + k * reference.std())
-            row = {"score": score} if len(scores) > 1 else {}
-            rows.append(
-                row
-                | {
-                    "chunks": n,
-                    "threshold": threshold,
-                    "balanced_accuracy": balanced_accuracy(values, judged, threshold),
-                }
-            )
-    rank = {score: order for order, score in enumerate(scores)}
-    best = max(
-        rows,
-        key=lambda row: (
-            round(row["balanced_accuracy"], 9),
-            -row["chunks"],
-            -rank[row.get("score", SCORE)],
-        ),
-    )
-    chosen = best.get("score", SCORE)
+            accuracy = balanced_accuracy(values, judged, threshold)
+            row = {"score": score, "chunks": n, "threshold": threshold, "balanced_accuracy": accuracy}
+            rows.append((round(accuracy, 9), -n, -rank, row))
+    *_, best = max(rows, key=lambda ranked: ranked[:3])
+    chosen = best["score"]
+    # One candidate score: its name is the choice's, not each row's.
+    rows = [{k: v for k, v in row.items() if len(scores) > 1 or k != "score"} for *_, row in rows]
     counts = {
         "calibration_rollouts": int(failed.size),
         "calibration_failed": int(failed.sum()),

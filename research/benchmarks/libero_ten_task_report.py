@@ -247,8 +247,10 @@ def score_rows(
             continue
         row = at_threshold(heldout, score, FIRST_CHUNKS)
         negatives, positives = sets.negatives[score], sets.positives[ALL_CONDITIONS][score]
-        confirm_rate = (
-            None if confirm_sets is None else float(np.mean(confirm_sets.negatives[score] > row.threshold))
+        confirm = (
+            None
+            if confirm_sets is None
+            else BinaryRates.from_scores(confirm_sets.negatives[score], positives, row.threshold)
         )
         whole_negatives, whole_positives = whole.negatives[score], whole.positives[ALL_CONDITIONS][score]
         rows.append(
@@ -269,10 +271,8 @@ def score_rows(
                 },
                 whole_episode_auroc=float(auroc(whole_negatives, whole_positives)),
                 whole_episode_interval=bootstrap_auroc_interval(whole_negatives, whole_positives),
-                confirm_alarm_rate=confirm_rate,
-                confirm_balanced_accuracy=None
-                if confirm_rate is None
-                else 0.5 * (float(np.mean(positives > row.threshold)) + 1.0 - confirm_rate),
+                confirm_alarm_rate=None if confirm is None else confirm.fpr,
+                confirm_balanced_accuracy=None if confirm is None else confirm.balanced_accuracy,
             )
         )
     return rows, missing
