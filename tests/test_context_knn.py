@@ -25,6 +25,7 @@ from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
 from lerobot_policy_ebvla.runtime.readout import EnergyReadout
 from lerobot_policy_ebvla.runtime.scores import NEIGHBOURS_FILE, SCORES, ContextKNN
 from lerobot_policy_ebvla.runtime.statistics import ContextNeighbours
+from lerobot_policy_ebvla.runtime.threshold import ChunkWindow
 from lerobot_policy_ebvla.scripts import ood_report
 
 from .conftest import context_rollouts, tiny_batch, tiny_config, write_records
@@ -292,12 +293,24 @@ def test_ood_report_saves_a_context_knn_calibration_of_the_reports_knn_score(rec
     reference = fit_score_reference(calibration_set, knn_k=K)
     features = np.stack([r.context_feature for episode in calibration_set.values() for r in episode])
     np.testing.assert_array_equal(calibration.score.neighbours.features, features)
-    # mu_v and sigma_v are those of the report's knn score: the calibration rollouts leave-one-episode-out, over
-    # their first 3 chunks (the first-chunk Table III's fit, the threshold the report judges the score by).
-    knn = episode_scores(calibration_set, "context_knn", reference=reference, first_chunks=3)
-    assert calibration.mu_v == pytest.approx(knn.mean()) and calibration.sigma_v == pytest.approx(knn.std())
+    # The window is that of the report's knn score (the calibration rollouts leave-one-episode-out) over their
+    # first 1, 2 and 3 chunks; mu_v and sigma_v are those of their window scores, each without its rollout.
+    knn = np.stack(
+        [
+            episode_scores(calibration_set, "context_knn", reference=reference, first_chunks=n)
+            for n in (1, 2, 3)
+        ],
+        axis=1,
+    )
+    window = calibration.window
+    assert window.means == pytest.approx(tuple(knn.mean(axis=0)))
+    assert window.stds == pytest.approx(tuple(knn.std(axis=0)))
+    scores = ChunkWindow.leave_one_out_scores(knn)
+    assert calibration.mu_v == pytest.approx(scores.mean()) and calibration.sigma_v == pytest.approx(
+        scores.std()
+    )
     # The report states the threshold it saved.
-    assert "over their first 3 chunks (the T the run-time monitor" in out
+    assert "window score over their first 3 chunks" in out
     assert (
         f"mu_v = {calibration.mu_v:.4g}, sigma_v = {calibration.sigma_v:.4g}, T = {calibration.threshold:.4g}"
         in out
@@ -309,7 +322,8 @@ def test_ood_report_saves_a_context_knn_calibration_of_the_reports_knn_score(rec
         energies = [r.final_energy for r in episode]
         features = np.stack([r.context_feature for r in episode])
         decision = monitor.check_rollout(EnergyReadout.of_arrays(energies, context_features=features))
-        assert decision.energy == pytest.approx(held_out[key].mean(), rel=1e-12)
+        running = [held_out[key][:n].mean() for n in (1, 2, 3)]
+        assert decision.energy == pytest.approx(window.score(running), rel=1e-12)
 
 
 def test_ood_report_refuses_a_context_knn_calibration_without_context_features(record_dirs, tmp_path):

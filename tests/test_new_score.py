@@ -18,6 +18,7 @@ from lerobot_policy_ebvla.runtime import (
     SCORES,
     ChunkInputs,
     ChunkScore,
+    ChunkWindow,
     EnergyOODError,
     EnergyOODMonitor,
     EnergyOODResponse,
@@ -91,18 +92,19 @@ def test_the_report_scores_and_saves_a_registered_score_it_has_no_line_for(regis
     calibration_set = load_episodes([record_dirs[0]])
     everything = np.concatenate([energies(e) for e in calibration_set.values()])
     assert calibration.score == PooledEnergyZ(float(everything.mean()), float(everything.std()))
-    # mu_v: each calibration rollout scored against the score fitted without it, as the report's other
-    # fitted scores are.
-    # The saved calibration is over each rollout's first 3 chunks (the first-chunk Table III's fit); the report's
-    # calibration table is over whole episodes.
-    left_out, left_out_first = [], []
+    # Each calibration rollout scored against the score fitted without it, as the report's other fitted scores
+    # are. The saved calibration is of the window of each rollout's first 3 chunks (its running scores after
+    # chunks 1, 2 and 3); the report's calibration table is over whole episodes.
+    left_out, running = [], []
     for key, episode in calibration_set.items():
         others = np.concatenate([energies(e) for k, e in calibration_set.items() if k != key])
         z = (energies(episode) - others.mean()) / others.std()
         left_out.append(np.mean(z))
-        left_out_first.append(np.mean(z[:3]))
-    assert calibration.mu_v == pytest.approx(np.mean(left_out_first))
-    assert calibration.sigma_v == pytest.approx(np.std(left_out_first))
+        running.append([np.mean(z[:n]) for n in (1, 2, 3)])
+    assert calibration.window.means == pytest.approx(tuple(np.mean(running, axis=0)))
+    window_scores = ChunkWindow.leave_one_out_scores(running)
+    assert calibration.mu_v == pytest.approx(np.mean(window_scores))
+    assert calibration.sigma_v == pytest.approx(np.std(window_scores))
     assert f"| {PooledEnergyZ.name} | 8 | {np.mean(left_out):.4g} | {np.std(left_out):.4g} |" in report
     auroc_header = report.split("## AUROC")[1].split("\n\n")[1].splitlines()[0]
     assert auroc_header.endswith(f"| {PooledEnergyZ.name} |")
@@ -118,7 +120,8 @@ def test_a_registered_score_is_saved_loaded_and_monitored_as_the_report_scores_i
     held_out = load_episodes([record_dirs[2]])
     monitor = EnergyOODMonitor(calibration)
     for episode in held_out.values():
-        expected = np.mean((energies(episode) - calibration.score.mean) / calibration.score.std)
+        z = (energies(episode) - calibration.score.mean) / calibration.score.std
+        expected = calibration.window.score([np.mean(z[:n]) for n in (1, 2, 3)])
         assert monitor.check_rollout(EnergyReadout.of_arrays(energies(episode))).energy == pytest.approx(
             expected
         )
@@ -134,10 +137,13 @@ def test_the_policy_responds_to_a_registered_score(registered, record_dirs, tmp_
         tiny_config(monitor=MonitorConfig(response="raise")), calibration.with_k(0.0)
     )
     actions = torch.zeros(2, 3, 2)
-    # A chunk whose z is just under T (= mu_v at k = 0) passes; one 10 std above the pooled energy raises.
+    # A chunk is scored as a one-chunk rollout: its z standardized by the window's first mu and sigma. One just
+    # under T (= mu_v at k = 0) passes; one 10 window sigmas higher raises.
     below = calibration.with_k(0.0).threshold - 0.01
-    in_distribution = torch.full((2,), calibration.score.mean + below * calibration.score.std)
+    z = calibration.window.means[0] + below * calibration.window.stds[0]
+    in_distribution = torch.full((2,), calibration.score.mean + z * calibration.score.std)
     _, decision = response(actions, EnergyReadout(None, in_distribution), {})
     assert not decision.is_ood
+    higher = 10 * calibration.window.stds[0] * calibration.score.std
     with pytest.raises(EnergyOODError, match=PooledEnergyZ.name):
-        response(actions, EnergyReadout(None, in_distribution + 10 * calibration.score.std), {})
+        response(actions, EnergyReadout(None, in_distribution + higher), {})

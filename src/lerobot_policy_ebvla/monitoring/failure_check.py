@@ -50,7 +50,7 @@ def failure_check_decisions(scored) -> dict[str, tuple[np.ndarray | None, np.nda
     rows = {
         "monitor (either check)": (
             None,
-            exceeds(scored.held_out(ood_score, n), scored.saved_fit.threshold) | failure_alarms,
+            exceeds(scored.saved_held_out(), scored.saved_fit.threshold) | failure_alarms,
         )
     }
     for name in dict.fromkeys([failure, ood_score, "final_energy", *FEATURE_SCORES]):

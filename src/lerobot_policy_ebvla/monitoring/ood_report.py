@@ -36,6 +36,7 @@ from ..runtime.calibration import (
 )
 from ..runtime.scores import INPUT_SOURCES, SCORE_AGGREGATIONS, SCORES
 from ..runtime.statistics import DEFAULT_KNN_K
+from ..runtime.threshold import ChunkWindow, exceeds
 from .baselines import (
     COMBINED_FROM,
     COMBINED_SCORES,
@@ -274,11 +275,34 @@ class OODScores:
 
     @cached_property
     def saved_fit(self) -> OODCalibration:
-        """The OOD check `--calibrate_to` saves: the saved score fitted on the calibration rollouts' first
-        `table_iii_first_chunks` chunks (whole episodes when 0), the fit Table III on the first chunks judges it
-        by, so that the run-time monitor's T is the reported one. Computed once: the report, its failure section and
-        `--calibrate_to` all read it."""
-        return self.fit(self.saved_score, self.cfg.table_iii_first_chunks or None)
+        """The OOD check `--calibrate_to` saves: the saved score's `ChunkWindow` over the calibration rollouts'
+        first N = `table_iii_first_chunks` chunks and T fitted on their window scores (each leave-one-out), so that
+        T bounds the alarms the run-time monitor raises at any of its first N decisions; with N = 0, the score
+        fitted on whole episodes. Computed once: the report, its failure section and `--calibrate_to` all read it."""
+        n = self.cfg.table_iii_first_chunks
+        if not n:
+            return self.fit(self.saved_score)
+        running = self.running_scores(self.calibration_chunks, self.saved_score, n)
+        fit = self._fit(ChunkWindow.leave_one_out_scores(running))
+        return dataclasses.replace(fit, window=ChunkWindow.fit(running))
+
+    def running_scores(self, chunks: dict, name: str, window_chunks: int) -> np.ndarray:
+        """(R, N) each rollout's score over its first 1, ..., N chunks (a rollout shorter than n: all its chunks)."""
+        return np.stack([self.scores(chunks, name, n) for n in range(1, window_chunks + 1)], axis=1)
+
+    def saved_scores(self, chunks: dict) -> np.ndarray:
+        """The rollout scores of one set as the saved OOD check decides on them (`saved_fit`): window scores
+        over the first N chunks, or whole-episode scores."""
+        window = self.saved_fit.window
+        if window is None:
+            return self.scores(chunks, self.saved_score)
+        return window.scores(self.running_scores(chunks, self.saved_score, window.chunks))
+
+    def saved_held_out(self) -> np.ndarray:
+        """`saved_scores` of every held-out rollout, in `held_out_failed`'s order."""
+        return np.concatenate(
+            [self.saved_scores(self.vanilla_chunks), self.saved_scores(self.condition_chunks[ALL_CONDITIONS])]
+        )
 
     def fit_failure(self, name: str, first_chunks: int) -> OODCalibration:
         """`fit` on the failure check's reference rollouts (`failure_reference`) only."""
@@ -502,10 +526,10 @@ def write_scored_report(scored: OODScores) -> str:
     calibration_scores = scored.scores(scored.calibration_chunks, "final_energy")
     figures(cfg, fits, calibration_scores, negatives, positives, names)
     if cfg.calibrate_to is not None:
-        # The run-time monitor scores chunks against a score fitted on every calibration rollout; mu_v and
-        # sigma_v are the report's: the calibration rollouts' scores over their first chunks (`saved_fit`; a
-        # whole episode's mean varies less than a few chunks', and a T fitted on whole episodes flags a third
-        # of vanilla rollouts in their first chunks), leave-one-episode-out where the score is fitted on them.
+        # The run-time monitor scores chunks against a score fitted on every calibration rollout; its window,
+        # mu_v and sigma_v are the report's (`saved_fit`): a T fitted on whole episodes flagged a third of vanilla
+        # rollouts in their first chunks, and one fitted on N-chunk means a quarter by chunk N, through the
+        # running scores of chunks 1..N-1 that spread more.
         saved = scored.saved_score
         score = SCORES[saved].fit(vanilla_rollouts(scored.calibration_set, cfg.aggregation, cfg.knn_k))
         calibration = dataclasses.replace(scored.saved_fit, score=score)
@@ -546,18 +570,33 @@ def _saved_score_note(cfg: OODReportConfig, scored: OODScores) -> str:
     if cfg.score is None and cfg.calibrate_to is not None:
         default = f"\n\nWithout `--score`, `--calibrate_to` saves the checkpoint's `monitor.score`: `{saved_score}`."
     if cfg.calibrate_to is not None:
-        fit, chunks = scored.saved_fit, cfg.table_iii_first_chunks
-        over = f"their first {chunks} chunks" if chunks else "whole episodes"
-        default += (
-            f"\n\nThe saved threshold is fitted on the calibration rollouts' `{saved_score}` over {over} (the T "
-            f"the run-time monitor compares each chunk's running score to): mu_v = {fit.mu_v:.4g}, "
-            f"sigma_v = {fit.sigma_v:.4g}, T = {fit.threshold:.4g}"
-            + (
-                f" (the conformal quantile at alpha = {percent(fit.false_alarm_rate)})."
-                if fit.rule == "conformal"
-                else "."
-            )
+        fit = scored.saved_fit
+        rule = (
+            f" (the conformal quantile at alpha = {percent(fit.false_alarm_rate)})."
+            if fit.rule == "conformal"
+            else "."
         )
+        if fit.window is None:
+            default += (
+                f"\n\nThe saved threshold is fitted on the calibration rollouts' `{saved_score}` over whole "
+                f"episodes (the T the run-time monitor compares each chunk's running score to): mu_v = "
+                f"{fit.mu_v:.4g}, sigma_v = {fit.sigma_v:.4g}, T = {fit.threshold:.4g}{rule}"
+            )
+        else:
+            n = fit.window.chunks
+            vanilla = exceeds(scored.saved_scores(scored.vanilla_chunks), fit.threshold)
+            default += (
+                f"\n\nThe saved threshold is fitted on the calibration rollouts' window score over their first {n} "
+                f"chunks: the running `{saved_score}` after each of chunks 1..{n}, standardized by the calibration's "
+                f"mu_n and sigma_n, its max (`ChunkWindow`; mu_n = "
+                f"{', '.join(f'{m:.4g}' for m in fit.window.means)}; sigma_n = "
+                f"{', '.join(f'{v:.4g}' for v in fit.window.stds)}). The run-time monitor compares the window "
+                f"score so far to T after every chunk, and its decision after chunk {n} stands, so T bounds the "
+                f"alarms of all {n} decisions together: mu_v = {fit.mu_v:.4g}, sigma_v = {fit.sigma_v:.4g}, "
+                f"T = {fit.threshold:.4g}{rule} At T, {int(vanilla.sum())} of the {vanilla.size} held-out vanilla "
+                f"rollouts are alarmed within their first {n} chunks. The Table III rows on the first {n} chunks "
+                f"are the paper's decision (the {n}-chunk mean at its own T, once at chunk {n})."
+            )
     what = {
         "context_distance": "of every table: the same features, fit and leave-one-episode-out calibration scores.",
         "context_knn": f"of every table (k = {cfg.knn_k}): the same features, standardization and "

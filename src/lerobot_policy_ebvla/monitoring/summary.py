@@ -110,25 +110,25 @@ def monitor_summary(scored) -> dict:
     saved with the checkpoint.
 
     `unfamiliar`: per shift, the OOD score's AUROC against the held-out vanilla rollouts over the first N chunks
-    and over whole episodes, and the rollouts alarmed at the saved T over their first chunks
-    (`OODScores.saved_fit`: vanilla's too). `failing` (a checkpoint with a failure check): failed against
+    and over whole episodes, and the rollouts alarmed at the saved T as the run-time monitor decides
+    (`OODScores.saved_scores`, within the first chunks: vanilla's too). `failing` (a checkpoint with a failure check): failed against
     successful rollouts over all of them, first N chunks: AUROC, and the alarms at its T.
     """
     n = scored.failure_chunks
     ood, first, whole = scored.saved_score, scored.at(n), scored.at(None)
     ood_chunks = scored.cfg.table_iii_first_chunks or None
-    decided, threshold = scored.at(ood_chunks), scored.saved_fit.threshold
+    threshold = scored.saved_fit.threshold
 
     def alarmed(scores) -> list[int]:
         return [int(exceeds(scores, threshold).sum()), len(scores)]
 
-    unfamiliar = {"vanilla": {"alarmed": alarmed(decided.negatives[ood])}}
+    unfamiliar = {"vanilla": {"alarmed": alarmed(scored.saved_scores(scored.vanilla_chunks))}}
     for condition, scores in whole.positives.items():
         if condition != ALL_CONDITIONS:
             unfamiliar[condition] = {
                 "auroc_first_chunks": auroc(first.negatives[ood], first.positives[condition][ood]),
                 "auroc": auroc(whole.negatives[ood], scores[ood]),
-                "alarmed": alarmed(decided.positives[condition][ood]),
+                "alarmed": alarmed(scored.saved_scores(scored.condition_chunks[condition])),
             }
     summary = {
         "score": ood,

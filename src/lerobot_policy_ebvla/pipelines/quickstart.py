@@ -266,7 +266,11 @@ def format_monitor(monitor: dict) -> list[str]:
         f"The checkpoint's monitor, calibrated on {monitor['n_calibration']} vanilla rollouts of other seeds "
         "(ood_calibration.json, failure_calibration.json beside the weights; monitor/ood_report.md):",
         f"  unfamiliar ({monitor['score']}): AUROC against vanilla, first {n} chunks / whole episode; rollouts "
-        f"alarmed at T over their first {monitor['ood_chunks'] or 'all'} chunks",
+        + (
+            f"alarmed by chunk {monitor['ood_chunks']} (one T bounds all {monitor['ood_chunks']} decisions)"
+            if monitor["ood_chunks"]
+            else "alarmed at T over whole episodes"
+        ),
     ]
     for condition, row in monitor["unfamiliar"].items():
         aurocs = f"{row['auroc_first_chunks']:.2f} / {row['auroc']:.2f}" if "auroc" in row else "-"

@@ -8,7 +8,9 @@ when
     E > T = mu_v + k * sigma_v                                                             (Eq. 5)
 
 or, with `rule="conformal"`, when E exceeds the conformal threshold of a stated false-alarm rate alpha
-(`threshold.py` holds both rules and the decision itself).
+(`threshold.py` holds both rules and the decision itself). A calibration fitted on the first N chunks
+(`ebvla-ood-report --calibrate_to`) scores a rollout by its `ChunkWindow` score instead of its mean, so that T
+holds its rate over every decision the run-time monitor makes in those N chunks, not only the N-th.
 
 `OODCalibration` holds these statistics and the score object they are of, and lives next to a checkpoint as
 `ood_calibration.json` (with the score's side files); `EnergyOODMonitor` (`monitor.py`) and the policy's
@@ -36,7 +38,7 @@ from .scores import (
     VanillaRollouts,
     score_rollout,
 )
-from .threshold import ArrayLike, MeanStd, conformal_threshold, mean_std_threshold
+from .threshold import ArrayLike, ChunkWindow, MeanStd, conformal_threshold, mean_std_threshold
 
 OOD_CALIBRATION_FILENAME = "ood_calibration.json"
 FAILURE_CALIBRATION_FILENAME = "failure_calibration.json"
@@ -72,6 +74,10 @@ class OODCalibration(CheckpointJSON):
         rule: Which threshold the monitor applies: "mean_std" (Eq. 5, the paper's, default) or "conformal".
         score: The chunk score the statistics are of, with what it was fitted on (a `ChunkScore` of
             `scores.SCORES`; the final energy, the paper's, by default).
+        window: None: a rollout's score is its chunks' scores aggregated (the paper's). A `ChunkWindow` of N
+            chunks: it is the window score W of its running scores over its first N chunks, and mu_v, sigma_v
+            and the conformal threshold are those of the vanilla rollouts' W; the monitor's decision after
+            chunk N stands for the rest of the episode.
     """
 
     mu_v: float
@@ -83,6 +89,7 @@ class OODCalibration(CheckpointJSON):
     conformal_threshold: float | None = None
     rule: str = "mean_std"
     score: ChunkScore = field(default_factory=FinalEnergy)
+    window: ChunkWindow | None = None
 
     filename = OOD_CALIBRATION_FILENAME
     what = "OOD calibration"
@@ -105,6 +112,8 @@ class OODCalibration(CheckpointJSON):
             raise ValueError(
                 f"`score` must be a `ChunkScore` registered in `SCORES` ({', '.join(SCORES)}), got {self.score!r}."
             )
+        if self.window is not None and not isinstance(self.window, ChunkWindow):
+            raise ValueError(f"`window` must be a `ChunkWindow` or None, got {type(self.window).__name__}.")
 
     @classmethod
     def fit(
@@ -116,6 +125,7 @@ class OODCalibration(CheckpointJSON):
         false_alarm_rate: float | None = None,
         rule: str = "mean_std",
         score: ChunkScore | None = None,
+        window: ChunkWindow | None = None,
     ) -> "OODCalibration":
         """Estimates mu_v and sigma_v, and with `false_alarm_rate` the conformal threshold, from vanilla scores.
 
@@ -126,6 +136,8 @@ class OODCalibration(CheckpointJSON):
             vanilla_scores: The vanilla rollouts' scores, each aggregated from its chunks' `score` with
                 `aggregation`.
             score: The fitted chunk score `vanilla_scores` were computed with; the final energy when None.
+            window: The chunk window `vanilla_scores` are window scores of (`ChunkWindow.leave_one_out_scores`),
+                None when they are aggregated chunk scores.
 
         Raises:
             ValueError: No finite score to fit on.
@@ -144,6 +156,7 @@ class OODCalibration(CheckpointJSON):
             conformal_threshold=conformal,
             rule=rule,
             score=FinalEnergy() if score is None else score,
+            window=window,
         )
 
     @classmethod
@@ -155,11 +168,14 @@ class OODCalibration(CheckpointJSON):
         k: float = 1.0,
         false_alarm_rate: float | None = None,
         rule: str = "mean_std",
+        window_chunks: int | None = None,
     ) -> "OODCalibration":
         """The calibration of the score named `score` (a checkpoint's `config.monitor.score`) on vanilla rollouts.
 
         The score is fitted on every vanilla rollout; mu_v and sigma_v are those of the vanilla rollouts' scores,
         each rollout scored against the score fitted without it (leave-one-out), as a new rollout would be.
+        With `window_chunks=N` the rollout scores are window scores over the first N chunks (`ChunkWindow`), each
+        standardized by the window of the other rollouts; a rollout shorter than N keeps its last running score.
 
         Raises:
             ValueError: The score is not registered, or a rollout lacks an input the score reads.
@@ -169,17 +185,23 @@ class OODCalibration(CheckpointJSON):
         score_class = SCORES[score]
         for rollout in vanilla.rollouts:
             rollout.require(score_class.reads, score)
-        rollout_scores = []
+        if window_chunks is not None and window_chunks < 1:
+            raise ValueError(f"`window_chunks` must be >= 1 or None, got {window_chunks}.")
+        running = []
         for i, rollout in enumerate(vanilla.rollouts):
             fitted = score_class.fit(vanilla.without(i) if len(vanilla) > 1 else vanilla)
-            rollout_scores.append(score_rollout(fitted, fitted.components(rollout), vanilla.aggregation))
+            components = fitted.components(rollout)
+            lengths = [len(components)] if window_chunks is None else range(1, window_chunks + 1)
+            running.append([score_rollout(fitted, components[:n], vanilla.aggregation) for n in lengths])
+        window = None if window_chunks is None else ChunkWindow.fit(running)
         return cls.fit(
-            rollout_scores,
+            np.asarray(running)[:, 0] if window is None else ChunkWindow.leave_one_out_scores(running),
             k=k,
             aggregation=vanilla.aggregation,
             false_alarm_rate=false_alarm_rate,
             rule=rule,
             score=score_class.fit(vanilla),
+            window=window,
         )
 
     @property
@@ -207,17 +229,30 @@ class OODCalibration(CheckpointJSON):
     def chunk_score(self, readout: EnergyReadout) -> np.ndarray:
         """(B,) the calibrated score of each chunk of `readout`, the score of a rollout of that one chunk: what
         `threshold` applies to. Arguments and errors as in `chunk_components`."""
-        return self.score.combine(self.chunk_components(readout))
+        scores = self.score.combine(self.chunk_components(readout))
+        if self.window is None:
+            return scores
+        return (scores - self.window.means[0]) / self.window.stds[0]
 
     def score_rollout(self, components: ArrayLike) -> float:
         """The rollout score the threshold applies to, from its chunks' `chunk_components` in chunk order:
         each column aggregated over the chunks (`rollout_score`, the calibration's aggregation), then combined
         by the score.
 
+        With a `window`, the window score of the running scores over the first N chunks (fewer so far: those).
+
         Raises:
             ValueError: `components` is not (N >= 1, n) with the score's n columns.
         """
-        return score_rollout(self.score, components, self.aggregation)
+        if self.window is None:
+            return score_rollout(self.score, components, self.aggregation)
+        components = np.asarray(components, dtype=np.float64)
+        if components.ndim != 2 or components.shape[0] < 1:  # `score_rollout` names the expected shape
+            return score_rollout(self.score, components, self.aggregation)
+        lengths = range(1, min(len(components), self.window.chunks) + 1)
+        return self.window.score(
+            [score_rollout(self.score, components[:n], self.aggregation) for n in lengths]
+        )
 
     @property
     def threshold(self) -> float:
@@ -237,6 +272,11 @@ class OODCalibration(CheckpointJSON):
         # `threshold` is written for people reading the file; loading recomputes it. JSON has no infinity.
         payload = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         payload |= {"score": self.score.name, "threshold": self.threshold}
+        window = payload.pop("window")
+        if (
+            window is not None
+        ):  # absent, not null, without one: the files of the paper's calibration are unchanged
+            payload["window"] = {"means": list(window.means), "stds": list(window.stds)}
         payload = {key: _to_json_number(value) for key, value in payload.items()}
         fields = self.score.to_json()
         for side_file in _all_side_files():
@@ -259,6 +299,8 @@ class OODCalibration(CheckpointJSON):
         payload.pop("window_reference", None)
         if payload.get("conformal_threshold") == "inf":
             payload["conformal_threshold"] = math.inf
+        if isinstance(payload.get("window"), dict):
+            payload["window"] = ChunkWindow(**payload["window"])
         name = payload.pop("score", FinalEnergy.name)
         if name not in SCORES:
             raise UnregisteredScoreError(
