@@ -148,14 +148,29 @@ def test_the_committed_run_time_alarm_rates_are_what_the_shipped_monitor_gives_o
 
 
 def test_ds_committed_run_time_alarm_rates_are_what_its_shipped_monitor_gives_on_the_records(tmp_path):
-    """D's `runtime_alarms.json` (BENCHMARKS.md: its shipped monitor, the conformal T and the second failure check,
-    replayed chunk by chunk) recomputed."""
+    """D's `runtime_alarms.json` (BENCHMARKS.md: its shipped monitor, the conformal T on the window score of the
+    first 3 chunks and the second failure check, replayed chunk by chunk) recomputed, and
+    `runtime_alarms_mean3.json`, the same monitor with D's T before the window (the 3-chunk mean's)."""
     committed = RESULTS / "libero_object10_more/reports/ebvla_joint_fast_cpu_more/runtime_alarms.json"
     got = replayed_alarms("libero_object10_more", "ebvla_joint_fast_cpu_more", tmp_path / "alarms.json")
     assert got == json.loads(committed.read_text())
     assert got["failure_check"] == {"score": "context_phase_energy", "chunks": 16}
     keys = ("at_chunk_3", "by_chunk_3", "ever")
     conditions = got["conditions"]
+    # The decision after chunk 3 stands: a rollout alarmed at all is alarmed by chunk 3.
+    assert [conditions["vanilla_heldout"][key]["alarmed"] for key in keys] == [11, 11, 11]
+    assert [conditions["vanilla_confirm"][key]["alarmed"] for key in keys] == [13, 13, 13]
+    assert [conditions["vanilla_fresh"][key]["alarmed"] for key in keys] == [0, 0, 0]
+    accuracy = got["balanced_accuracy_by_chunk_3"]
+    assert accuracy["vanilla_confirm"] == pytest.approx(0.9057, abs=5e-5)
+    assert accuracy["vanilla_heldout"] == pytest.approx(0.9107, abs=5e-5)
+
+    before = replayed_alarms(
+        "libero_object10_more", "ebvla_joint_fast_cpu_more", tmp_path / "mean3.json", "--refit_first_chunks=3"
+    )
+    assert before == json.loads(committed.with_name("runtime_alarms_mean3.json").read_text())
+    conditions = before["conditions"]
+    assert before["ood_threshold"] == pytest.approx(0.5474, abs=5e-5)
     assert [conditions["vanilla_heldout"][key]["alarmed"] for key in keys] == [11, 52, 70]
     assert [conditions["vanilla_confirm"][key]["alarmed"] for key in keys] == [15, 54, 82]
     assert [conditions["vanilla_fresh"][key]["alarmed"] for key in keys] == [0, 0, 3]
