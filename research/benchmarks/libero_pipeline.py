@@ -452,6 +452,11 @@ VANILLA_CONDITIONS = ("vanilla_calib", "vanilla_heldout")
 # Held-out vanilla rollouts from the fixed initial states after the held-out ones, run last: a second held-out set
 # for a threshold rule chosen after the first was looked at (research/docs/libero_runs.md, "D's threshold rule").
 CONFIRM_CONDITION = "vanilla_confirm"
+# The fresh placements again with the arm's starting angles drawn as LIBERO's fixed states draw theirs (robosuite's
+# Gaussian, 0.02 rad a joint): does the arm's start explain the fixed states' lower success
+# (research/docs/libero_placement_gap.md)?
+FRESH_ARM_CONDITION = "vanilla_fresh_arm"
+FIXED_STATES_ARM_NOISE = 0.02
 
 
 @dataclass(frozen=True)
@@ -482,6 +487,7 @@ def eval_jobs(
     fresh: int = 0,
     vanilla_conditions: tuple[str, ...] = VANILLA_CONDITIONS,
     confirm: int = 0,
+    fresh_arm: int = 0,
 ) -> list[EvalJob]:
     """The evaluation queue, most needed first: vanilla calibration and held-out rollouts of the `ebvla` runs,
     then the camera perturbations of the `ebvla` runs in the order of `conditions`; the other policies (no
@@ -496,6 +502,8 @@ def eval_jobs(
     samples with seeds `FRESH_PLACEMENT_SEED` + i, which neither the fixed initial states nor the recordings
     (seeds 100000 + i) use: success off the states every other job starts from. `confirm` vanilla rollouts per
     task (`vanilla_confirm`, needs `calibration`) follow them, from the fixed states after the held-out ones.
+    `fresh_arm` rollouts per task (`vanilla_fresh_arm`) come last: the first `fresh_arm` fresh placements again,
+    the arm's start drawn as the fixed states' (`FIXED_STATES_ARM_NOISE`).
 
     `vanilla_conditions` keeps some of the vanilla calibration and held-out jobs (none: `()`), for a machine that
     runs the rest while another runs those (the queue with no `conditions`): the two queues together are the
@@ -550,6 +558,12 @@ def eval_jobs(
         for task in tasks
         if confirm
     ]
+    queue += [
+        EvalJob(run, FRESH_ARM_CONDITION, task, 0, fresh_arm, FRESH_PLACEMENT_SEED)
+        for run in ebvla_runs
+        for task in tasks
+        if fresh_arm
+    ]
     return queue
 
 
@@ -577,9 +591,11 @@ def eval_command(work: Path, job: EvalJob, device: str, episode_length: int | No
     ]
     if episode_length is not None:
         cmd.append(f"--env.episode_length={episode_length}")
-    if job.condition == FRESH_CONDITION:
+    if job.condition in (FRESH_CONDITION, FRESH_ARM_CONDITION):
         # LeRobot's env then keeps the placements LIBERO's reset samples from the episode's seed.
         cmd.append("--env.init_states=false")
+    if job.condition == FRESH_ARM_CONDITION:
+        cmd.append(f"--env.robot_init_noise={FIXED_STATES_ARM_NOISE}")
     if program == "ebvla-eval":
         cmd.append("--record_context_features=true")
         # The policy reads a frame every n_action_steps steps; the others are not rendered (the same rollouts,
@@ -989,6 +1005,12 @@ def main(argv: list[str] | None = None) -> None:
         default=0,
         help="eval: vanilla episodes per task of each ebvla run from the fixed states after the held-out ones, last",
     )
+    parser.add_argument(
+        "--fresh_arm",
+        type=int,
+        default=0,
+        help="eval: the first fresh placements again, the arm's start drawn as the fixed states' (0.02 rad), last",
+    )
     parser.add_argument("--perturbed", type=int, default=5, help="episodes per task and camera condition")
     parser.add_argument(
         "--vanilla_conditions",
@@ -1068,6 +1090,7 @@ def main(argv: list[str] | None = None) -> None:
             args.fresh,
             tuple(args.vanilla_conditions),
             args.confirm,
+            args.fresh_arm,
         )
         remaining = args.deadline_s - (time.time() - start)
         statuses = evaluate(work, jobs, args.device, args.jobs, remaining, args.episode_length)

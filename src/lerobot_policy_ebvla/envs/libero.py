@@ -42,7 +42,12 @@ from scipy.spatial.transform import Rotation
 from ..lerobot_private import get_libero_suite, lazy_async_vector_env, select_libero_task_ids
 from .frames import FrameGate
 from .lighting import LIGHT_INTENSITY_PERTURBATIONS, perturb_light_intensity
-from .perturbations import LIBERO_SENSOR_PERTURBATIONS, MAX_SEVERITY, check_libero_perturbation
+from .perturbations import (
+    LIBERO_SENSOR_PERTURBATIONS,
+    MAX_SEVERITY,
+    check_libero_perturbation,
+    check_robot_init_noise,
+)
 from .sensor import perturb_image
 
 # The MuJoCo camera behind LeRobot's `agentview_image` (`observation.images.image`).
@@ -263,6 +268,10 @@ class LiberoEBVLAGymEnv(LiberoEnv):
         perturbation_severity: 0 (no change) to 5.
         render_every: Render the cameras for the reset's observation and every `render_every`-th step's only
             (the module docstring); 1 renders every step, as LeRobot's env.
+        robot_init_noise: Std (radians) of robosuite's Gaussian noise on each arm joint's starting angle at a
+            sampled reset (`init_states=False`); 0 starts the arm at its default pose every time, as LIBERO's env
+            does. LIBERO's fixed initial states store an arm drawn with robosuite's default, 0.02, and replace
+            whatever the reset drew.
         *args, **kwargs: LeRobot's `LiberoEnv` arguments.
     """
 
@@ -272,13 +281,16 @@ class LiberoEBVLAGymEnv(LiberoEnv):
         perturbation: str = "none",
         perturbation_severity: int = 0,
         render_every: int = 1,
+        robot_init_noise: float = 0.0,
         **kwargs: Any,
     ):
         check_libero_perturbation(perturbation, perturbation_severity)
+        check_robot_init_noise(robot_init_noise)
         frames = FrameGate(render_every)  # checks render_every
         super().__init__(*args, **kwargs)
         self.perturbation = perturbation
         self.perturbation_severity = perturbation_severity
+        self.robot_init_noise = robot_init_noise
         self._frames = frames
         # Settling steps of the reset still to come (LeRobot's `num_steps_wait`); policy steps follow them.
         self._settling_left = 0
@@ -302,6 +314,10 @@ class LiberoEBVLAGymEnv(LiberoEnv):
         if self._env is not None:
             return
         super()._ensure_env()
+        for robot in self._env.env.robots:
+            # Read by robosuite's `Robot.reset` at every non-deterministic reset, drawn from numpy's global
+            # generator, which LIBERO's `seed` (called by LeRobot's `reset(seed=...)`) seeds.
+            robot.initialization_noise = {"magnitude": self.robot_init_noise, "type": "gaussian"}
         reset_scene, step_scene = self._env.reset, self._env.step
 
         def reset_scene_and_perturb() -> dict[str, Any]:

@@ -19,7 +19,7 @@ from lerobot.envs.configs import LiberoEnv as LeRobotLiberoEnvConfig
 from ..lerobot_private import make_vec_env_cls
 from .frames import check_render_every
 from .libero_assets import require_libero_ready
-from .perturbations import check_libero_perturbation
+from .perturbations import check_libero_perturbation, check_robot_init_noise
 
 
 @EnvConfig.register_subclass("libero_ebvla")
@@ -29,7 +29,8 @@ class LiberoEBVLAEnv(LeRobotLiberoEnvConfig):
 
     The perturbations change the agent-view camera (`observation.images.image`) and the scene's lights; the
     wrist camera moves with the robot and sees the new lighting. They keep the image size, so observation keys
-    and shapes are those of `--env.type=libero`. Physics (objects, robot, initial states) is unchanged.
+    and shapes are those of `--env.type=libero`. Physics (objects, robot, initial states) is unchanged, except
+    for `robot_init_noise`.
 
     Args:
         task: LIBERO suite(s), comma-separated (`libero_object`, `libero_spatial`, `libero_goal`, `libero_10`,
@@ -47,6 +48,10 @@ class LiberoEBVLAEnv(LeRobotLiberoEnvConfig):
             task at initial state i and steps by the number of envs at each reset; this shifts that count, so
             that episodes 10-19 of a task (say) run in a process of their own, from the same states as in one
             20-episode run.
+        robot_init_noise: With `init_states=false` (placements LIBERO samples at each reset), the std in radians
+            of robosuite's Gaussian noise on each arm joint's starting angle; 0 (the default, LIBERO's) starts the
+            arm at its default pose every time. LIBERO's fixed initial states carry an arm drawn at robosuite's
+            default, 0.02, so 0.02 makes sampled resets start like them (research/docs/libero_placement_gap.md).
     """
 
     task: str = "libero_object"
@@ -54,6 +59,7 @@ class LiberoEBVLAEnv(LeRobotLiberoEnvConfig):
     perturbation_severity: int = 0
     render_every: int = 1
     first_init_state: int = 0
+    robot_init_noise: float = 0.0
 
     def __post_init__(self):
         super().__post_init__()
@@ -63,6 +69,7 @@ class LiberoEBVLAEnv(LeRobotLiberoEnvConfig):
         check_render_every(self.render_every)
         if self.first_init_state < 0:
             raise ValueError(f"`first_init_state` must be >= 0, got {self.first_init_state}.")
+        check_robot_init_noise(self.robot_init_noise)
 
     @property
     def gym_kwargs(self) -> dict:
@@ -72,6 +79,7 @@ class LiberoEBVLAEnv(LeRobotLiberoEnvConfig):
             "perturbation_severity": self.perturbation_severity,
             "render_every": self.render_every,
             "first_init_state": self.first_init_state,
+            "robot_init_noise": self.robot_init_noise,
         }
 
     def create_envs(self, n_envs: int, use_async_envs: bool = False):

@@ -6,6 +6,8 @@ level from 0 (no change) to `MAX_SEVERITY`, LIBERO-Plus's five levels; the magni
 constants of each simulator module, tabulated in docs/metaworld.md and docs/libero.md.
 """
 
+import math
+
 MAX_SEVERITY = 5
 LIGHTING_PERTURBATIONS = ("light_dim", "light_bright", "light_color", "light_direction")
 
@@ -61,3 +63,11 @@ def check_perturbation(perturbation: str, severity: int) -> None:
 def check_libero_perturbation(perturbation: str, severity: int) -> None:
     """Raises a ValueError naming the field and its allowed values if a LIBERO perturbation is invalid."""
     _check(perturbation, severity, LIBERO_PERTURBATIONS)
+
+
+def check_robot_init_noise(robot_init_noise: float) -> None:
+    if not (math.isfinite(robot_init_noise) and robot_init_noise >= 0):
+        raise ValueError(
+            f"`robot_init_noise` (radians, the std of each arm joint's starting noise) must be finite and >= 0, "
+            f"got {robot_init_noise}."
+        )
