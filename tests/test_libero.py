@@ -517,6 +517,44 @@ def test_sampled_placements_repeat_with_their_seed_and_are_none_of_the_fixed_ini
     assert np.abs(fixed[:, 10:n] - scenes[0][10:n]).max(axis=1).min() > 1e-3
 
 
+@requires_libero
+@pytest.mark.slow
+def test_robot_init_noise_moves_the_arms_start_and_keeps_the_sampled_placement(monkeypatch):
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    arms, objects, default = {}, {}, None
+    for noise in (0.0, 0.02):
+        cfg = LiberoEBVLAEnv(
+            task_ids=[2],
+            init_states=False,
+            observation_height=32,
+            observation_width=32,
+            robot_init_noise=noise,
+        )
+        vec_env = cfg.create_envs(n_envs=1)["libero_object"][2]
+        env = vec_env.envs[0]
+        try:
+            env.reset(seed=100000)
+            robot, qpos = env._env.env.robots[0], env._env.sim.data.qpos
+            arm = np.asarray(robot._ref_joint_pos_indexes)
+            default = np.asarray(robot.init_qpos)
+            gripper = np.asarray(robot._ref_gripper_joint_pos_indexes)
+            arms[noise] = qpos[arm].copy()
+            objects[noise] = np.delete(qpos, np.concatenate([arm, gripper])).copy()
+        finally:
+            vec_env.close()
+    # After LeRobot's settling steps: without noise the arm rests at its default pose, with it about 0.02 rad off.
+    np.testing.assert_allclose(arms[0.0], default, atol=5e-3)
+    assert 0.005 < np.abs(arms[0.02] - arms[0.0]).max() < 0.1
+    # The same seed samples the same placement: the noise is drawn at magnitude 0 too.
+    np.testing.assert_allclose(objects[0.02], objects[0.0], atol=2e-3)
+
+
+def test_robot_init_noise_must_be_finite_and_not_negative():
+    with pytest.raises(ValueError, match="`robot_init_noise`"):
+        LiberoEBVLAEnv(robot_init_noise=-0.1)
+    assert LiberoEBVLAEnv(robot_init_noise=0.02).gym_kwargs["robot_init_noise"] == 0.02
+
+
 def test_first_init_state_must_not_be_negative():
     with pytest.raises(ValueError, match="`first_init_state` must be >= 0"):
         LiberoEBVLAEnv(first_init_state=-1)

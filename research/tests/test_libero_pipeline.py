@@ -326,6 +326,18 @@ def test_fresh_placement_rollouts_come_last_from_seeds_no_recording_or_initial_s
     assert "--env.init_states=false" not in held_out
 
 
+def test_fresh_arm_rollouts_repeat_the_fresh_placements_with_the_fixed_states_arm_noise(work):
+    jobs = pipeline.eval_jobs(["ebvla_cpu"], [2, 3], 20, 5, (), calibration=10, fresh=10, fresh_arm=4)
+    fresh = [job for job in jobs if job.condition == pipeline.FRESH_CONDITION]
+    arm = [job for job in jobs if job.condition == pipeline.FRESH_ARM_CONDITION]
+    assert jobs[-2:] == arm and [(j.task, j.first, j.n) for j in arm] == [(2, 0, 4), (3, 0, 4)]
+    assert {j.seed for j in arm} == {j.seed for j in fresh} == {pipeline.FRESH_PLACEMENT_SEED}
+    fake_checkpoint(work, "ebvla_cpu")
+    cmd = pipeline.eval_command(work, arm[0], "cpu")
+    assert "--env.init_states=false" in cmd and "--env.robot_init_noise=0.02" in cmd
+    assert not any("robot_init_noise" in arg for arg in pipeline.eval_command(work, fresh[0], "cpu"))
+
+
 def test_confirmation_rollouts_come_last_from_the_fixed_states_after_the_held_out_ones():
     jobs = pipeline.eval_jobs(
         ["ebvla_cpu", "diffusion"], [2, 3], 20, 5, (("pose", 5),), calibration=10, confirm=20

@@ -314,10 +314,13 @@ class LiberoEBVLAGymEnv(LiberoEnv):
         if self._env is not None:
             return
         super()._ensure_env()
-        for robot in self._env.env.robots:
-            # Read by robosuite's `Robot.reset` at every non-deterministic reset, drawn from numpy's global
-            # generator, which LIBERO's `seed` (called by LeRobot's `reset(seed=...)`) seeds.
-            robot.initialization_noise = {"magnitude": self.robot_init_noise, "type": "gaussian"}
+        # Read by robosuite's `Robot.reset` at every non-deterministic reset and drawn from numpy's global generator
+        # (which LIBERO's `seed`, called by LeRobot's `reset(seed=...)`, seeds) at any magnitude, 0 included: the
+        # placements drawn after it stay those of the seed. A hard reset builds new robots from `robot_configs`.
+        env = self._env.env
+        for config, robot in zip(env.robot_configs, env.robots, strict=True):
+            config["initialization_noise"] = {"magnitude": self.robot_init_noise, "type": "gaussian"}
+            robot.initialization_noise = dict(config["initialization_noise"])
         reset_scene, step_scene = self._env.reset, self._env.step
 
         def reset_scene_and_perturb() -> dict[str, Any]:
