@@ -13,7 +13,8 @@ from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, O
 from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
 from lerobot_policy_ebvla.runtime.readout import EnergyReadout
 from lerobot_policy_ebvla.runtime.scores import VanillaRollouts
-from lerobot_policy_ebvla.runtime.threshold import ChunkWindow, conformal_threshold, exceeds
+from lerobot_policy_ebvla.runtime.statistics import ChunkWindow, PhaseStatistics
+from lerobot_policy_ebvla.runtime.threshold import conformal_threshold, exceeds
 
 N = 3
 
@@ -31,8 +32,12 @@ def vanilla_energies(rng: np.random.Generator, rollouts: int, chunks: int = 6) -
     return energies
 
 
+def window_of(means, stds) -> ChunkWindow:
+    return ChunkWindow(PhaseStatistics(means, stds))
+
+
 def test_window_score_is_the_largest_standardized_running_score():
-    window = ChunkWindow(means=(1.0, 2.0, 3.0), stds=(1.0, 0.5, 2.0))
+    window = window_of((1.0, 2.0, 3.0), (1.0, 0.5, 2.0))
     # z = (2 - 1) / 1 = 1, (3 - 2) / 0.5 = 2, (3 - 3) / 2 = 0.
     assert window.score([2.0, 3.0, 3.0]) == pytest.approx(2.0)
     assert window.score([2.0]) == pytest.approx(1.0)  # after one chunk, one decision
@@ -43,9 +48,10 @@ def test_window_score_is_the_largest_standardized_running_score():
 def test_window_fit_is_the_mean_and_population_std_of_each_chunk_count():
     running = np.array([[1.0, 2.0], [3.0, 2.0], [5.0, 2.0]])
     window = ChunkWindow.fit(running)
-    assert window.means == pytest.approx((3.0, 2.0))
-    # sigma_2 = 0 (identical scores) is raised above 0 so that W stays finite.
-    assert window.stds[0] == pytest.approx(math.sqrt(8 / 3)) and 0 < window.stds[1] < 1e-12
+    assert window.chunks == 2 and window.running.mean == pytest.approx((3.0, 2.0))
+    # sigma_2 = 0 (identical scores) is floored as the phase statistics floor theirs (a tenth of the pooled std),
+    # so that W stays finite.
+    assert window.running.std == pytest.approx((math.sqrt(8 / 3), 0.1 * running.std()))
 
 
 def test_leave_one_out_window_scores_standardize_each_rollout_without_it():
@@ -55,23 +61,13 @@ def test_leave_one_out_window_scores_standardize_each_rollout_without_it():
     assert scores[3] == pytest.approx((10.0 - others.mean()) / others.std())
 
 
-@pytest.mark.parametrize(
-    "means, stds, match",
-    [
-        ((), (), "N >= 1"),
-        ((1.0,), (1.0, 2.0), "N >= 1"),
-        ((1.0,), (0.0,), "> 0"),
-        ((math.nan,), (1.0,), "finite"),
-    ],
-)
-def test_window_rejects_bad_statistics(means, stds, match):
-    with pytest.raises(ValueError, match=match):
-        ChunkWindow(means, stds)
-
-
-def test_window_names_the_expected_shape_of_running_scores():
+def test_window_names_what_it_expects():
     with pytest.raises(ValueError, match=r"\(R, N = 2\).*got shape \(3,\)"):
-        ChunkWindow((0.0, 0.0), (1.0, 1.0)).scores(np.zeros(3))
+        window_of((0.0, 0.0), (1.0, 1.0)).scores(np.zeros(3))
+    with pytest.raises(ValueError, match="at least one chunk"):
+        window_of((0.0,), (1.0,)).score([])
+    with pytest.raises(ValueError, match="every std > 0"):
+        window_of((0.0,), (0.0,))
 
 
 def test_a_windowed_calibration_keeps_its_rate_over_every_early_decision():
@@ -108,7 +104,7 @@ def test_a_windowed_calibration_keeps_its_rate_over_every_early_decision():
 
 
 def test_the_decision_after_chunk_n_stands():
-    window = ChunkWindow(means=(5.0, 5.0, 5.0), stds=(1.0, 1.0, 1.0))
+    window = window_of((5.0, 5.0, 5.0), (1.0, 1.0, 1.0))
     monitor = EnergyOODMonitor(OODCalibration(mu_v=0.0, sigma_v=1.0, k=1.0, window=window))
     decisions = [
         monitor.update(EnergyReadout.of_arrays([energy], chunk_index=[c]))[0]
@@ -119,7 +115,7 @@ def test_the_decision_after_chunk_n_stands():
 
 
 def test_a_windowed_calibration_scores_one_chunk_as_a_one_chunk_rollout():
-    window = ChunkWindow(means=(5.0, 4.0), stds=(2.0, 1.0))
+    window = window_of((5.0, 4.0), (2.0, 1.0))
     calibration = OODCalibration(mu_v=0.0, sigma_v=1.0, k=1.0, window=window)
     (decision,) = EnergyOODMonitor(calibration).check(EnergyReadout.of_arrays([8.0]))
     assert decision.energy == pytest.approx(1.5) and decision.is_ood
@@ -127,7 +123,7 @@ def test_a_windowed_calibration_scores_one_chunk_as_a_one_chunk_rollout():
 
 
 def test_a_window_is_saved_and_loaded_and_absent_without_one(tmp_path):
-    window = ChunkWindow(means=(5.0, 4.0), stds=(2.0, 1.0))
+    window = window_of((5.0, 4.0), (2.0, 1.0))
     OODCalibration(mu_v=0.1, sigma_v=1.0, window=window).save(tmp_path)
     assert OODCalibration.load(tmp_path).window == window
     (tmp_path / "plain").mkdir()
@@ -144,8 +140,7 @@ def test_calibrate_with_a_window_fits_it_on_the_first_chunks_of_each_rollout():
         "final_energy", vanilla, false_alarm_rate=0.1, rule="conformal", window_chunks=N
     )
     expected = ChunkWindow.fit(running_means(energies))
-    assert calibration.window.means == pytest.approx(expected.means)
-    assert calibration.window.stds == pytest.approx(expected.stds)
+    assert calibration.window.running == expected.running
     scores = ChunkWindow.leave_one_out_scores(running_means(energies))
     assert calibration.threshold == pytest.approx(conformal_threshold(scores, 0.1))
     assert exceeds(scores, calibration.threshold).mean() <= 0.1

@@ -24,8 +24,7 @@ from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, O
 from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
 from lerobot_policy_ebvla.runtime.readout import EnergyReadout
 from lerobot_policy_ebvla.runtime.scores import NEIGHBOURS_FILE, SCORES, ContextKNN
-from lerobot_policy_ebvla.runtime.statistics import ContextNeighbours
-from lerobot_policy_ebvla.runtime.threshold import ChunkWindow
+from lerobot_policy_ebvla.runtime.statistics import ChunkWindow, ContextNeighbours
 from lerobot_policy_ebvla.scripts import ood_report
 
 from .conftest import context_rollouts, tiny_batch, tiny_config, write_records
@@ -303,8 +302,8 @@ def test_ood_report_saves_a_context_knn_calibration_of_the_reports_knn_score(rec
         axis=1,
     )
     window = calibration.window
-    assert window.means == pytest.approx(tuple(knn.mean(axis=0)))
-    assert window.stds == pytest.approx(tuple(knn.std(axis=0)))
+    assert window.running.mean == pytest.approx(tuple(knn.mean(axis=0)))
+    assert window.running.std == pytest.approx(tuple(knn.std(axis=0)))
     scores = ChunkWindow.leave_one_out_scores(knn)
     assert calibration.mu_v == pytest.approx(scores.mean()) and calibration.sigma_v == pytest.approx(
         scores.std()

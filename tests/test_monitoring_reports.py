@@ -193,7 +193,7 @@ def test_ood_report_calibrates_a_checkpoint_on_the_calibration_rollouts(record_d
     assert calibration.threshold == calibration.conformal_threshold
     # T is of window scores over the first 3 chunks (standardized: mean near 0), their window of raw energies.
     window = calibration.window
-    assert window.chunks == 3 and all(4.5 < m < 5.5 for m in window.means)
+    assert window.chunks == 3 and all(4.5 < m < 5.5 for m in window.running.mean)
     assert abs(calibration.mu_v) < 2.0
 
 

@@ -101,7 +101,7 @@ def test_the_report_scores_and_saves_a_registered_score_it_has_no_line_for(regis
         z = (energies(episode) - others.mean()) / others.std()
         left_out.append(np.mean(z))
         running.append([np.mean(z[:n]) for n in (1, 2, 3)])
-    assert calibration.window.means == pytest.approx(tuple(np.mean(running, axis=0)))
+    assert calibration.window.running.mean == pytest.approx(tuple(np.mean(running, axis=0)))
     window_scores = ChunkWindow.leave_one_out_scores(running)
     assert calibration.mu_v == pytest.approx(np.mean(window_scores))
     assert calibration.sigma_v == pytest.approx(np.std(window_scores))
@@ -140,10 +140,10 @@ def test_the_policy_responds_to_a_registered_score(registered, record_dirs, tmp_
     # A chunk is scored as a one-chunk rollout: its z standardized by the window's first mu and sigma. One just
     # under T (= mu_v at k = 0) passes; one 10 window sigmas higher raises.
     below = calibration.with_k(0.0).threshold - 0.01
-    z = calibration.window.means[0] + below * calibration.window.stds[0]
+    z = calibration.window.running.mean[0] + below * calibration.window.running.std[0]
     in_distribution = torch.full((2,), calibration.score.mean + z * calibration.score.std)
     _, decision = response(actions, EnergyReadout(None, in_distribution), {})
     assert not decision.is_ood
-    higher = 10 * calibration.window.stds[0] * calibration.score.std
+    higher = 10 * calibration.window.running.std[0] * calibration.score.std
     with pytest.raises(EnergyOODError, match=PooledEnergyZ.name):
         response(actions, EnergyReadout(None, in_distribution + higher), {})

@@ -35,8 +35,8 @@ from ..runtime.calibration import (
     OODCalibration,
 )
 from ..runtime.scores import INPUT_SOURCES, SCORE_AGGREGATIONS, SCORES
-from ..runtime.statistics import DEFAULT_KNN_K
-from ..runtime.threshold import ChunkWindow, exceeds
+from ..runtime.statistics import DEFAULT_KNN_K, ChunkWindow
+from ..runtime.threshold import exceeds
 from .baselines import (
     COMBINED_FROM,
     COMBINED_SCORES,
@@ -589,8 +589,8 @@ def _saved_score_note(cfg: OODReportConfig, scored: OODScores) -> str:
                 f"\n\nThe saved threshold is fitted on the calibration rollouts' window score over their first {n} "
                 f"chunks: the running `{saved_score}` after each of chunks 1..{n}, standardized by the calibration's "
                 f"mu_n and sigma_n, its max (`ChunkWindow`; mu_n = "
-                f"{', '.join(f'{m:.4g}' for m in fit.window.means)}; sigma_n = "
-                f"{', '.join(f'{v:.4g}' for v in fit.window.stds)}). The run-time monitor compares the window "
+                f"{', '.join(f'{m:.4g}' for m in fit.window.running.mean)}; sigma_n = "
+                f"{', '.join(f'{v:.4g}' for v in fit.window.running.std)}). The run-time monitor compares the window "
                 f"score so far to T after every chunk, and its decision after chunk {n} stands, so T bounds the "
                 f"alarms of all {n} decisions together: mu_v = {fit.mu_v:.4g}, sigma_v = {fit.sigma_v:.4g}, "
                 f"T = {fit.threshold:.4g}{rule} At T, {int(vanilla.sum())} of the {vanilla.size} held-out vanilla "

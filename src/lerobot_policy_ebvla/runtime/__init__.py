@@ -3,10 +3,10 @@
 - `readout`: `EnergyReadout`, what the policy reports about each chunk (its energies, its index in the episode,
   its pooled context when needed): the one input of the scores, the calibration, the monitors and the response.
 - `threshold`: the one decision rule, "flag when score > T", with T = mu + k sigma (Eq. 5) or the conformal
-  quantile of a stated false-alarm rate, `OODDecision`, its verdict on a batch of scores, and `ChunkWindow`, the
-  one score of a rollout's first N running scores that lets one T bound a run-time monitor's N decisions.
+  quantile of a stated false-alarm rate, and `OODDecision`, its verdict on a batch of scores.
 - `statistics`: what the chunk scores measure against, fitted on vanilla rollouts (`PhaseStatistics`,
-  `ContextStatistics`, `ContextNeighbours`, `CombinedStatistics`).
+  `ContextStatistics`, `ContextNeighbours`, `CombinedStatistics`), and `ChunkWindow`, the one score of a rollout's
+  first N running scores that lets one T bound a run-time monitor's N decisions.
 - `scores`: `ChunkInputs` (a readout as the scores read it), the `ChunkScore` protocol, the package's four scores
   (final energy, context phase energy, two-sided head energy, context k-NN), and `SCORES`, the registry that
   names them, with `register_score`, its hook for research scores.
@@ -37,8 +37,8 @@ from .monitor import EnergyMonitor, EnergyOODMonitor, MonitorDecision
 from .readout import EnergyReadout
 from .response import EnergyOODError, EnergyOODResponse, HoldAction, respond_to_energy
 from .scores import SCORES, ChunkInputs, ChunkScore, VanillaRollouts, rollout_score
-from .statistics import PhaseStatistics
-from .threshold import ChunkWindow, MeanStd, OODDecision, conformal_threshold, exceeds, mean_std_threshold
+from .statistics import ChunkWindow, PhaseStatistics
+from .threshold import MeanStd, OODDecision, conformal_threshold, exceeds, mean_std_threshold
 
 __all__ = [
     "FAILURE_ALARM_FILENAME",

@@ -38,7 +38,8 @@ from .scores import (
     VanillaRollouts,
     score_rollout,
 )
-from .threshold import ArrayLike, ChunkWindow, MeanStd, conformal_threshold, mean_std_threshold
+from .statistics import ChunkWindow, PhaseStatistics
+from .threshold import ArrayLike, MeanStd, conformal_threshold, mean_std_threshold
 
 OOD_CALIBRATION_FILENAME = "ood_calibration.json"
 FAILURE_CALIBRATION_FILENAME = "failure_calibration.json"
@@ -232,7 +233,7 @@ class OODCalibration(CheckpointJSON):
         scores = self.score.combine(self.chunk_components(readout))
         if self.window is None:
             return scores
-        return (scores - self.window.means[0]) / self.window.stds[0]
+        return self.window.running.z(scores, 0)
 
     def score_rollout(self, components: ArrayLike) -> float:
         """The rollout score the threshold applies to, from its chunks' `chunk_components` in chunk order:
@@ -276,7 +277,7 @@ class OODCalibration(CheckpointJSON):
         if (
             window is not None
         ):  # absent, not null, without one: the files of the paper's calibration are unchanged
-            payload["window"] = {"means": list(window.means), "stds": list(window.stds)}
+            payload["window"] = {"means": list(window.running.mean), "stds": list(window.running.std)}
         payload = {key: _to_json_number(value) for key, value in payload.items()}
         fields = self.score.to_json()
         for side_file in _all_side_files():
@@ -300,7 +301,8 @@ class OODCalibration(CheckpointJSON):
         if payload.get("conformal_threshold") == "inf":
             payload["conformal_threshold"] = math.inf
         if isinstance(payload.get("window"), dict):
-            payload["window"] = ChunkWindow(**payload["window"])
+            window = payload["window"]
+            payload["window"] = ChunkWindow(PhaseStatistics(window["means"], window["stds"]))
         name = payload.pop("score", FinalEnergy.name)
         if name not in SCORES:
             raise UnregisteredScoreError(

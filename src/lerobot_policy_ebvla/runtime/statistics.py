@@ -2,6 +2,8 @@
 
 - `PhaseStatistics`: mu_v[t] and sigma_v[t], the vanilla final energy at each chunk index t (the phase energy's
   reference).
+- `ChunkWindow`: the same statistics of the vanilla rollouts' running score after each of their first N chunks, and
+  the window score they define (the OOD calibration's rollout score at run time).
 - `ContextStatistics`: the mean mu_c and the precision P of the vanilla pooled contexts, P the inverse of their
   Ledoit-Wolf shrunk covariance (the context distance's reference).
 - `ContextNeighbours`: the vanilla pooled contexts themselves, standardized (the context k-NN distance's).
@@ -109,6 +111,79 @@ class PhaseStatistics:
             raise ValueError(f"`chunk_index` must be integers >= 0, got {chunk_index!r}.")
         index = np.minimum(index, len(self.mean) - 1)
         return (as_array(final_energy) - np.asarray(self.mean)[index]) / np.asarray(self.std)[index]
+
+
+@dataclass(frozen=True)
+class ChunkWindow:
+    """The window score of a rollout's first N chunks: one score for the N decisions a run-time monitor makes.
+
+    After its n-th chunk a rollout has the running score s_n (its chunk scores so far, aggregated). A T fitted on
+    the calibration rollouts' s_N alone holds its false-alarm rate at chunk N only: s_1 and s_2 spread more, and
+    compared to the same T they flag many more vanilla rollouts early. The window score
+
+        W = max_{n <= min(N, chunks so far)} (s_n - mu_n) / sigma_n
+
+    standardizes each s_n by mu_n and sigma_n of the calibration rollouts' s_n (`PhaseStatistics` of the running
+    scores, n at index n - 1, with its floor on sigma), so a T fitted on the calibration rollouts' W bounds the share
+    of in-distribution rollouts alarmed at any of their first N chunks (with the conformal rule, at most alpha).
+    W stops changing after chunk N: the decision stands.
+
+    Args:
+        running: mu_n and sigma_n for n = 1 .. N.
+    """
+
+    running: PhaseStatistics
+
+    @property
+    def chunks(self) -> int:
+        """N, the chunks the window spans."""
+        return len(self.running.mean)
+
+    @classmethod
+    def fit(cls, running_scores: ArrayLike) -> "ChunkWindow":
+        """Fits on (R, N) calibration running scores (row r: s_1 .. s_N of rollout r); non-finite ones are left
+        out as `PhaseStatistics.fit` leaves them."""
+        return cls(PhaseStatistics.fit(list(_running_matrix(running_scores))))
+
+    def score(self, running_scores: ArrayLike) -> float:
+        """W of one rollout from its running scores s_1 .. s_n (n >= 1; the first N count). NaN if one is NaN."""
+        running = as_array(running_scores)[: self.chunks]
+        if running.size == 0:
+            raise ValueError("The window score needs the running score of at least one chunk.")
+        z = self.running.z(running, np.arange(running.size))
+        return float(np.nan if np.isnan(z).any() else z.max())
+
+    def scores(self, running_scores: ArrayLike) -> np.ndarray:
+        """(R,) W of each row of (R, N) running scores."""
+        return np.array([self.score(row) for row in _running_matrix(running_scores, self.chunks)])
+
+    @staticmethod
+    def leave_one_out_scores(running_scores: ArrayLike) -> np.ndarray:
+        """(R,) W of each calibration rollout standardized by the window of the other R - 1, as a new rollout
+        would be (its own s_n would pull mu_n toward it). With R = 1, the window of the one rollout."""
+        running = _running_matrix(running_scores)
+        if running.shape[0] == 1:
+            return ChunkWindow.fit(running).scores(running)
+        return np.array(
+            [
+                ChunkWindow.fit(np.delete(running, r, axis=0)).score(running[r])
+                for r in range(running.shape[0])
+            ]
+        )
+
+
+def _running_matrix(running_scores: ArrayLike, chunks: int | None = None) -> np.ndarray:
+    running = (
+        running_scores.detach().to("cpu", torch.float64).numpy()
+        if isinstance(running_scores, Tensor)
+        else np.asarray(running_scores, dtype=np.float64)
+    )
+    if running.ndim != 2 or running.shape[1] < 1 or (chunks is not None and running.shape[1] != chunks):
+        expected = "N >= 1" if chunks is None else f"N = {chunks}"
+        raise ValueError(
+            f"Running scores must be (R, {expected}): s_1 .. s_N of each rollout; got shape {running.shape}."
+        )
+    return running
 
 
 def energies_by_index(final_energies: ArrayLike, chunk_indices: ArrayLike) -> np.ndarray:

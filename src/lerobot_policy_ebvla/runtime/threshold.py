@@ -17,8 +17,8 @@ and T comes from scores of the reference (in-distribution, or successful) set in
   (ceil((n + 1)(1 - alpha)) > n), no finite threshold guarantees it and T = +inf (nothing is flagged).
 
 A monitor that decides after every chunk on the rollout so far makes N decisions in its first N chunks, and a
-mean over one chunk spreads more than over N. `ChunkWindow` turns those N running scores into one window score,
-so that one T fitted as above bounds the alarms of all N decisions together.
+mean over one chunk spreads more than over N: `statistics.ChunkWindow` turns those N running scores into one
+window score, so that one T fitted as above bounds the alarms of all N decisions together.
 """
 
 import math
@@ -147,112 +147,3 @@ class OODDecision:
     def energy(self) -> float:
         """The highest score checked (NaN if one is NaN); of one chunk or rollout, its score."""
         return float(self.scores.max())
-
-
-@dataclass(frozen=True)
-class ChunkWindow:
-    """The window score of a rollout's first N chunks: one score for the N decisions a run-time monitor makes.
-
-    After its n-th chunk a rollout has the running score s_n (its chunk scores so far, aggregated). A T fitted on
-    the calibration rollouts' s_N alone holds its false-alarm rate at chunk N only: s_1 and s_2 spread more, and
-    compared to the same T they flag many more vanilla rollouts early. The window score
-
-        W = max_{n <= min(N, chunks so far)} (s_n - mu_n) / sigma_n
-
-    standardizes each s_n by mu_n and sigma_n (population std) of the calibration rollouts' s_n, so a T fitted on
-    the calibration rollouts' W bounds the share of in-distribution rollouts alarmed at any of their first N
-    chunks (with the conformal rule, at most alpha). W stops changing after chunk N: the decision stands.
-
-    Attributes:
-        means: (mu_1, ..., mu_N).
-        stds: (sigma_1, ..., sigma_N), each > 0.
-    """
-
-    means: tuple[float, ...]
-    stds: tuple[float, ...]
-
-    def __post_init__(self):
-        object.__setattr__(self, "means", tuple(float(m) for m in self.means))
-        object.__setattr__(self, "stds", tuple(float(s) for s in self.stds))
-        if not self.means or len(self.means) != len(self.stds):
-            raise ValueError(
-                f"`means` and `stds` of a chunk window must be N >= 1 values each, got {len(self.means)} and "
-                f"{len(self.stds)}."
-            )
-        if not all(math.isfinite(m) for m in self.means) or not all(
-            math.isfinite(s) and s > 0 for s in self.stds
-        ):
-            raise ValueError(
-                f"A chunk window's `means` must be finite and its `stds` finite and > 0, got {self.means} and "
-                f"{self.stds}."
-            )
-
-    @property
-    def chunks(self) -> int:
-        """N, the chunks the window spans."""
-        return len(self.means)
-
-    @classmethod
-    def fit(cls, running_scores: ArrayLike) -> "ChunkWindow":
-        """mu_n and sigma_n of (R, N) calibration running scores (row r: s_1..s_N of rollout r).
-
-        A rollout with a non-finite running score is left out with a warning, as `finite_scores` does. A
-        sigma_n of 0 (one rollout, or identical scores) is raised to machine epsilon times max(1, |mu_n|), so
-        that W stays defined.
-        """
-        running = _running_matrix(running_scores)
-        finite = np.isfinite(running).all(axis=1)
-        if not finite.all():
-            warnings.warn(
-                f"Leaving {int((~finite).sum())} rollout(s) with a non-finite running score out of the window.",
-                stacklevel=2,
-            )
-        running = running[finite]
-        if running.shape[0] == 0:
-            raise ValueError("Cannot fit a chunk window without a rollout whose running scores are finite.")
-        means = running.mean(axis=0)
-        return cls(tuple(means), tuple(_positive(running.std(axis=0), means)))
-
-    def score(self, running_scores: ArrayLike) -> float:
-        """W of one rollout from its running scores s_1..s_n (n >= 1; the first N count). NaN if one is NaN."""
-        running = as_array(running_scores)[: self.chunks]
-        if running.size == 0:
-            raise ValueError("The window score needs the running score of at least one chunk.")
-        z = (running - np.asarray(self.means[: running.size])) / np.asarray(self.stds[: running.size])
-        return float(np.nan if np.isnan(z).any() else z.max())
-
-    def scores(self, running_scores: ArrayLike) -> np.ndarray:
-        """(R,) W of each row of (R, N) running scores."""
-        return np.array([self.score(row) for row in _running_matrix(running_scores, self.chunks)])
-
-    @staticmethod
-    def leave_one_out_scores(running_scores: ArrayLike) -> np.ndarray:
-        """(R,) W of each calibration rollout standardized by the window of the other R - 1, as a new rollout
-        would be (its own s_n would pull mu_n toward it). With R = 1, the window of the one rollout."""
-        running = _running_matrix(running_scores)
-        if running.shape[0] == 1:
-            return ChunkWindow.fit(running).scores(running)
-        return np.array(
-            [
-                ChunkWindow.fit(np.delete(running, r, axis=0)).score(running[r])
-                for r in range(running.shape[0])
-            ]
-        )
-
-
-def _running_matrix(running_scores: ArrayLike, chunks: int | None = None) -> np.ndarray:
-    running = (
-        running_scores.detach().to("cpu", torch.float64).numpy()
-        if isinstance(running_scores, Tensor)
-        else np.asarray(running_scores, dtype=np.float64)
-    )
-    if running.ndim != 2 or running.shape[1] < 1 or (chunks is not None and running.shape[1] != chunks):
-        expected = "N >= 1" if chunks is None else f"N = {chunks}"
-        raise ValueError(
-            f"Running scores must be (R, {expected}): s_1..s_N of each rollout; got shape {running.shape}."
-        )
-    return running
-
-
-def _positive(stds: np.ndarray, means: np.ndarray) -> np.ndarray:
-    return np.maximum(stds, np.finfo(np.float64).eps * np.maximum(1.0, np.abs(means)))
