@@ -124,27 +124,20 @@ def scene_pose(scene, target: str, container: str) -> dict:
     }
 
 
-def measure_task(task: int, n_fresh: int, n_fixed: int = N_FIXED, max_train: int | None = None) -> dict:
-    """Resets the task's scene on its fixed states, training placements and fresh placements; returns the poses."""
+def scene_env(task: int):
+    """LeRobot's env as the evaluation builds it (not started: its BDDL file, fixed states and settling steps), and
+    LIBERO's `ControlEnv` of the same task without cameras or renderer, reset once as LeRobot's `_ensure_env` does."""
     from lerobot_policy_ebvla.envs.libero_assets import require_libero_ready
 
     require_libero_ready()
     import gymnasium as gym
-    from lerobot.envs.libero import get_libero_dummy_action
     from libero.libero.envs.env_wrapper import ControlEnv
 
-    from lerobot_policy_ebvla.envs.libero import create_libero_ebvla_envs, goal_object_and_container
+    from lerobot_policy_ebvla.envs.libero import create_libero_ebvla_envs
 
-    # LeRobot's env as the evaluation builds it (not started): its BDDL file, fixed states and settling steps.
-    vec = create_libero_ebvla_envs(
-        "libero_object",
-        1,
-        {"task_ids": [task]},
-        "agentview_image,robot0_eye_in_hand_image",
-        True,
-        gym.vector.SyncVectorEnv,
-    )["libero_object"][task]
-    spec = vec.envs[0]
+    spec = create_libero_ebvla_envs(
+        "libero_object", 1, {"task_ids": [task]}, "agentview_image", True, gym.vector.SyncVectorEnv
+    )["libero_object"][task].envs[0]
     env = ControlEnv(
         bddl_file_name=spec._task_bddl_file,
         control_freq=spec.control_freq,
@@ -152,7 +145,17 @@ def measure_task(task: int, n_fresh: int, n_fixed: int = N_FIXED, max_train: int
         use_camera_obs=False,
         has_offscreen_renderer=False,
     )
-    env.reset()  # as LeRobot's `_ensure_env`
+    env.reset()
+    return spec, env
+
+
+def measure_task(task: int, n_fresh: int, n_fixed: int = N_FIXED, max_train: int | None = None) -> dict:
+    """Resets the task's scene on its fixed states, training placements and fresh placements; returns the poses."""
+    from lerobot.envs.libero import get_libero_dummy_action
+
+    from lerobot_policy_ebvla.envs.libero import goal_object_and_container
+
+    spec, env = scene_env(task)
     target, container = goal_object_and_container(env.env)
 
     def reset(seed, state=None):
@@ -173,7 +176,7 @@ def measure_task(task: int, n_fresh: int, n_fixed: int = N_FIXED, max_train: int
     n_resets = len(fixed) + len(train) + len(fresh)
     seconds = time.time() - start
     env.close()
-    vec.close()
+    spec.close()
     return {
         "task_name": spec.task,
         "target": target,
@@ -192,30 +195,7 @@ def measure_robot_start(task: int, n_fixed: int = N_FIXED) -> dict:
     placement's reset does not draw. Per fixed state, its arm joints' distance to the configuration every sampled
     reset starts from (checked on three training seeds and one fresh seed), and the hand's (end-effector site's)
     offset, before the settling steps. No settling resets: the state is set and forwarded once."""
-    from lerobot_policy_ebvla.envs.libero_assets import require_libero_ready
-
-    require_libero_ready()
-    import gymnasium as gym
-    from libero.libero.envs.env_wrapper import ControlEnv
-
-    from lerobot_policy_ebvla.envs.libero import create_libero_ebvla_envs
-
-    spec = create_libero_ebvla_envs(
-        "libero_object",
-        1,
-        {"task_ids": [task]},
-        "agentview_image",
-        True,
-        gym.vector.SyncVectorEnv,
-    )["libero_object"][task].envs[0]
-    env = ControlEnv(
-        bddl_file_name=spec._task_bddl_file,
-        control_freq=spec.control_freq,
-        hard_reset=spec.hard_reset,
-        use_camera_obs=False,
-        has_offscreen_renderer=False,
-    )
-    env.reset()
+    spec, env = scene_env(task)
     robot = env.env.robots[0]
     arm, gripper = np.array(robot._ref_joint_pos_indexes), np.array(robot._ref_gripper_joint_pos_indexes)
 
