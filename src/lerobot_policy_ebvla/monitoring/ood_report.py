@@ -35,8 +35,7 @@ from ..runtime.calibration import (
     OODCalibration,
 )
 from ..runtime.scores import INPUT_SOURCES, SCORE_AGGREGATIONS, SCORES
-from ..runtime.statistics import DEFAULT_KNN_K, ChunkWindow
-from ..runtime.threshold import exceeds
+from ..runtime.statistics import DEFAULT_KNN_K
 from .baselines import (
     COMBINED_FROM,
     COMBINED_SCORES,
@@ -59,6 +58,7 @@ from .ood_sections import (
     figures,
     first_chunks_section,
     outcome_section,
+    saved_score_note,
     success_table,
     table_iii_sections,
 )
@@ -282,9 +282,7 @@ class OODScores:
         n = self.cfg.table_iii_first_chunks
         if not n:
             return self.fit(self.saved_score)
-        running = self.running_scores(self.calibration_chunks, self.saved_score, n)
-        fit = self._fit(ChunkWindow.leave_one_out_scores(running))
-        return dataclasses.replace(fit, window=ChunkWindow.fit(running))
+        return self._fit(self.running_scores(self.calibration_chunks, self.saved_score, n), window=True)
 
     def running_scores(self, chunks: dict, name: str, window_chunks: int) -> np.ndarray:
         """(R, N) each rollout's score over its first 1, ..., N chunks (a rollout shorter than n: all its chunks)."""
@@ -323,8 +321,12 @@ class OODScores:
             )
         return successful
 
-    def _fit(self, calibration_scores: np.ndarray, rule: str | None = None) -> OODCalibration:
-        return OODCalibration.fit(
+    def _fit(
+        self, calibration_scores: np.ndarray, rule: str | None = None, window: bool = False
+    ) -> OODCalibration:
+        """The report's threshold statistics of calibration scores, or with `window` of (R, N) running scores."""
+        fit = OODCalibration.fit_window if window else OODCalibration.fit
+        return fit(
             calibration_scores,
             k=self.cfg.k,
             aggregation=self.cfg.aggregation,
@@ -498,7 +500,7 @@ def write_scored_report(scored: OODScores) -> str:
         "## Calibration\n\n"
         + calibration_table(fits, negatives, cfg)
         + conformal_note(fits, cfg)
-        + _saved_score_note(cfg, scored),
+        + saved_score_note(cfg, scored),
         "## Energy vs success drop (final energy)\n\n"
         + success_table(vanilla, conditions, fits, negatives, positives, cfg),
         "## AUROC [bootstrap 95% interval] by score\n\n"
@@ -562,51 +564,3 @@ def _beside_one_sided(names: list[str]) -> list[str]:
         if name not in ordered:
             ordered.insert(ordered.index(name.removesuffix("_two_sided")) + 1, name)
     return ordered
-
-
-def _saved_score_note(cfg: OODReportConfig, scored: OODScores) -> str:
-    """Which score a calibration saved by this report is of, which table rows it is, and its threshold."""
-    saved_score, default = scored.saved_score, ""
-    if cfg.score is None and cfg.calibrate_to is not None:
-        default = f"\n\nWithout `--score`, `--calibrate_to` saves the checkpoint's `monitor.score`: `{saved_score}`."
-    if cfg.calibrate_to is not None:
-        fit = scored.saved_fit
-        rule = (
-            f" (the conformal quantile at alpha = {percent(fit.false_alarm_rate)})."
-            if fit.rule == "conformal"
-            else "."
-        )
-        if fit.window is None:
-            default += (
-                f"\n\nThe saved threshold is fitted on the calibration rollouts' `{saved_score}` over whole "
-                f"episodes (the T the run-time monitor compares each chunk's running score to): mu_v = "
-                f"{fit.mu_v:.4g}, sigma_v = {fit.sigma_v:.4g}, T = {fit.threshold:.4g}{rule}"
-            )
-        else:
-            n = fit.window.chunks
-            vanilla = exceeds(scored.saved_scores(scored.vanilla_chunks), fit.threshold)
-            default += (
-                f"\n\nThe saved threshold is fitted on the calibration rollouts' window score over their first {n} "
-                f"chunks: the running `{saved_score}` after each of chunks 1..{n}, standardized by the calibration's "
-                f"mu_n and sigma_n, its max (`ChunkWindow`; mu_n = "
-                f"{', '.join(f'{m:.4g}' for m in fit.window.running.mean)}; sigma_n = "
-                f"{', '.join(f'{v:.4g}' for v in fit.window.running.std)}). The run-time monitor compares the window "
-                f"score so far to T after every chunk, and its decision after chunk {n} stands, so T bounds the "
-                f"alarms of all {n} decisions together: mu_v = {fit.mu_v:.4g}, sigma_v = {fit.sigma_v:.4g}, "
-                f"T = {fit.threshold:.4g}{rule} At T, {int(vanilla.sum())} of the {vanilla.size} held-out vanilla "
-                f"rollouts are alarmed within their first {n} chunks. The Table III rows on the first {n} chunks "
-                f"are the paper's decision (the {n}-chunk mean at its own T, once at chunk {n})."
-            )
-    what = {
-        "context_distance": "of every table: the same features, fit and leave-one-episode-out calibration scores.",
-        "context_knn": f"of every table (k = {cfg.knn_k}): the same features, standardization and "
-        "leave-one-episode-out calibration scores; the saved calibration keeps every calibration context.",
-        "energy_and_context": "of the whole-episode tables: the final energy and the `context_distance` "
-        "score, standardized by the calibration rollouts' mean and std of each, and their max.",
-    }
-    if saved_score not in what:
-        return default
-    return default + (
-        f"\n\n`--score={saved_score}`, the score a calibration saved by this report has `monitor.response` act on, is "
-        f"the `{saved_score}` score {what[saved_score]}"
-    )

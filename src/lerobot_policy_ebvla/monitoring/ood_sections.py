@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 
+from ..runtime.threshold import exceeds
 from .metrics import BinaryRates, auroc, format_auroc, markdown_table, percent, roc_curve
 from .ood import format_balanced_accuracy_table, format_table_iii, ood_detection_table
 from .plots import plot_roc, plot_score_histograms
@@ -276,3 +277,52 @@ def figures(cfg, fits, calibration_scores, negatives, positives, names) -> None:
     }
     xlabel = f"rollout score ({cfg.aggregation} of chunk final energies)"
     plot_score_histograms(groups, thresholds, cfg.output_dir / "energy_histogram.png", xlabel)
+
+
+def saved_score_note(cfg, scored) -> str:
+    """The report's note on the score `--calibrate_to` saves (`ood_report.OODScores`, its config): which table rows
+    it is and the threshold the run-time monitor applies."""
+    saved_score, default = scored.saved_score, ""
+    if cfg.score is None and cfg.calibrate_to is not None:
+        default = f"\n\nWithout `--score`, `--calibrate_to` saves the checkpoint's `monitor.score`: `{saved_score}`."
+    if cfg.calibrate_to is not None:
+        fit = scored.saved_fit
+        rule = (
+            f" (the conformal quantile at alpha = {percent(fit.false_alarm_rate)})."
+            if fit.rule == "conformal"
+            else "."
+        )
+        if fit.window is None:
+            default += (
+                f"\n\nThe saved threshold is fitted on the calibration rollouts' `{saved_score}` over whole "
+                f"episodes (the T the run-time monitor compares each chunk's running score to): mu_v = "
+                f"{fit.mu_v:.4g}, sigma_v = {fit.sigma_v:.4g}, T = {fit.threshold:.4g}{rule}"
+            )
+        else:
+            n = fit.window.chunks
+            vanilla = exceeds(scored.saved_scores(scored.vanilla_chunks), fit.threshold)
+            default += (
+                f"\n\nThe saved threshold is fitted on the calibration rollouts' window score over their first {n} "
+                f"chunks: the running `{saved_score}` after each of chunks 1..{n}, standardized by the calibration's "
+                f"mu_n and sigma_n, its max (`ChunkWindow`; mu_n = "
+                f"{', '.join(f'{m:.4g}' for m in fit.window.running.mean)}; sigma_n = "
+                f"{', '.join(f'{v:.4g}' for v in fit.window.running.std)}). The run-time monitor compares the window "
+                f"score so far to T after every chunk, and its decision after chunk {n} stands, so T bounds the "
+                f"alarms of all {n} decisions together: mu_v = {fit.mu_v:.4g}, sigma_v = {fit.sigma_v:.4g}, "
+                f"T = {fit.threshold:.4g}{rule} At T, {int(vanilla.sum())} of the {vanilla.size} held-out vanilla "
+                f"rollouts are alarmed within their first {n} chunks. The Table III rows on the first {n} chunks "
+                f"are the paper's decision (the {n}-chunk mean at its own T, once at chunk {n})."
+            )
+    what = {
+        "context_distance": "of every table: the same features, fit and leave-one-episode-out calibration scores.",
+        "context_knn": f"of every table (k = {cfg.knn_k}): the same features, standardization and "
+        "leave-one-episode-out calibration scores; the saved calibration keeps every calibration context.",
+        "energy_and_context": "of the whole-episode tables: the final energy and the `context_distance` "
+        "score, standardized by the calibration rollouts' mean and std of each, and their max.",
+    }
+    if saved_score not in what:
+        return default
+    return default + (
+        f"\n\n`--score={saved_score}`, the score a calibration saved by this report has `monitor.response` act on, is "
+        f"the `{saved_score}` score {what[saved_score]}"
+    )

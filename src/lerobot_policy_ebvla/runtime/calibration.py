@@ -194,16 +194,23 @@ class OODCalibration(CheckpointJSON):
             components = fitted.components(rollout)
             lengths = [len(components)] if window_chunks is None else range(1, window_chunks + 1)
             running.append([score_rollout(fitted, components[:n], vanilla.aggregation) for n in lengths])
-        window = None if window_chunks is None else ChunkWindow.fit(running)
-        return cls.fit(
-            np.asarray(running)[:, 0] if window is None else ChunkWindow.leave_one_out_scores(running),
+        fit = cls.fit_window if window_chunks is not None else cls.fit
+        return fit(
+            running if window_chunks is not None else np.asarray(running)[:, 0],
             k=k,
             aggregation=vanilla.aggregation,
             false_alarm_rate=false_alarm_rate,
             rule=rule,
             score=score_class.fit(vanilla),
-            window=window,
         )
+
+    @classmethod
+    def fit_window(cls, running_scores: ArrayLike, **fit_kwargs: Any) -> "OODCalibration":
+        """`fit` on window scores: the `ChunkWindow` of (R, N) vanilla running scores (s_1..s_N of each rollout),
+        and the statistics of each rollout's window score standardized without it (as a new rollout would be).
+        `fit_kwargs`: `fit`'s keywords but `window`."""
+        window = ChunkWindow.fit(running_scores)
+        return cls.fit(ChunkWindow.leave_one_out_scores(running_scores), window=window, **fit_kwargs)
 
     @property
     def needs_context_features(self) -> bool:
