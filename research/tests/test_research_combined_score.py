@@ -23,6 +23,7 @@ from lerobot_policy_ebvla.runtime import EnergyOODError
 from lerobot_policy_ebvla.runtime.calibration import OOD_CALIBRATION_FILENAME, OODCalibration
 from lerobot_policy_ebvla.runtime.monitor import EnergyOODMonitor
 from lerobot_policy_ebvla.runtime.readout import EnergyReadout
+from lerobot_policy_ebvla.runtime.scores import score_rollout
 from lerobot_policy_ebvla.runtime.statistics import CombinedStatistics, ContextStatistics
 from research.tests.conftest import load_benchmark
 from tests.conftest import context_rollouts, tiny_batch, tiny_config, write_records
@@ -379,17 +380,23 @@ def test_the_report_saves_the_energy_and_context_calibration_its_tables_score(re
     # The run-time score of each held-out rollout is the report's: same statistics, same combination.
     expected = expected_combined_scores(record_dirs)["vanilla"]
     vanilla = load_episodes([record_dirs[1]])
-    scored = [
-        calibration.score_rollout(
-            calibration.chunk_components(
-                EnergyReadout.of_arrays(
-                    [r.final_energy for r in e], context_features=np.stack([r.context_feature for r in e])
-                )
+    components = [
+        calibration.chunk_components(
+            EnergyReadout.of_arrays(
+                [r.final_energy for r in e], context_features=np.stack([r.context_feature for r in e])
             )
         )
         for e in vanilla.values()
     ]
+    scored = [score_rollout(calibration.score, c, calibration.aggregation) for c in components]
     np.testing.assert_allclose(scored, expected)
+    # What the monitor compares to T is the window score of those running scores over the first 3 chunks.
+    window = calibration.window
+    running = [
+        [score_rollout(calibration.score, c[:n], calibration.aggregation) for n in (1, 2, 3)]
+        for c in components
+    ]
+    np.testing.assert_allclose([calibration.score_rollout(c) for c in components], window.scores(running))
     # The report states the threshold it saved: fitted on the calibration rollouts' first 3 chunks.
     saved = (
         f"mu_v = {calibration.mu_v:.4g}, sigma_v = {calibration.sigma_v:.4g}, T = {calibration.threshold:.4g}"

@@ -51,10 +51,12 @@ def test_ood_report_saves_a_context_distance_calibration_when_asked(record_dirs,
     assert calibration.score.name == "context_distance" and calibration.n_rollouts == 12
     np.testing.assert_allclose(calibration.score.context.mean, reference.features.statistics.mean)
     np.testing.assert_allclose(calibration.score.context.precision, reference.features.statistics.precision)
-    # mu_v is that of the report's context_distance score: the calibration rollouts leave-one-episode-out, over
-    # their first 3 chunks (the first-chunk Table III's fit).
-    context_distance = episode_scores(episodes, "context_distance", reference=reference, first_chunks=3)
-    assert calibration.mu_v == pytest.approx(context_distance.mean())
+    # The window's mu_n is that of the report's context_distance score after n chunks: the calibration rollouts
+    # leave-one-episode-out (mu_3: the first-chunk Table III's fit).
+    assert calibration.window is not None and calibration.window.chunks == 3
+    for n in (1, 3):
+        context_distance = episode_scores(episodes, "context_distance", reference=reference, first_chunks=n)
+        assert calibration.window.running.mean[n - 1] == pytest.approx(context_distance.mean())
 
 
 def test_ood_report_refuses_a_context_distance_calibration_without_context_features(tmp_path):
