@@ -521,7 +521,7 @@ def test_sampled_placements_repeat_with_their_seed_and_are_none_of_the_fixed_ini
 @pytest.mark.slow
 def test_robot_init_noise_moves_the_arms_start_and_keeps_the_sampled_placement(monkeypatch):
     monkeypatch.setenv("MUJOCO_GL", "egl")
-    arms, objects, default = {}, {}, None
+    arms, objects, posture, second, default = {}, {}, {}, {}, None
     for noise in (0.0, 0.02):
         cfg = LiberoEBVLAEnv(
             task_ids=[2],
@@ -540,12 +540,21 @@ def test_robot_init_noise_moves_the_arms_start_and_keeps_the_sampled_placement(m
             gripper = np.asarray(robot._ref_gripper_joint_pos_indexes)
             arms[noise] = qpos[arm].copy()
             objects[noise] = np.delete(qpos, np.concatenate([arm, gripper])).copy()
+            posture[noise] = np.asarray(robot.controller.initial_joint).copy()
+            env.reset(seed=100001)
+            second[noise] = env._env.sim.data.qpos[arm].copy()  # a hard reset builds a new simulator
         finally:
             vec_env.close()
-    # After LeRobot's settling steps: without noise the arm rests at its default pose, with it about 0.02 rad off.
+    # After LeRobot's settling steps: without noise the arm rests at its default pose, with it about 0.02 rad off,
+    # another draw for another seed.
     np.testing.assert_allclose(arms[0.0], default, atol=5e-3)
     assert 0.005 < np.abs(arms[0.02] - arms[0.0]).max() < 0.1
-    # The same seed samples the same placement: the noise is drawn at magnitude 0 too.
+    assert np.abs(second[0.02] - arms[0.02]).max() > 1e-3
+    # The controller was loaded at the default pose, as when a fixed state's arm is set: its posture target is the
+    # default's, not the noisy start's.
+    np.testing.assert_allclose(posture[0.02], default)
+    np.testing.assert_allclose(posture[0.0], default)
+    # The same seed samples the same placement: the arm's draw has a generator of its own.
     np.testing.assert_allclose(objects[0.02], objects[0.0], atol=2e-3)
 
 

@@ -144,6 +144,14 @@ FINE_TUNES = {
     ),
 }
 RUNS["ebvla_joint_fast_cpu_more"] = RUNS["ebvla_joint_fast_cpu"]  # the flags its start was trained with
+# E (2026-11-29, night): D trained on with 10 demonstrations per task whose arm starts as the fixed states' arms do
+# (`record --arm_episodes`), beside D's 528: D succeeds on 98 % of fresh placements but 85 % of the fixed states
+# 30-49, whose only measured difference is the arm's start (research/docs/libero_placement_gap.md). D's rate.
+FINE_TUNES["ebvla_joint_fast_cpu_arm"] = FineTune(
+    "research/results/libero_object10_more/train/ebvla_joint_fast_cpu_more/last/pretrained_model",
+    ("--policy.optimizer_lr=1e-4",),
+)
+RUNS["ebvla_joint_fast_cpu_arm"] = RUNS["ebvla_joint_fast_cpu"]
 RUNS["diffusion_cpu"] = [
     "--policy.type=diffusion",
     "--policy.pretrained_backbone_weights=null",
@@ -212,9 +220,19 @@ def run_logged(cmd: list[str], log: Path, timeout_s: float | None = None) -> int
 # Record ------------------------------------------------------------------------------------------------------
 
 
-def piece_report(work: Path, task: int, first: int) -> Path:
+# Demonstrations whose arm starts as the fixed states' arms do (`record --arm_episodes`): placements of their own
+# seeds (ARM_PLACEMENT_SEED + attempt), no other piece's and no evaluation's (FRESH_PLACEMENT_SEED = 200000).
+ARM_PLACEMENT_SEED = 300000
+
+
+def piece_name(task: int, first: int, arm: bool = False) -> str:
+    """The folder of a recorder process's piece under `<work>/data`."""
+    return f"task{task}_arm_from{first}" if arm else f"task{task}_from{first}"
+
+
+def piece_report(work: Path, task: int, first: int, arm: bool = False) -> Path:
     """The recorder's report of a piece (task, first initial state): it exists once the piece is recorded."""
-    return work / "data" / f"task{task}_from{first}" / "meta" / "recording_report.json"
+    return work / "data" / piece_name(task, first, arm) / "meta" / "recording_report.json"
 
 
 def record(
@@ -229,14 +247,18 @@ def record(
     placement_seed: int | None = None,
     use_videos: bool = False,
     more_episodes: dict[int, int] | None = None,
-    pieces_from: Path | None = None,
+    pieces_from: list[Path] | None = None,
+    arm_episodes: int = 0,
 ) -> Path:
     """Records each task in `parts` processes (each from its own initial states), then aggregates every part
     into `<work>/data/all`.
 
     `more_episodes` adds demonstrations to some tasks (task -> count), in more pieces of the same size after the
-    `episodes_per_task` ones: with `placement_seed`, from placements no other piece used. Pieces a saved results
-    folder already holds (`pieces_from`, its `data/`: pieces recorded as video) are linked, not recorded again.
+    `episodes_per_task` ones: with `placement_seed`, from placements no other piece used. `arm_episodes` adds that
+    many to every task, in one piece of its own (`task<t>_arm_from0`), the arm's start drawn as the
+    fixed states' (`--env.robot_init_noise`, FIXED_STATES_ARM_NOISE) on placements of ARM_PLACEMENT_SEED + attempt.
+    Pieces saved results folders already hold (`pieces_from`, their `data/`: pieces recorded as video) are linked,
+    not recorded again.
 
     `max_steps`, `keep_failed`, `placement_seed` and `use_videos` are the recorder's (tiny test runs keep the
     expert's unfinished episodes; with `placement_seed`, demonstrations start from freshly sampled placements, never
@@ -246,18 +268,21 @@ def record(
     if (merged / "meta" / "info.json").exists():
         print(f"record: {merged} exists")
         return merged
-    pieces = record_pieces(tasks, episodes_per_task, parts, more_episodes or {})
-    for task, first, _ in pieces:
-        saved = None if pieces_from is None else pieces_from / "data" / f"task{task}_from{first}"
-        piece = work / "data" / f"task{task}_from{first}"
-        if saved is not None and (saved / "meta" / "recording_report.json").exists() and not piece.exists():
+    pieces = [(*piece, False) for piece in record_pieces(tasks, episodes_per_task, parts, more_episodes or {})]
+    if arm_episodes:  # one piece a task: a recorder's start-up is not repeated for a few attempts
+        pieces += [(*piece, True) for piece in record_pieces(tasks, arm_episodes, 1, {})]
+    for task, first, _, arm in pieces:
+        piece = work / "data" / piece_name(task, first, arm)
+        saved = [folder / "data" / piece.name for folder in pieces_from or []]
+        saved = [folder for folder in saved if (folder / "meta" / "recording_report.json").exists()]
+        if saved and not piece.exists():
             piece.parent.mkdir(parents=True, exist_ok=True)
-            piece.symlink_to(saved.resolve(), target_is_directory=True)
+            piece.symlink_to(saved[0].resolve(), target_is_directory=True)
 
-    def record_piece(piece: tuple[int, int, int]) -> int:
-        task, first, n = piece
-        root = work / "data" / f"task{task}_from{first}"
-        if piece_report(work, task, first).exists():
+    def record_piece(piece: tuple[int, int, int, bool]) -> int:
+        task, first, n, arm = piece
+        root = work / "data" / piece_name(task, first, arm)
+        if piece_report(work, task, first, arm).exists():
             return 0
         cmd = [
             bin_path("ebvla-record-libero"),
@@ -266,7 +291,7 @@ def record(
             f"--env.first_init_state={first}",
             f"--episodes_per_task={n}",
             f"--image_size={image_size}",
-            f"--repo_id=local/libero_object_task{task}_from{first}",
+            f"--repo_id=local/libero_object_{root.name}",
             f"--root={root}",
             "--overwrite=true",  # a folder without a report is an interrupted recording
             f"--keep_failed={str(keep_failed).lower()}",
@@ -274,41 +299,46 @@ def record(
         ]
         if max_steps is not None:
             cmd.append(f"--max_steps={max_steps}")
-        if placement_seed is not None:
+        if arm:
+            cmd += [f"--placement_seed={ARM_PLACEMENT_SEED}", f"--env.robot_init_noise={FIXED_STATES_ARM_NOISE}"]
+        elif placement_seed is not None:
             cmd.append(f"--placement_seed={placement_seed}")
         return run_logged(cmd, work / "logs" / f"record_{root.name}.log")
 
-    recorded_before = all(piece_report(work, task, first).exists() for task, first, _ in pieces)
+    recorded_before = all(piece_report(work, task, first, arm).exists() for task, first, _, arm in pieces)
     start = time.time()
     with ThreadPoolExecutor(jobs) as pool:
         statuses = list(pool.map(record_piece, pieces))
     print(f"record: {len(pieces)} pieces in {time.time() - start:.0f} s, exit statuses {statuses}")
     reports = {}
-    for task, first, _ in pieces:
-        path = piece_report(work, task, first)
+    for task, first, _, arm in pieces:
+        path = piece_report(work, task, first, arm)
         if path.exists():
-            reports[(task, first)] = json.loads(path.read_text())
-    kept = [key for key, report in reports.items() if report["n_kept"] > 0]
+            reports[(task, first, arm)] = json.loads(path.read_text())
+    kept = [piece_name(*key) for key, report in reports.items() if report["n_kept"] > 0]
     if not kept:
         raise RuntimeError(f"No task recorded a successful episode; logs in {work / 'logs'}.")
     from lerobot.datasets.aggregate import aggregate_datasets
 
     aggregate_datasets(
-        repo_ids=[f"local/libero_object_task{task}_from{first}" for task, first in kept],
+        repo_ids=[f"local/libero_object_{name}" for name in kept],
         aggr_repo_id=REPO_ID,
-        roots=[work / "data" / f"task{task}_from{first}" for task, first in kept],
+        roots=[work / "data" / name for name in kept],
         aggr_root=merged,
     )
     summary = {
         "image_size": image_size,
         "episodes_per_task": episodes_per_task,
         "more_episodes": {str(task): n for task, n in sorted((more_episodes or {}).items())},
-        "pieces_from": None if pieces_from is None else str(pieces_from),
+        "pieces_from": [str(folder) for folder in pieces_from or []],
         "placement_seed": placement_seed,
+        "arm_episodes": arm_episodes,
+        "arm_placement_seed": ARM_PLACEMENT_SEED if arm_episodes else None,
+        "robot_init_noise": FIXED_STATES_ARM_NOISE if arm_episodes else 0.0,
         "use_videos": use_videos,
         "tasks": {},
     }
-    for (task, _), report in sorted(reports.items()):
+    for (task, _, arm), report in sorted(reports.items()):
         name = next(iter(report["success_rate_per_task"]))
         entry = summary["tasks"].setdefault(
             task, {"task": name, "attempts": 0, "kept": 0, "steps_of_kept": []}
@@ -316,6 +346,9 @@ def record(
         entry["attempts"] += report["n_attempted"]
         entry["kept"] += report["n_kept"]
         entry["steps_of_kept"] += [ep["n_steps"] for ep in report["episodes"] if ep["kept"]]
+        if arm:
+            entry["arm_attempts"] = entry.get("arm_attempts", 0) + report["n_attempted"]
+            entry["arm_kept"] = entry.get("arm_kept", 0) + report["n_kept"]
     # Pieces restored from saved results were recorded by an earlier session: its recording time stands, and
     # aggregating them again adds nothing to it.
     path = work / "recording_summary.json"
@@ -453,9 +486,11 @@ VANILLA_CONDITIONS = ("vanilla_calib", "vanilla_heldout")
 # for a threshold rule chosen after the first was looked at (research/docs/libero_runs.md, "D's threshold rule").
 CONFIRM_CONDITION = "vanilla_confirm"
 # The fresh placements again with the arm's starting angles drawn as LIBERO's fixed states draw theirs (robosuite's
-# Gaussian, 0.02 rad a joint): does the arm's start explain the fixed states' lower success
-# (research/docs/libero_placement_gap.md)?
-FRESH_ARM_CONDITION = "vanilla_fresh_arm"
+# Gaussian, 0.02 rad a joint) and set as LIBERO sets a fixed state's, after the controller is loaded: does the arm's
+# start explain the fixed states' lower success (research/docs/libero_placement_gap.md)? The records of
+# `vanilla_fresh_arm` drew the arm with robosuite's `initialization_noise` instead, the controller loaded at the
+# noisy pose (commit 8043c8d; research/docs/libero_runs.md, "The arm's start").
+FRESH_ARM_CONDITION = "vanilla_fresh_arm_set"
 FIXED_STATES_ARM_NOISE = 0.02
 
 
@@ -502,7 +537,7 @@ def eval_jobs(
     samples with seeds `FRESH_PLACEMENT_SEED` + i, which neither the fixed initial states nor the recordings
     (seeds 100000 + i) use: success off the states every other job starts from. `confirm` vanilla rollouts per
     task (`vanilla_confirm`, needs `calibration`) follow them, from the fixed states after the held-out ones.
-    `fresh_arm` rollouts per task (`vanilla_fresh_arm`) come last: the first `fresh_arm` fresh placements again,
+    `fresh_arm` rollouts per task (`vanilla_fresh_arm_set`) come last: the first `fresh_arm` fresh placements again,
     the arm's start drawn as the fixed states' (`FIXED_STATES_ARM_NOISE`).
 
     `vanilla_conditions` keeps some of the vanilla calibration and held-out jobs (none: `()`), for a machine that
@@ -949,8 +984,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--pieces_from",
         type=Path,
-        default=None,
-        help="record: a saved results folder whose video pieces are linked instead of recorded again",
+        nargs="*",
+        default=[],
+        help="record: saved results folders whose video pieces are linked instead of recorded again",
+    )
+    parser.add_argument(
+        "--arm_episodes",
+        type=int,
+        default=0,
+        help="record: expert attempts per task with the arm's start drawn as the fixed states' (pieces of their own)",
     )
     parser.add_argument("--jobs", type=int, default=10, help="processes side by side (record, eval)")
     parser.add_argument("--runs", nargs="+", choices=list(RUNS), default=["ebvla_paper", "diffusion"])
@@ -1057,7 +1099,8 @@ def main(argv: list[str] | None = None) -> None:
             args.placement_seed,
             args.use_videos,
             {int(task): int(n) for task, n in (item.split("=") for item in args.more_episodes)},
-            None if args.pieces_from is None else args.pieces_from.resolve(),
+            [folder.resolve() for folder in args.pieces_from],
+            args.arm_episodes,
         )
     elif args.stage == "train":
         train(

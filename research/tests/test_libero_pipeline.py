@@ -648,7 +648,7 @@ def test_pieces_a_results_folder_holds_are_linked_and_only_the_extra_ones_are_re
     monkeypatch.setattr(
         lerobot.datasets.aggregate, "aggregate_datasets", lambda **kwargs: aggregated.append(kwargs["roots"])
     )
-    more = {"more_episodes": {1: 11}, "pieces_from": saved}
+    more = {"more_episodes": {1: 11}, "pieces_from": [tmp_path / "other_results", saved]}
     pipeline.record(work, [1], 22, 128, jobs=1, parts=2, placement_seed=100000, use_videos=True, **more)
     # Attempt i of the extra piece starts from the placements of seed 100000 + 22 + i: none of the saved pieces'.
     assert len(commands) == 1 and "--env.first_init_state=22" in commands[0]
@@ -662,6 +662,36 @@ def test_pieces_a_results_folder_holds_are_linked_and_only_the_extra_ones_are_re
     pipeline.save_results(work, results)
     assert sorted(p.name for p in (results / "recording_reports").iterdir()) == ["task1_from22.json"]
     assert not (results / "data" / "task1_from0").exists()
+
+
+def test_arm_pieces_start_the_arm_as_the_fixed_states_do_on_placements_of_their_own(tmp_path, monkeypatch):
+    import lerobot.datasets.aggregate
+
+    work, commands, aggregated = tmp_path / "work", [], []
+    report = {
+        "n_kept": 3,
+        "n_attempted": 3,
+        "success_rate_per_task": {"pick up the ketchup": 1.0},
+        "episodes": [{"n_steps": 150, "kept": True}] * 3,
+    }
+
+    def record_piece(cmd, log):
+        commands.append(cmd)
+        root = next(arg.split("=")[1] for arg in cmd if arg.startswith("--root="))
+        write_json(Path(root) / "meta" / "recording_report.json", report)
+        return 0
+
+    monkeypatch.setattr(pipeline, "run_logged", record_piece)
+    monkeypatch.setattr(
+        lerobot.datasets.aggregate, "aggregate_datasets", lambda **kwargs: aggregated.append(kwargs["roots"])
+    )
+    pipeline.record(work, [7], 3, 128, jobs=1, placement_seed=100000, arm_episodes=3)
+    plain, arm = commands
+    assert "--placement_seed=100000" in plain and not any("robot_init_noise" in arg for arg in plain)
+    assert f"--placement_seed={pipeline.ARM_PLACEMENT_SEED}" in arm and "--env.robot_init_noise=0.02" in arm
+    assert [root.name for root in aggregated[0]] == ["task7_from0", "task7_arm_from0"]
+    summary = json.loads((work / "recording_summary.json").read_text())
+    assert summary["tasks"]["7"]["kept"] == 6 and summary["tasks"]["7"]["arm_kept"] == 3
 
 
 def test_a_fine_tune_starts_from_its_saved_weights_with_its_own_rate_then_resumes_itself(work):

@@ -49,9 +49,10 @@ class LiberoEBVLAEnv(LeRobotLiberoEnvConfig):
             that episodes 10-19 of a task (say) run in a process of their own, from the same states as in one
             20-episode run.
         robot_init_noise: With `init_states=false` (placements LIBERO samples at each reset), the std in radians
-            of robosuite's Gaussian noise on each arm joint's starting angle; 0 (the default, LIBERO's) starts the
-            arm at its default pose every time. LIBERO's fixed initial states carry an arm drawn at robosuite's
-            default, 0.02, so 0.02 makes sampled resets start like them (research/docs/libero_placement_gap.md).
+            of a Gaussian draw added to each arm joint's starting angle after the reset, as LIBERO sets a fixed
+            state's arm; 0 (the default, LIBERO's) starts the arm at its default pose every time. LIBERO's fixed
+            initial states carry an arm drawn at robosuite's default, 0.02, so 0.02 makes sampled resets start like
+            them (research/docs/libero_placement_gap.md).
     """
 
     task: str = "libero_object"
