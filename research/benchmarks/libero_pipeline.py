@@ -273,11 +273,11 @@ def record(
         pieces += [(*piece, True) for piece in record_pieces(tasks, arm_episodes, 1, {})]
     for task, first, _, arm in pieces:
         piece = work / "data" / piece_name(task, first, arm)
-        saved = [folder / "data" / piece.name for folder in pieces_from or []]
-        saved = [folder for folder in saved if (folder / "meta" / "recording_report.json").exists()]
-        if saved and not piece.exists():
+        recorded = (folder / "data" / piece.name for folder in pieces_from or [])
+        saved = next((s for s in recorded if (s / "meta" / "recording_report.json").exists()), None)
+        if saved is not None and not piece.exists():
             piece.parent.mkdir(parents=True, exist_ok=True)
-            piece.symlink_to(saved[0].resolve(), target_is_directory=True)
+            piece.symlink_to(saved.resolve(), target_is_directory=True)
 
     def record_piece(piece: tuple[int, int, int, bool]) -> int:
         task, first, n, arm = piece
