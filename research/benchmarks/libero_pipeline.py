@@ -268,7 +268,9 @@ def record(
     if (merged / "meta" / "info.json").exists():
         print(f"record: {merged} exists")
         return merged
-    pieces = [(*piece, False) for piece in record_pieces(tasks, episodes_per_task, parts, more_episodes or {})]
+    pieces = [
+        (*piece, False) for piece in record_pieces(tasks, episodes_per_task, parts, more_episodes or {})
+    ]
     if arm_episodes:  # one piece a task: a recorder's start-up is not repeated for a few attempts
         pieces += [(*piece, True) for piece in record_pieces(tasks, arm_episodes, 1, {})]
     for task, first, _, arm in pieces:
@@ -300,7 +302,10 @@ def record(
         if max_steps is not None:
             cmd.append(f"--max_steps={max_steps}")
         if arm:
-            cmd += [f"--placement_seed={ARM_PLACEMENT_SEED}", f"--env.robot_init_noise={FIXED_STATES_ARM_NOISE}"]
+            cmd += [
+                f"--placement_seed={ARM_PLACEMENT_SEED}",
+                f"--env.robot_init_noise={FIXED_STATES_ARM_NOISE}",
+            ]
         elif placement_seed is not None:
             cmd.append(f"--placement_seed={placement_seed}")
         return run_logged(cmd, work / "logs" / f"record_{root.name}.log")
