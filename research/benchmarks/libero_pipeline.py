@@ -528,6 +528,8 @@ def eval_jobs(
     vanilla_conditions: tuple[str, ...] = VANILLA_CONDITIONS,
     confirm: int = 0,
     fresh_arm: int = 0,
+    first: tuple[str, ...] = (),
+    only_first: bool = False,
 ) -> list[EvalJob]:
     """The evaluation queue, most needed first: vanilla calibration and held-out rollouts of the `ebvla` runs,
     then the camera perturbations of the `ebvla` runs in the order of `conditions`; the other policies (no
@@ -544,6 +546,10 @@ def eval_jobs(
     task (`vanilla_confirm`, needs `calibration`) follow them, from the fixed states after the held-out ones.
     `fresh_arm` rollouts per task (`vanilla_fresh_arm_set`) come last: the first `fresh_arm` fresh placements again,
     the arm's start drawn as the fixed states' (`FIXED_STATES_ARM_NOISE`).
+
+    `first` moves the jobs it names to the front, in its order (the others keep theirs): an entry names a condition
+    (`vanilla_confirm`) or one run's (`<run>/vanilla_calib`). A short slice then spends its time on the rollouts a
+    rule fixed beforehand reads; with `only_first` the queue is those jobs alone.
 
     `vanilla_conditions` keeps some of the vanilla calibration and held-out jobs (none: `()`), for a machine that
     runs the rest while another runs those (the queue with no `conditions`): the two queues together are the
@@ -604,7 +610,13 @@ def eval_jobs(
         for task in tasks
         if fresh_arm
     ]
-    return queue
+
+    def rank(job: EvalJob) -> int:
+        named = [i for i, entry in enumerate(first) if entry in (job.condition, f"{job.run}/{job.condition}")]
+        return min(named, default=len(first))
+
+    queue = sorted(queue, key=rank)
+    return [job for job in queue if rank(job) < len(first)] if only_first else queue
 
 
 def eval_command(work: Path, job: EvalJob, device: str, episode_length: int | None = None) -> list[str]:
@@ -1060,6 +1072,13 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--perturbed", type=int, default=5, help="episodes per task and camera condition")
     parser.add_argument(
+        "--first",
+        nargs="*",
+        default=[],
+        help="eval: the jobs to run first, in this order: a condition (vanilla_confirm) or a run's (RUN/vanilla_calib)",
+    )
+    parser.add_argument("--only_first", action="store_true", help="eval: run only the jobs --first names")
+    parser.add_argument(
         "--vanilla_conditions",
         nargs="*",
         choices=VANILLA_CONDITIONS,
@@ -1139,6 +1158,8 @@ def main(argv: list[str] | None = None) -> None:
             tuple(args.vanilla_conditions),
             args.confirm,
             args.fresh_arm,
+            tuple(args.first),
+            args.only_first,
         )
         remaining = args.deadline_s - (time.time() - start)
         statuses = evaluate(work, jobs, args.device, args.jobs, remaining, args.episode_length)

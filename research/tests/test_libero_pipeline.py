@@ -710,3 +710,35 @@ def test_a_fine_tune_starts_from_its_saved_weights_with_its_own_rate_then_resume
         "--resume=true",
         "--steps=5000",
     ]
+
+
+def test_first_moves_the_named_conditions_jobs_to_the_front_in_that_order():
+    args = (["ebvla_cpu"], [2, 3], 20, 5, ())
+    whole = pipeline.eval_jobs(*args, calibration=10, fresh=10, confirm=20, fresh_arm=10)
+    ordered = pipeline.eval_jobs(
+        *args, calibration=10, fresh=10, confirm=20, fresh_arm=10, first=("vanilla_confirm", "vanilla_fresh")
+    )
+    assert sorted(ordered, key=lambda job: job.name) == sorted(whole, key=lambda job: job.name)
+    assert [job.condition for job in ordered[:4]] == ["vanilla_confirm"] * 2 + ["vanilla_fresh"] * 2
+    rest = [job for job in whole if job.condition not in ("vanilla_confirm", "vanilla_fresh")]
+    assert ordered[4:] == rest
+
+
+def test_first_can_name_one_runs_condition_and_only_first_drops_the_rest():
+    jobs = pipeline.eval_jobs(
+        ["ebvla_a", "ebvla_b"],
+        [2, 3],
+        20,
+        5,
+        (),
+        calibration=10,
+        confirm=20,
+        first=("ebvla_a/vanilla_confirm", "ebvla_b/vanilla_calib"),
+        only_first=True,
+    )
+    assert [job.name for job in jobs] == [
+        "ebvla_a/vanilla_confirm/task2",
+        "ebvla_a/vanilla_confirm/task3",
+        "ebvla_b/vanilla_calib/task2",
+        "ebvla_b/vanilla_calib/task3",
+    ]
