@@ -25,9 +25,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from libero_pipeline import REPO_ID  # the recorded dataset's id, one name for it
 from torch.nn import functional
-
-REPO_ID = "local/libero_object_expert"
 
 
 def round_to_tf32(x: torch.Tensor) -> torch.Tensor:
