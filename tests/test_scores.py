@@ -1,10 +1,11 @@
-"""The package's scores: four, in one registry that research code extends through one hook."""
+"""The package's scores: five, in one registry that research code extends through one hook."""
 
 from dataclasses import dataclass
 
 import numpy as np
 import pytest
 
+from lerobot_policy_ebvla.configuration_groups import FAILURE_SCORES, MONITOR_SCORES
 from lerobot_policy_ebvla.runtime import EnergyReadout, OODCalibration
 from lerobot_policy_ebvla.runtime.scores import (
     PACKAGE_SCORES,
@@ -14,16 +15,26 @@ from lerobot_policy_ebvla.runtime.scores import (
     ContextPhaseEnergy,
     FinalEnergy,
     HeadEnergyTwoSided,
+    JointPhaseEnergy,
     VanillaRollouts,
     register_score,
+    score_rollout,
 )
 from lerobot_policy_ebvla.runtime.statistics import PhaseStatistics
 
 PHASE = PhaseStatistics((0.0, -10.0), (1.0, 2.0))
 
 
-def test_the_package_ships_four_scores():
-    assert PACKAGE_SCORES == ("final_energy", "context_phase_energy", "head_energy_two_sided", "context_knn")
+def test_the_package_ships_five_scores_and_the_config_names_each():
+    assert PACKAGE_SCORES == (
+        "final_energy",
+        "context_phase_energy",
+        "head_energy_two_sided",
+        "joint_phase_energy",
+        "context_knn",
+    )
+    assert MONITOR_SCORES == PACKAGE_SCORES
+    assert set(FAILURE_SCORES) - {"none"} == set(PACKAGE_SCORES) - {"context_knn"}
     assert set(PACKAGE_SCORES) <= set(SCORES)
 
 
@@ -72,6 +83,26 @@ def test_the_head_energy_is_the_final_energy_less_e_c_and_two_sided():
     calibration = OODCalibration(mu_v=0.0, sigma_v=1.0, score=HeadEnergyTwoSided(PHASE))
     readout = EnergyReadout.of_arrays([-3.0, -20.0], [0, 1], context_energy=[2.0, -4.0])
     np.testing.assert_allclose(calibration.chunk_score(readout), [5.0, 3.0])
+
+
+def test_the_joint_phase_energy_averages_the_two_terms_z_at_the_chunks_index():
+    head = PhaseStatistics((1.0, 1.0), (2.0, 0.5))
+    score = JointPhaseEnergy(PHASE, head)
+    calibration = OODCalibration(mu_v=0.0, sigma_v=1.0, score=score)
+    # E_c: z = -5 and 2.5 (as above); E - E_c = 12 and 12: z = 5.5 and 22; one-sided, so a low term lowers it.
+    readout = EnergyReadout.of_arrays([7.0, 7.0], [0, 1], context_energy=[-5.0, -5.0])
+    np.testing.assert_allclose(calibration.chunk_score(readout), [0.25, 12.25])
+    # A rollout: each term's mean over its chunks (-1.25 and 13.75), then their mean.
+    assert score_rollout(score, score.components(ChunkInputs.of(readout)), "mean") == pytest.approx(6.25)
+    assert score_rollout(score, score.components(ChunkInputs.of(readout)), "max") == pytest.approx((2.5 + 22.0) / 2)
+    saved = score.to_json()
+    assert JointPhaseEnergy.from_json(saved) == score
+    with pytest.raises(
+        ValueError, match="`head_energy_phase_mean` and `head_energy_phase_std` come together"
+    ):
+        JointPhaseEnergy.from_json({**saved, "head_energy_phase_std": None})
+    with pytest.raises(ValueError, match="joint_phase_energy score needs each chunk's context energy"):
+        calibration.chunk_score(EnergyReadout.of_arrays([7.0], [0]))
 
 
 def test_calibrating_a_named_score_scores_each_rollout_against_the_others():

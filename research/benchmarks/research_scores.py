@@ -334,6 +334,7 @@ TABLE_ORDER = (
     "context_phase_energy",
     "context_energy_two_sided",
     "head_energy_two_sided",
+    "joint_phase_energy",
 )
 for _score in RESEARCH_SCORES:
     register_score(_score)

@@ -378,10 +378,22 @@ OOD_RESPONSES = ("continue", "hold", "raise")
 HOLD_ACTIONS = ("zero_delta", "current_state")
 # The scores a checkpoint can be monitored with (`runtime.scores.PACKAGE_SCORES`; the config imports no numpy),
 # and those that read a joint energy's context term E_c.
-MONITOR_SCORES = ("final_energy", "context_phase_energy", "head_energy_two_sided", "context_knn")
-CONTEXT_ENERGY_SCORES = ("context_phase_energy", "head_energy_two_sided")
+MONITOR_SCORES = (
+    "final_energy",
+    "context_phase_energy",
+    "head_energy_two_sided",
+    "joint_phase_energy",
+    "context_knn",
+)
+CONTEXT_ENERGY_SCORES = ("context_phase_energy", "head_energy_two_sided", "joint_phase_energy")
 # The failure check reads energies only (no features stored); "none" leaves it out.
-FAILURE_SCORES = ("none", "final_energy", "context_phase_energy", "head_energy_two_sided")
+FAILURE_SCORES = (
+    "none",
+    "final_energy",
+    "context_phase_energy",
+    "head_energy_two_sided",
+    "joint_phase_energy",
+)
 
 
 @dataclass
@@ -394,8 +406,9 @@ class MonitorConfig:
             of `runtime.scores.SCORES`'s package scores): "final_energy" (the paper's),
             "context_phase_energy" (a joint energy's context term E_c against the vanilla E_c at each chunk
             index: the light preset's, which trains E_c on its own encoder and flat at the data),
-            "head_energy_two_sided" (the failure score: |z| of E - E_c at each chunk index) or "context_knn"
-            (the pooled context's distance to its nearest vanilla context, the feature baseline). The two E_c
+            "head_energy_two_sided" (the failure score: |z| of E - E_c at each chunk index),
+            "joint_phase_energy" (z of E_c and of E - E_c at each chunk index, averaged) or "context_knn"
+            (the pooled context's distance to its nearest vanilla context, the feature baseline). The three E_c
             scores need the joint energy on its own encoder (`joint_energy.target="observation"` with
             `joint_energy.weight` > 0). None (the default) is decided by the training signal when the policy's
             config is made, and saved: "context_phase_energy" for a policy that trains E_c on its own encoder

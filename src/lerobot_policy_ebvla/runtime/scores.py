@@ -7,7 +7,7 @@ aggregates (`score_rollout`). The threshold T = mu_v + k sigma_v (Eq. 5) or the 
 vanilla rollouts' scores (`OODCalibration`). A score is fitted on vanilla rollouts (`VanillaRollouts`) and saved
 in `ood_calibration.json` (its JSON fields) and in safetensors files beside it (its side files).
 
-The package ships four scores (`SCORES`); a checkpoint is monitored with the one its config names
+The package ships five scores (`SCORES`); a checkpoint is monitored with the one its config names
 (`EBVLAConfig.monitor.score`: "context_phase_energy" for a policy with E_c on its own encoder, "final_energy"
 otherwise, unless the config names another):
 
@@ -18,6 +18,8 @@ otherwise, unless the config names another):
   MetaWorld sweep raises.
 - "head_energy_two_sided" (`HeadEnergyTwoSided`): |z| of the head's part of the joint energy, E - E_c, against
   the vanilla E - E_c at the same chunk index: a failure score, not an OOD one.
+- "joint_phase_energy" (`JointPhaseEnergy`): both terms, E_c and E - E_c, each against its vanilla value at the
+  same chunk index, averaged (one-sided): the failure check for a policy trained with the joint energy on LIBERO.
 - "context_knn" (`ContextKNN`): the feature baseline, the Euclidean distance of the chunk's pooled context,
   standardized per dimension, to its k-th nearest standardized vanilla context (`ContextNeighbours`, every
   calibration context saved in `ood_calibration_neighbours.safetensors`).
@@ -321,6 +323,12 @@ class FinalEnergy(ChunkScore):
         return chunks.final_energy[:, None]
 
 
+def fit_phase(vanilla: VanillaRollouts, input: str, score: str) -> PhaseStatistics:
+    """mu_v[t] and sigma_v[t] of the vanilla rollouts' input `input` (a `ChunkInputs` field) at each chunk index t."""
+    series = zip(vanilla.series(input, score), vanilla.series("chunk_index", score), strict=True)
+    return PhaseStatistics.fit([energies_by_index(x, t) for x, t in series])
+
+
 @dataclass(frozen=True)
 class PhaseZScore(ChunkScore):
     """The base of the scores that standardize one per-chunk input (`input`, a `ChunkInputs` field) against
@@ -338,9 +346,7 @@ class PhaseZScore(ChunkScore):
 
     @classmethod
     def fit(cls, vanilla: VanillaRollouts) -> Self:
-        values = vanilla.series(cls.input, cls.name)
-        series = zip(values, vanilla.series("chunk_index", cls.name), strict=True)
-        return cls(PhaseStatistics.fit([energies_by_index(x, t) for x, t in series]))
+        return cls(fit_phase(vanilla, cls.input, cls.name))
 
     def components(self, chunks: ChunkInputs) -> np.ndarray:
         values = chunks.get(self.input, self.name)
@@ -389,6 +395,67 @@ class HeadEnergyTwoSided(AbsoluteOfAggregate, PhaseZScore):
 
 
 @dataclass(frozen=True)
+class JointPhaseEnergy(ChunkScore):
+    """Both terms of the joint energy against their vanilla values at the same chunk index, averaged:
+    s_t = (z_c,t + z_h,t) / 2, with z_c,t = (E_c,t - mu_c[t]) / sigma_c[t] for the context term and z_h,t likewise
+    for the head's part E_t - E_c,t; one-sided, each term aggregated over the rollout before the two are averaged.
+
+    A failure score: a rollout falling behind the task (on LIBERO, a grasp that misses and an arm that keeps
+    reaching) shows in E_c, whose frames vanilla rollouts had left by that chunk, and in the head's energy of the
+    chunk it refines there; together they tell failures apart better than either (research/docs/libero_runs.md,
+    "A failure check on both terms of the joint energy").
+    """
+
+    context: PhaseStatistics
+    head: PhaseStatistics
+
+    name = "joint_phase_energy"
+    reads = ("chunk_index", "context_energy")
+    n_components = 2
+    json_fields = (
+        "context_energy_phase_mean",
+        "context_energy_phase_std",
+        "head_energy_phase_mean",
+        "head_energy_phase_std",
+    )
+
+    def __post_init__(self):
+        check_statistics(self.name, "context", self.context, PhaseStatistics)
+        check_statistics(self.name, "head", self.head, PhaseStatistics)
+
+    @classmethod
+    def fit(cls, vanilla: VanillaRollouts) -> "JointPhaseEnergy":
+        return cls(
+            fit_phase(vanilla, "context_energy", cls.name), fit_phase(vanilla, "head_energy", cls.name)
+        )
+
+    def components(self, chunks: ChunkInputs) -> np.ndarray:
+        index = chunks.get("chunk_index", self.name)
+        context = self.context.z(chunks.get("context_energy", self.name), index)
+        return np.stack([context, self.head.z(chunks.get("head_energy", self.name), index)], axis=1)
+
+    def combine(self, aggregates: np.ndarray) -> np.ndarray:
+        return aggregates.mean(axis=1)
+
+    def to_json(self) -> dict[str, Any]:
+        return dict(
+            zip(
+                self.json_fields,
+                (self.context.mean, self.context.std, self.head.mean, self.head.std),
+                strict=True,
+            )
+        )
+
+    @classmethod
+    def from_json(cls, fields: dict[str, Any]) -> "JointPhaseEnergy":
+        names = cls.json_fields
+        return cls(
+            PhaseStatistics(*statistics_pair(fields, *names[:2], cls.name, PhaseStatistics)),
+            PhaseStatistics(*statistics_pair(fields, *names[2:], cls.name, PhaseStatistics)),
+        )
+
+
+@dataclass(frozen=True)
 class ContextKNN(ChunkScore):
     """The distance of the chunk's standardized pooled context to its k-th nearest vanilla one."""
 
@@ -417,9 +484,10 @@ class ContextKNN(ChunkScore):
         return cls(fields.get(NEIGHBOURS_FILE.field))
 
 
-# The registry: each score by its name. The package's four; research code adds its own (`register_score`).
+# The registry: each score by its name. The package's five; research code adds its own (`register_score`).
 SCORES: dict[str, type[ChunkScore]] = {
-    score.name: score for score in (FinalEnergy, ContextPhaseEnergy, HeadEnergyTwoSided, ContextKNN)
+    score.name: score
+    for score in (FinalEnergy, ContextPhaseEnergy, HeadEnergyTwoSided, JointPhaseEnergy, ContextKNN)
 }
 PACKAGE_SCORES = tuple(SCORES)
 
