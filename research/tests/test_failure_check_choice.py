@@ -1,6 +1,7 @@
 """The failure check's decision chunk N, chosen on calibration rollouts alone (`failure_check_choice.py`)."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -193,3 +194,95 @@ def test_ds_second_failure_check_is_recomputed_from_the_rollouts_it_was_chosen_o
     assert json.loads(json.dumps(picked)) == json.loads(committed.read_text())
     assert (picked["score"], picked["chunks"]) == ("context_phase_energy", 16)
     assert (picked["development_rollouts"], picked["development_failed"]) == (300, 19)
+
+
+def test_ds_joint_choice_is_recomputed_from_the_rollouts_it_was_chosen_on():
+    """`failure_check_choice_joint.json` (libero_runs.md, "A failure check on both terms of the joint energy"): the
+    four energy scores, chosen on D's calibration and every vanilla rollout of D seen before."""
+    folder = RESULTS / "libero_object10_more/eval/ebvla_joint_fast_cpu_more"
+    episodes = lambda name: list(choice.load_episodes([str(folder / name / "task*")]).values())  # noqa: E731
+    development = [
+        episode
+        for name in ("vanilla_heldout", "vanilla_fresh", "vanilla_confirm", "vanilla_fresh_arm_set")
+        for episode in episodes(name)
+    ]
+    picked = choice.choose(
+        episodes("vanilla_calib"),
+        scores=("final_energy", "context_phase_energy", "head_energy_two_sided", "joint_phase_energy"),
+        development=development,
+    )
+    committed = (
+        RESULTS / "libero_object10_more/reports/ebvla_joint_fast_cpu_more/failure_check_choice_joint.json"
+    )
+    assert json.loads(json.dumps(picked)) == json.loads(committed.read_text())
+    assert (picked["score"], picked["chunks"]) == ("joint_phase_energy", 16)
+    rows = {(row["score"], row["chunks"]): row["balanced_accuracy"] for row in picked["candidates"]}
+    assert rows["joint_phase_energy", 16] == pytest.approx(0.945, abs=5e-4)
+    assert rows["context_phase_energy", 16] == pytest.approx(0.908, abs=5e-4)
+
+
+tester = load_benchmark("failure_check_test")
+
+
+def test_the_test_judges_a_fixed_choice_at_the_tested_checkpoints_own_calibration_t(tmp_path):
+    rng = np.random.default_rng(2)
+
+    # E_c rises from chunk 8 in failed rollouts, on this checkpoint's own scale (shifted by 5 from the one the
+    # choice was made on): T must come from these calibration rollouts, not from the choice's JSON.
+    def episodes(first, n_ok, n_failed):
+        ok = [joint_rollout(first + i, 5.0 + rng.normal(0.0, 0.1, 16), True) for i in range(n_ok)]
+        failed = [
+            joint_rollout(
+                first + 100 + i, 5.0 + np.r_[rng.normal(0.0, 0.1, 8), rng.normal(2.0, 0.1, 8)], False
+            )
+            for i in range(n_failed)
+        ]
+        # The pooled context follows E_c here, so the feature baseline sees the failures too.
+        return {
+            (first, i): [replace(r, context_feature=[r.context_energy, 0.0]) for r in e]
+            for i, e in enumerate(ok + failed)
+        }
+
+    fixed = {"score": "context_phase_energy", "chunks": 12, "k": 1.0}
+    calibration = episodes(0, 12, 3)
+    result = tester.test_choice(fixed, calibration, {"held": episodes(1000, 20, 5)}, ["final_energy"])
+    rows = {row["score"]: row for row in result["sets"]["all held out"]["rows"]}
+    assert list(rows) == ["context_phase_energy", "final_energy", "chunk_context_nn"]
+    chosen = rows["context_phase_energy"]
+    assert (chosen["failed_alarmed"], chosen["failed"], chosen["successful"]) == (5, 5, 20)
+    assert chosen["auroc"] == 1.0
+    assert chosen["balanced_accuracy"] == pytest.approx(0.5 * (1 + 1 - chosen["successful_alarmed"] / 20))
+    # T is mu + 1 sigma of this checkpoint's successful calibration rollouts, each against the others.
+    values = choice.calibration_scores(list(calibration.values()), "context_phase_energy", (12,))[12][:12]
+    assert chosen["threshold"] == pytest.approx(values.mean() + values.std())
+    assert rows["final_energy"]["auroc"] < 0.8
+    # No goal distances in these records: no onset, but the lead to the end (16 - 12 chunks).
+    assert result["sets"]["held"]["leads"] == {
+        "caught": 5,
+        "at_or_before_onset": 0,
+        "median_lead_to_onset": None,
+        "median_lead_to_end": 4.0,
+    }
+    targets = {name: met for name, met, _ in tester.targets(result)}
+    assert targets["balanced accuracy >= 80%"] and targets["at least final_energy's balanced accuracy"]
+    with pytest.raises(ValueError, match="needs failed and at least 2 successful calibration rollouts"):
+        tester.test_choice(fixed, episodes(0, 12, 0), {}, [])
+
+
+def test_run_on_ds_own_confirmation_the_test_gives_ds_committed_table_iv_figures():
+    """The script against figures committed before it: D's second check on its confirmation rollouts (libero_runs.md,
+    "The confirmation's results": 26/30 and 16/170, 88.6 %; `chunk_context_nn` at chunk 16 96.8 %)."""
+    folder = RESULTS / "libero_object10_more/eval/ebvla_joint_fast_cpu_more"
+    load = lambda name: choice.load_episodes([str(folder / name / "task*")])  # noqa: E731
+    fixed = {"score": "context_phase_energy", "chunks": 16, "k": 1.0}
+    result = tester.test_choice(fixed, load("vanilla_calib"), {"confirm": load("vanilla_confirm")}, [])
+    rows = {row["score"]: row for row in result["sets"]["confirm"]["rows"]}
+    check, baseline = rows["context_phase_energy"], rows["chunk_context_nn"]
+    assert [check[k] for k in ("failed_alarmed", "failed", "successful_alarmed", "successful")] == [
+        26,
+        30,
+        16,
+        170,
+    ]
+    assert check["balanced_accuracy"] == pytest.approx(0.886, abs=5e-4)
+    assert baseline["balanced_accuracy"] == pytest.approx(0.968, abs=5e-4)
