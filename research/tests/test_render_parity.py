@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 import pytest
 
 from lerobot_policy_ebvla.monitoring.records import EnergyRecord, write_energy_records
@@ -61,3 +62,48 @@ def test_only_episodes_run_on_both_are_paired_and_none_is_an_error(tmp_path):
     with pytest.raises(ValueError, match="no episode"):
         parity.render_parity(a, tmp_path / "c")
     assert not math.isnan(parity.render_parity(a, b).context_energy_at_reset_spread)
+
+
+frames = load_benchmark("reset_frames")
+
+
+def fake_dump(tasks, states, levels, machine):
+    """A dump of len(tasks) resets whose frames are all `levels` (one per reset), as `reset_frames.dump` writes it."""
+    n = len(tasks)
+    image = np.stack([np.full((4, 4, 3), level, dtype=np.uint8) for level in levels])
+    observation = {
+        "pixels": {"image": image, "image2": image[:, ::-1]},
+        "robot_state": {"joints": {"pos": np.zeros((n, 7))}},
+    }
+    return {
+        **{f"observation/{k}": v for k, v in frames.flatten(observation).items()},
+        "task": np.array(tasks),
+        "state": np.array(states),
+        "instruction": np.array(["pick"] * n),
+        "machine": np.array(machine),
+    }
+
+
+def test_reset_frames_pair_the_two_dumps_by_task_and_state_and_measure_their_pixels():
+    observation = {
+        "pixels": {"image": np.ones((1, 2, 2, 3))},
+        "robot_state": {"eef": {"pos": np.zeros((1, 3))}},
+    }
+    assert frames.unflatten(frames.flatten(observation)).keys() == observation.keys()
+    np.testing.assert_array_equal(
+        frames.unflatten(frames.flatten(observation))["pixels"]["image"], np.ones((1, 2, 2, 3))
+    )
+
+    here = fake_dump([0, 1], [30, 30], [100, 120], "cpu")
+    # The other machine dumped them in the other order, each 10 levels brighter.
+    there = fake_dump([1, 0], [30, 30], [130, 110], "gpu")
+    result = frames.compare(here, there, checkpoint=None)
+    assert result["pairs"] == 2 and result["machines"] == ["cpu", "gpu"]
+    camera = result["cameras"]["image"]
+    assert camera["mean_abs_levels"] == 10.0 and camera["share_over_8_levels"] == 1.0
+    assert camera["mean_level_here"] == [110.0] * 3 and camera["mean_level_there"] == [120.0] * 3
+    assert "context_energy" not in result
+    with pytest.raises(
+        ValueError, match=r"no reset of these \(task, state\) pairs of this one: \[\(1, 30\)\]"
+    ):
+        frames.compare(here, fake_dump([2, 0], [30, 30], [1, 2], "gpu"), checkpoint=None)
