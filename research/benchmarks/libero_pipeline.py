@@ -152,6 +152,25 @@ FINE_TUNES["ebvla_joint_fast_cpu_arm"] = FineTune(
     ("--policy.optimizer_lr=1e-4",),
 )
 RUNS["ebvla_joint_fast_cpu_arm"] = RUNS["ebvla_joint_fast_cpu"]
+
+
+# A trained run's checkpoint evaluated with other inference settings, under a name of its own (its records apart;
+# it is never trained). Added 2026-11-30 (research/docs/libero_runs.md, "Best of 8 by energy on the fixed states").
+@dataclass(frozen=True)
+class InferenceVariant:
+    base: str  # the run whose last checkpoint it evaluates, on the same work folder
+    flags: tuple[str, ...]  # `ebvla-eval` options added to the base's
+
+
+INFERENCE_VARIANTS = {
+    # D with best of 8 by energy: 8 chains refined per chunk from independent a^(0), the lowest final energy kept
+    # (on MetaWorld, +14 / -1 episodes against one chain: BENCHMARKS.md, "Best-of-N by energy in closed loop").
+    "ebvla_joint_fast_cpu_more_best8": InferenceVariant(
+        "ebvla_joint_fast_cpu_more", ("--policy.num_restarts=8",)
+    ),
+}
+for _name, _variant in INFERENCE_VARIANTS.items():
+    RUNS[_name] = RUNS[_variant.base]
 RUNS["diffusion_cpu"] = [
     "--policy.type=diffusion",
     "--policy.pretrained_backbone_weights=null",
@@ -437,6 +456,11 @@ def train(
     stops the trainings after that many seconds (their last checkpoint stays; the next call resumes from it),
     so that a long training runs in parts.
     """
+    variants = [run for run in runs if run in INFERENCE_VARIANTS]
+    if variants:
+        raise ValueError(
+            f"{variants} evaluate another run's checkpoint and are not trained: train their base run."
+        )
     processes = []
     for run in runs:
         if (work / "train" / run / "DONE").exists():
@@ -475,6 +499,8 @@ def stop_training(work: Path) -> None:
 
 
 def last_checkpoint(work: Path, run: str) -> Path | None:
+    """The run's last saved `pretrained_model` (an inference variant's: its base run's), None before the first."""
+    run = INFERENCE_VARIANTS[run].base if run in INFERENCE_VARIANTS else run
     path = work / "train" / run / "checkpoints" / "last" / "pretrained_model"
     return path if (path / "model.safetensors").exists() else None
 
@@ -643,6 +669,8 @@ def eval_command(work: Path, job: EvalJob, device: str, episode_length: int | No
     ]
     if episode_length is not None:
         cmd.append(f"--env.episode_length={episode_length}")
+    if job.run in INFERENCE_VARIANTS:
+        cmd += INFERENCE_VARIANTS[job.run].flags
     if job.condition in (FRESH_CONDITION, FRESH_ARM_CONDITION):
         # LeRobot's env then keeps the placements LIBERO's reset samples from the episode's seed.
         cmd.append("--env.init_states=false")

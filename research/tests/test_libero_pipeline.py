@@ -742,3 +742,20 @@ def test_first_can_name_one_runs_condition_and_only_first_drops_the_rest():
         "ebvla_b/vanilla_calib/task2",
         "ebvla_b/vanilla_calib/task3",
     ]
+
+
+def test_an_inference_variant_evaluates_its_base_runs_checkpoint_with_its_flags_and_is_never_trained(work):
+    variant = "ebvla_joint_fast_cpu_more_best8"
+    base = pipeline.INFERENCE_VARIANTS[variant].base
+    assert pipeline.last_checkpoint(work, variant) is None
+    checkpoint = fake_checkpoint(work, base)
+    assert pipeline.last_checkpoint(work, variant) == checkpoint
+    job = pipeline.EvalJob(variant, "vanilla_confirm", 1, 30, 20, 4000)
+    cmd = pipeline.eval_command(work, job, "cpu")
+    assert f"--policy.path={checkpoint}" in cmd and "--policy.num_restarts=8" in cmd
+    # Its records sit apart from the base run's.
+    assert f"--output_dir={work / 'eval' / variant / 'vanilla_confirm' / 'task1'}" in cmd
+    base_cmd = pipeline.eval_command(work, pipeline.EvalJob(base, "vanilla_confirm", 1, 30, 20, 4000), "cpu")
+    assert "--policy.num_restarts=8" not in base_cmd
+    with pytest.raises(ValueError, match="evaluate another run's checkpoint and are not trained"):
+        pipeline.train(work, [variant], 10, 2, "cpu", 0, detach=True)
