@@ -150,12 +150,14 @@ def test_the_committed_run_time_alarm_rates_are_what_the_shipped_monitor_gives_o
 
 def test_ds_committed_run_time_alarm_rates_are_what_its_shipped_monitor_gives_on_the_records(tmp_path):
     """D's `runtime_alarms.json` (BENCHMARKS.md: its shipped monitor, the conformal T on the window score of the
-    first 3 chunks and the second failure check, replayed chunk by chunk) recomputed, and
+    first 3 chunks and the joint failure check, replayed chunk by chunk) recomputed, and
     `runtime_alarms_mean3.json`, the same monitor with D's T before the window (the 3-chunk mean's)."""
     committed = RESULTS / "libero_object10_more/reports/ebvla_joint_fast_cpu_more/runtime_alarms.json"
     got = replayed_alarms("libero_object10_more", "ebvla_joint_fast_cpu_more", tmp_path / "alarms.json")
     assert got == json.loads(committed.read_text())
-    assert got["failure_check"] == {"score": "context_phase_energy", "chunks": 16}
+    # Since 2026-11-30 the failure check is `joint_phase_energy` (confirmed on E: libero_runs.md, "A failure check on
+    # both terms of the joint energy"); the OOD check's decisions below are unchanged.
+    assert got["failure_check"] == {"score": "joint_phase_energy", "chunks": 16}
     keys = ("at_chunk_3", "by_chunk_3", "ever")
     conditions = got["conditions"]
     # The decision after chunk 3 stands: a rollout alarmed at all is alarmed by chunk 3.
@@ -286,3 +288,42 @@ def test_run_on_ds_own_confirmation_the_test_gives_ds_committed_table_iv_figures
     ]
     assert check["balanced_accuracy"] == pytest.approx(0.886, abs=5e-4)
     assert baseline["balanced_accuracy"] == pytest.approx(0.968, abs=5e-4)
+
+
+def test_es_committed_test_of_the_joint_check_and_its_window_alarms_are_recomputed(tmp_path):
+    """E's pre-registered test (libero_runs.md, "The test's result"), from E's committed records: the joint check
+    confirmed (92.6 % against E_c's 91.3 %), `chunk_context_nn` above its interval."""
+    root = RESULTS / "libero_object10_arm"
+    folder = root / "eval/ebvla_joint_fast_cpu_arm"
+    tester.main(
+        [
+            f"--choice={RESULTS / 'libero_object10_more/reports/ebvla_joint_fast_cpu_more/failure_check_choice_joint.json'}",
+            f"--calibration={folder / 'vanilla_calib' / 'task*'}",
+            "--held_out",
+            *(
+                str(folder / name / "task*")
+                for name in ("vanilla_heldout", "vanilla_confirm", "vanilla_fresh")
+            ),
+            "--beside",
+            "context_phase_energy",
+            "final_energy",
+            f"--output={tmp_path / 'test.json'}",
+        ]
+    )
+    got = json.loads((tmp_path / "test.json").read_text())
+    committed = root / "reports/ebvla_joint_fast_cpu_arm/failure_check_test.json"
+    assert got == json.loads(committed.read_text())
+    assert [t["met"] for t in got["targets"]] == [True, True, True, False]
+    rows = {r["score"]: r for r in got["sets"]["all held out"]["rows"]}
+    assert rows["joint_phase_energy"]["balanced_accuracy"] == pytest.approx(0.926, abs=5e-4)
+    assert rows["context_phase_energy"]["balanced_accuracy"] == pytest.approx(0.913, abs=5e-4)
+    assert rows["chunk_context_nn"]["auroc"] == pytest.approx(0.980, abs=5e-4)
+    # The run-time window on E's new rollouts: E's monitor (calibrated on its calibration rollouts) replayed.
+    alarms = replayed_alarms("libero_object10_arm", "ebvla_joint_fast_cpu_arm", tmp_path / "alarms.json")
+    assert alarms == json.loads((root / "reports/ebvla_joint_fast_cpu_arm/runtime_alarms.json").read_text())
+    by_chunk_3 = {name: c["by_chunk_3"]["alarmed"] for name, c in alarms["conditions"].items()}
+    assert (by_chunk_3["vanilla_heldout"], by_chunk_3["vanilla_confirm"], by_chunk_3["vanilla_fresh"]) == (
+        13,
+        19,
+        0,
+    )
