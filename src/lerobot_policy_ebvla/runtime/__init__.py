@@ -8,8 +8,8 @@
   `ContextStatistics`, `ContextNeighbours`, `CombinedStatistics`), and `ChunkWindow`, the one score of a rollout's
   first N running scores that lets one T bound a run-time monitor's N decisions.
 - `scores`: `ChunkInputs` (a readout as the scores read it), the `ChunkScore` protocol, the package's five scores
-  (final energy, context phase energy, two-sided head energy, joint phase energy, context k-NN), and `SCORES`, the registry that
-  names them, with `register_score`, its hook for research scores.
+  (final energy, context phase energy, two-sided head energy, joint phase energy, context k-NN), and `SCORES`,
+  the registry that names them, with `register_score`, its hook for research scores.
 - `calibration`: `OODCalibration`, the threshold statistics of one chunk score (`ood_calibration.json` beside
   the weights, the score's statistics in safetensors files beside it), and `FailureCalibration`, the failure
   check's: an energy score over the first N chunks, set on the same vanilla rollouts (`failure_calibration.json`).

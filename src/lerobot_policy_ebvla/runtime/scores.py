@@ -323,9 +323,10 @@ class FinalEnergy(ChunkScore):
         return chunks.final_energy[:, None]
 
 
-def fit_phase(vanilla: VanillaRollouts, input: str, score: str) -> PhaseStatistics:
-    """mu_v[t] and sigma_v[t] of the vanilla rollouts' input `input` (a `ChunkInputs` field) at each chunk index t."""
-    series = zip(vanilla.series(input, score), vanilla.series("chunk_index", score), strict=True)
+def fit_phase(vanilla: VanillaRollouts, field_name: str, score: str) -> PhaseStatistics:
+    """mu_v[t] and sigma_v[t] of the vanilla rollouts' input `field_name` (a `ChunkInputs` field) at each chunk
+    index t, which the score `score` reads."""
+    series = zip(vanilla.series(field_name, score), vanilla.series("chunk_index", score), strict=True)
     return PhaseStatistics.fit([energies_by_index(x, t) for x, t in series])
 
 
