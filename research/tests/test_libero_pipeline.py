@@ -694,6 +694,50 @@ def test_arm_pieces_start_the_arm_as_the_fixed_states_do_on_placements_of_their_
     assert summary["tasks"]["7"]["kept"] == 6 and summary["tasks"]["7"]["arm_kept"] == 3
 
 
+def test_more_arm_pieces_continue_their_tasks_placements_in_pieces_of_the_arm_size(tmp_path, monkeypatch):
+    import lerobot.datasets.aggregate
+
+    work, commands = tmp_path / "work", []
+
+    def record_piece(cmd, log):
+        commands.append(cmd)
+        root = next(arg.split("=")[1] for arg in cmd if arg.startswith("--root="))
+        n = int(next(arg.split("=")[1] for arg in cmd if arg.startswith("--episodes_per_task=")))
+        report = {
+            "n_kept": n,
+            "n_attempted": n,
+            "success_rate_per_task": {"pick up the cream cheese": 1.0},
+            "episodes": [{"n_steps": 150, "kept": True}] * n,
+        }
+        write_json(Path(root) / "meta" / "recording_report.json", report)
+        return 0
+
+    monkeypatch.setattr(pipeline, "run_logged", record_piece)
+    monkeypatch.setattr(lerobot.datasets.aggregate, "aggregate_datasets", lambda **kwargs: None)
+    pipeline.record(work, [1, 2], 2, 128, jobs=1, placement_seed=100000, arm_episodes=2, more_arm_episodes={1: 4})
+    arm = [cmd for cmd in commands if any("robot_init_noise" in arg for arg in cmd)]
+    roots = [Path(next(arg.split("=")[1] for arg in cmd if arg.startswith("--root="))).name for cmd in arm]
+    assert roots == ["task1_arm_from0", "task1_arm_from2", "task1_arm_from4", "task2_arm_from0"]
+    # attempt i of a piece starts from placement seed ARM_PLACEMENT_SEED + first + i: no two pieces share one
+    assert [next(a for a in cmd if a.startswith("--env.first_init_state=")) for cmd in arm[:3]] == [
+        "--env.first_init_state=0",
+        "--env.first_init_state=2",
+        "--env.first_init_state=4",
+    ]
+    summary = json.loads((work / "recording_summary.json").read_text())
+    assert summary["more_arm_episodes"] == {"1": 4}
+    assert summary["tasks"]["1"]["arm_kept"] == 6 and summary["tasks"]["2"]["arm_kept"] == 2
+
+    with pytest.raises(ValueError, match="arm_episodes"):
+        pipeline.record(tmp_path / "other", [1], 2, 128, jobs=1, more_arm_episodes={1: 4})
+
+
+def test_task_counts_read_task_equals_n_and_name_a_malformed_item():
+    assert pipeline.task_counts(["1=20", "5=20"]) == {1: 20, 5: 20}
+    with pytest.raises(ValueError, match="'1:20'"):
+        pipeline.task_counts(["1:20"])
+
+
 def test_a_fine_tune_starts_from_its_saved_weights_with_its_own_rate_then_resumes_itself(work):
     run = "ebvla_joint_fast_cpu_more"
     fine_tune = pipeline.FINE_TUNES[run]
