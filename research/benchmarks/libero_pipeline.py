@@ -133,33 +133,30 @@ class FineTune:
 
 
 REPOSITORY = Path(__file__).resolve().parents[2]
+# Peak rate 1e-4, a fifth of C's, so that the tasks a fine-tune does not add to keep what they learned.
+FINE_TUNE_RATE = ("--policy.optimizer_lr=1e-4",)
 FINE_TUNES = {
     # D (2026-11-29, after the ten-task check): C's ten-task checkpoint (step 20,000) trained on with 44 more
     # demonstrations each of tasks 1 and 5, the two whose grasps miss (cream cheese 8/20 and tomato sauce 9/20 on the
-    # fixed initial states, 6/10 and 3/10 on fresh placements; the object is never carried). Peak rate 1e-4, a
-    # fifth of C's, so that the other eight tasks keep what they learned.
+    # fixed initial states, 6/10 and 3/10 on fresh placements; the object is never carried).
     "ebvla_joint_fast_cpu_more": FineTune(
-        "research/results/libero_object10/train/ebvla_joint_fast_cpu/last/pretrained_model",
-        ("--policy.optimizer_lr=1e-4",),
+        "research/results/libero_object10/train/ebvla_joint_fast_cpu/last/pretrained_model", FINE_TUNE_RATE
+    ),
+    # E (2026-11-29, night): D trained on with 10 demonstrations per task whose arm starts as the fixed states' arms
+    # do (`record --arm_episodes`), beside D's 528: D succeeds on 98 % of fresh placements but 85 % of the fixed
+    # states 30-49, whose only measured difference is the arm's start (research/docs/libero_placement_gap.md).
+    "ebvla_joint_fast_cpu_arm": FineTune(
+        "research/results/libero_object10_more/train/ebvla_joint_fast_cpu_more/last/pretrained_model", FINE_TUNE_RATE
+    ),
+    # F (2026-11-30): E trained on with 20 more arm-start demonstrations each of tasks 1 and 5 (`record
+    # --more_arm_episodes`), the small-object grasps that E still misses on the fixed states (15/20 and 10/20 on
+    # states 30-49; the other eight tasks 149/160).
+    "ebvla_joint_fast_cpu_arm_more": FineTune(
+        "research/results/libero_object10_arm/train/ebvla_joint_fast_cpu_arm/last/pretrained_model", FINE_TUNE_RATE
     ),
 }
-RUNS["ebvla_joint_fast_cpu_more"] = RUNS["ebvla_joint_fast_cpu"]  # the flags its start was trained with
-# E (2026-11-29, night): D trained on with 10 demonstrations per task whose arm starts as the fixed states' arms do
-# (`record --arm_episodes`), beside D's 528: D succeeds on 98 % of fresh placements but 85 % of the fixed states
-# 30-49, whose only measured difference is the arm's start (research/docs/libero_placement_gap.md). D's rate.
-FINE_TUNES["ebvla_joint_fast_cpu_arm"] = FineTune(
-    "research/results/libero_object10_more/train/ebvla_joint_fast_cpu_more/last/pretrained_model",
-    ("--policy.optimizer_lr=1e-4",),
-)
-RUNS["ebvla_joint_fast_cpu_arm"] = RUNS["ebvla_joint_fast_cpu"]
-# F (2026-11-30): E trained on with 20 more arm-start demonstrations each of tasks 1 and 5 (`record
-# --more_arm_episodes`), the small-object grasps that E still misses on the fixed states (15/20 and 10/20 on states
-# 30-49; the other eight tasks 149/160). E's rate.
-FINE_TUNES["ebvla_joint_fast_cpu_arm_more"] = FineTune(
-    "research/results/libero_object10_arm/train/ebvla_joint_fast_cpu_arm/last/pretrained_model",
-    ("--policy.optimizer_lr=1e-4",),
-)
-RUNS["ebvla_joint_fast_cpu_arm_more"] = RUNS["ebvla_joint_fast_cpu"]
+for _name in FINE_TUNES:  # each start descends from C: the flags it was trained with
+    RUNS[_name] = RUNS["ebvla_joint_fast_cpu"]
 
 
 # A trained run's checkpoint evaluated with other inference settings, under a name of its own (its records apart;
