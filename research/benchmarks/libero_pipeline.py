@@ -164,7 +164,9 @@ for _name in FINE_TUNES:  # each start descends from C: the flags it was trained
 @dataclass(frozen=True)
 class InferenceVariant:
     base: str  # the run whose last checkpoint it evaluates, on the same work folder
-    flags: tuple[str, ...]  # `ebvla-eval` options added to the base's
+    flags: tuple[str, ...] = ()  # `ebvla-eval` options added to the base's
+    # Actions executed per chunk, when not the checkpoint's: the env then renders the frames this count reads.
+    n_action_steps: int | None = None
 
 
 INFERENCE_VARIANTS = {
@@ -173,6 +175,9 @@ INFERENCE_VARIANTS = {
     "ebvla_joint_fast_cpu_more_best8": InferenceVariant(
         "ebvla_joint_fast_cpu_more", ("--policy.num_restarts=8",)
     ),
+    # F executing 4 of each 8-step chunk before refining the next from a new frame: twice the decisions, each from
+    # a frame 4 steps old at most (research/docs/libero_runs.md, "F re-planning every 4 steps").
+    "ebvla_joint_fast_cpu_arm_more_act4": InferenceVariant("ebvla_joint_fast_cpu_arm_more", n_action_steps=4),
 }
 for _name, _variant in INFERENCE_VARIANTS.items():
     RUNS[_name] = RUNS[_variant.base]
@@ -690,8 +695,11 @@ def eval_command(work: Path, job: EvalJob, device: str, episode_length: int | No
     ]
     if episode_length is not None:
         cmd.append(f"--env.episode_length={episode_length}")
-    if job.run in INFERENCE_VARIANTS:
-        cmd += INFERENCE_VARIANTS[job.run].flags
+    variant = INFERENCE_VARIANTS.get(job.run)
+    if variant is not None:
+        cmd += variant.flags
+        if variant.n_action_steps is not None:
+            cmd.append(f"--policy.n_action_steps={variant.n_action_steps}")
     if job.condition in (FRESH_CONDITION, FRESH_ARM_CONDITION):
         # LeRobot's env then keeps the placements LIBERO's reset samples from the episode's seed.
         cmd.append("--env.init_states=false")
@@ -703,6 +711,8 @@ def eval_command(work: Path, job: EvalJob, device: str, episode_length: int | No
         # about half the time on two cores). ebvla-eval raises should a chunk be refined from another step.
         config = last_checkpoint(work, job.run) / "config.json"
         n_action_steps = json.loads(config.read_text())["n_action_steps"] if config.exists() else 1
+        if variant is not None and variant.n_action_steps is not None:
+            n_action_steps = variant.n_action_steps
         if n_action_steps > 1:
             cmd.append(f"--env.render_every={n_action_steps}")
     return cmd
