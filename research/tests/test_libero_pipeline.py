@@ -6,6 +6,7 @@ every stage at a tiny size on CPU (it needs LIBERO set up, as the simulator test
 
 import json
 import math
+from collections.abc import Callable
 import tarfile
 from pathlib import Path
 
@@ -617,34 +618,43 @@ def test_more_episodes_add_pieces_of_the_same_size_to_their_tasks_only():
     ]
 
 
+def piece_recording_report(n: int, task: str = "pick up the cream cheese") -> dict:
+    """A recorder's report of a piece whose n attempts all succeeded."""
+    return {
+        "n_kept": n,
+        "n_attempted": n,
+        "success_rate_per_task": {task: 1.0},
+        "episodes": [{"n_steps": 150, "kept": True}] * n,
+    }
+
+
+def fake_recorder(commands: list) -> Callable:
+    """Stands in for `run_logged` when recording: keeps each piece's command and writes the report the recorder
+    would, at the piece's `--root`, with its `--episodes_per_task` attempts kept."""
+
+    def record_piece(cmd, log):
+        commands.append(cmd)
+        root = next(arg.split("=")[1] for arg in cmd if arg.startswith("--root="))
+        n = int(next(arg.split("=")[1] for arg in cmd if arg.startswith("--episodes_per_task=")))
+        write_json(Path(root) / "meta" / "recording_report.json", piece_recording_report(n))
+        return 0
+
+    return record_piece
+
+
 def test_pieces_a_results_folder_holds_are_linked_and_only_the_extra_ones_are_recorded(tmp_path, monkeypatch):
     """A fine-tune's dataset: the saved video pieces of the first run, linked (never copied into the new results),
     and the extra demonstrations recorded from the placement seeds after them."""
     import lerobot.datasets.aggregate
 
     saved = tmp_path / "results"
-    report = {
-        "n_kept": 11,
-        "n_attempted": 11,
-        "success_rate_per_task": {"pick up the cream cheese": 1.0},
-        "episodes": [{"n_steps": 160, "kept": True}] * 11,
-    }
     for first in (0, 11):
-        write_json(saved / "data" / f"task1_from{first}" / "meta" / "recording_report.json", report)
+        write_json(saved / "data" / f"task1_from{first}" / "meta" / "recording_report.json", piece_recording_report(11))
         video = saved / "data" / f"task1_from{first}" / "videos" / "observation.images.image" / "file-000.mp4"
         video.parent.mkdir(parents=True)
         video.write_bytes(b"frames")
-    work = tmp_path / "work"
-    commands = []
-
-    def record_piece(cmd, log):
-        commands.append(cmd)
-        first = next(int(arg.split("=")[1]) for arg in cmd if arg.startswith("--env.first_init_state="))
-        write_json(work / "data" / f"task1_from{first}" / "meta" / "recording_report.json", report)
-        return 0
-
-    aggregated = []
-    monkeypatch.setattr(pipeline, "run_logged", record_piece)
+    work, commands, aggregated = tmp_path / "work", [], []
+    monkeypatch.setattr(pipeline, "run_logged", fake_recorder(commands))
     monkeypatch.setattr(
         lerobot.datasets.aggregate, "aggregate_datasets", lambda **kwargs: aggregated.append(kwargs["roots"])
     )
@@ -668,20 +678,7 @@ def test_arm_pieces_start_the_arm_as_the_fixed_states_do_on_placements_of_their_
     import lerobot.datasets.aggregate
 
     work, commands, aggregated = tmp_path / "work", [], []
-    report = {
-        "n_kept": 3,
-        "n_attempted": 3,
-        "success_rate_per_task": {"pick up the ketchup": 1.0},
-        "episodes": [{"n_steps": 150, "kept": True}] * 3,
-    }
-
-    def record_piece(cmd, log):
-        commands.append(cmd)
-        root = next(arg.split("=")[1] for arg in cmd if arg.startswith("--root="))
-        write_json(Path(root) / "meta" / "recording_report.json", report)
-        return 0
-
-    monkeypatch.setattr(pipeline, "run_logged", record_piece)
+    monkeypatch.setattr(pipeline, "run_logged", fake_recorder(commands))
     monkeypatch.setattr(
         lerobot.datasets.aggregate, "aggregate_datasets", lambda **kwargs: aggregated.append(kwargs["roots"])
     )
@@ -698,21 +695,7 @@ def test_more_arm_pieces_continue_their_tasks_placements_in_pieces_of_the_arm_si
     import lerobot.datasets.aggregate
 
     work, commands = tmp_path / "work", []
-
-    def record_piece(cmd, log):
-        commands.append(cmd)
-        root = next(arg.split("=")[1] for arg in cmd if arg.startswith("--root="))
-        n = int(next(arg.split("=")[1] for arg in cmd if arg.startswith("--episodes_per_task=")))
-        report = {
-            "n_kept": n,
-            "n_attempted": n,
-            "success_rate_per_task": {"pick up the cream cheese": 1.0},
-            "episodes": [{"n_steps": 150, "kept": True}] * n,
-        }
-        write_json(Path(root) / "meta" / "recording_report.json", report)
-        return 0
-
-    monkeypatch.setattr(pipeline, "run_logged", record_piece)
+    monkeypatch.setattr(pipeline, "run_logged", fake_recorder(commands))
     monkeypatch.setattr(lerobot.datasets.aggregate, "aggregate_datasets", lambda **kwargs: None)
     pipeline.record(work, [1, 2], 2, 128, jobs=1, placement_seed=100000, arm_episodes=2, more_arm_episodes={1: 4})
     arm = [cmd for cmd in commands if any("robot_init_noise" in arg for arg in cmd)]
@@ -803,3 +786,17 @@ def test_an_inference_variant_evaluates_its_base_runs_checkpoint_with_its_flags_
     assert "--policy.num_restarts=8" not in base_cmd
     with pytest.raises(ValueError, match="evaluate another run's checkpoint and are not trained"):
         pipeline.train(work, [variant], 10, 2, "cpu", 0, detach=True)
+
+
+def test_a_variant_executing_fewer_actions_per_chunk_renders_every_frame_its_policy_reads(work):
+    """The env renders only the frames the policy reads; a variant that re-plans every 4 steps of the checkpoint's
+    8 must have every 4th frame drawn, or `ebvla-eval` would refine chunks from frames never rendered."""
+    variant = "ebvla_joint_fast_cpu_arm_more_act4"
+    base = pipeline.INFERENCE_VARIANTS[variant].base
+    checkpoint = fake_checkpoint(work, base)
+    write_json(checkpoint / "config.json", {"type": "ebvla", "n_action_steps": 8})
+    cmd = pipeline.eval_command(work, pipeline.EvalJob(variant, "vanilla_confirm", 1, 30, 20, 4000), "cpu")
+    assert "--policy.n_action_steps=4" in cmd and "--env.render_every=4" in cmd
+    assert "--env.render_every=8" not in cmd
+    base_cmd = pipeline.eval_command(work, pipeline.EvalJob(base, "vanilla_confirm", 1, 30, 20, 4000), "cpu")
+    assert "--env.render_every=8" in base_cmd and not any("n_action_steps" in arg for arg in base_cmd)
