@@ -146,13 +146,15 @@ FINE_TUNES = {
     # do (`record --arm_episodes`), beside D's 528: D succeeds on 98 % of fresh placements but 85 % of the fixed
     # states 30-49, whose only measured difference is the arm's start (research/docs/libero_placement_gap.md).
     "ebvla_joint_fast_cpu_arm": FineTune(
-        "research/results/libero_object10_more/train/ebvla_joint_fast_cpu_more/last/pretrained_model", FINE_TUNE_RATE
+        "research/results/libero_object10_more/train/ebvla_joint_fast_cpu_more/last/pretrained_model",
+        FINE_TUNE_RATE,
     ),
     # F (2026-11-30): E trained on with 20 more arm-start demonstrations each of tasks 1 and 5 (`record
     # --more_arm_episodes`), the small-object grasps that E still misses on the fixed states (15/20 and 10/20 on
     # states 30-49; the other eight tasks 149/160).
     "ebvla_joint_fast_cpu_arm_more": FineTune(
-        "research/results/libero_object10_arm/train/ebvla_joint_fast_cpu_arm/last/pretrained_model", FINE_TUNE_RATE
+        "research/results/libero_object10_arm/train/ebvla_joint_fast_cpu_arm/last/pretrained_model",
+        FINE_TUNE_RATE,
     ),
 }
 for _name in FINE_TUNES:  # each start descends from C: the flags it was trained with
@@ -305,7 +307,9 @@ def record(
     if arm_episodes:  # one piece a task: a recorder's start-up is not repeated for a few attempts
         pieces += [(*piece, True) for piece in record_pieces(tasks, arm_episodes, 1, more_arm_episodes or {})]
     elif more_arm_episodes:
-        raise ValueError("`more_arm_episodes` adds pieces of `arm_episodes` attempts each: give `arm_episodes` too.")
+        raise ValueError(
+            "`more_arm_episodes` adds pieces of `arm_episodes` attempts each: give `arm_episodes` too."
+        )
     for task, first, _, arm in pieces:
         piece = work / "data" / piece_name(task, first, arm)
         recorded = (folder / "data" / piece.name for folder in pieces_from or [])

@@ -128,7 +128,9 @@ def test_f_is_partial_on_the_fixed_states_30_49_and_keeps_the_fresh_placements(t
 
     paired = load_benchmark("paired_success")
     output = tmp_path / "paired.json"
-    paired.main([f"--first={CPU / 'vanilla_confirm'}", f"--second={F / 'vanilla_confirm'}", f"--output={output}"])
+    paired.main(
+        [f"--first={CPU / 'vanilla_confirm'}", f"--second={F / 'vanilla_confirm'}", f"--output={output}"]
+    )
     got = json.loads(output.read_text())
     committed = RESULTS / "libero_object10_arm_more" / "reports" / "paired_e_f_vanilla_confirm.json"
     assert got == json.loads(committed.read_text())
@@ -142,3 +144,32 @@ def test_f_is_partial_on_the_fixed_states_30_49_and_keeps_the_fresh_placements(t
 def test_f_reads_its_cameras():
     check = json.loads((F / "camera_check.json").read_text())
     assert check["chunk_change"] > 1.0 and check["energy_blank"] - check["energy_real"] > 20
+
+
+D_EVAL = RESULTS / "libero_object10_more" / "eval" / "ebvla_joint_fast_cpu_more"
+VARIANTS_REPORT = RESULTS / "libero_object10_arm" / "reports" / "failure_score_variants.json"
+
+
+@pytest.mark.skipif(
+    not (D_EVAL.exists() and CPU.exists()), reason="D's and E's records are not committed here"
+)
+def test_no_reading_of_the_joint_energy_reaches_the_feature_baseline_on_e_and_the_report_recomputes(tmp_path):
+    """research/docs/libero_runs.md, "Left to do": every way of reading `joint_phase_energy`'s two terms tried stays
+    below `chunk_context_nn` on E's held-out rollouts, by balanced accuracy and by AUROC."""
+    variants = load_benchmark("failure_score_variants")
+    output = tmp_path / "variants.json"
+    variants.main(["--run", f"D={D_EVAL}", "--run", f"E={CPU}", f"--output={output}"])
+    found, committed = json.loads(output.read_text()), json.loads(VARIANTS_REPORT.read_text())
+    for run in ("D", "E"):
+        for new, old in zip(found["runs"][run]["rows"], committed["runs"][run]["rows"], strict=True):
+            assert new["score"] == old["score"]
+            assert (new["failed_alarmed"], new["successful_alarmed"]) == (
+                old["failed_alarmed"],
+                old["successful_alarmed"],
+            )
+            assert math.isclose(new["auroc"], old["auroc"], abs_tol=1e-9)
+    rows = {r["score"]: r for r in found["runs"]["E"]["rows"]}
+    baseline = rows.pop("chunk_context_nn")
+    assert len(rows) == 8
+    assert all(r["balanced_accuracy"] < baseline["balanced_accuracy"] for r in rows.values())
+    assert all(r["auroc"] < baseline["auroc"] for r in rows.values())

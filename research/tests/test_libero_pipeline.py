@@ -6,8 +6,8 @@ every stage at a tiny size on CPU (it needs LIBERO set up, as the simulator test
 
 import json
 import math
-from collections.abc import Callable
 import tarfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -649,7 +649,10 @@ def test_pieces_a_results_folder_holds_are_linked_and_only_the_extra_ones_are_re
 
     saved = tmp_path / "results"
     for first in (0, 11):
-        write_json(saved / "data" / f"task1_from{first}" / "meta" / "recording_report.json", piece_recording_report(11))
+        write_json(
+            saved / "data" / f"task1_from{first}" / "meta" / "recording_report.json",
+            piece_recording_report(11),
+        )
         video = saved / "data" / f"task1_from{first}" / "videos" / "observation.images.image" / "file-000.mp4"
         video.parent.mkdir(parents=True)
         video.write_bytes(b"frames")
@@ -697,7 +700,9 @@ def test_more_arm_pieces_continue_their_tasks_placements_in_pieces_of_the_arm_si
     work, commands = tmp_path / "work", []
     monkeypatch.setattr(pipeline, "run_logged", fake_recorder(commands))
     monkeypatch.setattr(lerobot.datasets.aggregate, "aggregate_datasets", lambda **kwargs: None)
-    pipeline.record(work, [1, 2], 2, 128, jobs=1, placement_seed=100000, arm_episodes=2, more_arm_episodes={1: 4})
+    pipeline.record(
+        work, [1, 2], 2, 128, jobs=1, placement_seed=100000, arm_episodes=2, more_arm_episodes={1: 4}
+    )
     arm = [cmd for cmd in commands if any("robot_init_noise" in arg for arg in cmd)]
     roots = [Path(next(arg.split("=")[1] for arg in cmd if arg.startswith("--root="))).name for cmd in arm]
     assert roots == ["task1_arm_from0", "task1_arm_from2", "task1_arm_from4", "task2_arm_from0"]
