@@ -173,3 +173,24 @@ def test_no_reading_of_the_joint_energy_reaches_the_feature_baseline_on_e_and_th
     assert len(rows) == 8
     assert all(r["balanced_accuracy"] < baseline["balanced_accuracy"] for r in rows.values())
     assert all(r["auroc"] < baseline["auroc"] for r in rows.values())
+
+
+ACT4 = RESULTS / "libero_object10_arm_more" / "eval" / "ebvla_joint_fast_cpu_arm_more_act4"
+
+
+@pytest.mark.skipif(not ACT4.exists(), reason="F's re-planning records are not committed here")
+def test_re_planning_every_four_steps_loses_grasps_against_f_on_the_same_states(tmp_path):
+    """research/docs/libero_runs.md, "F re-planning every 4 steps": tasks 1 and 5, 22/40 against F's 27/40."""
+    paired = load_benchmark("paired_success")
+    output = tmp_path / "paired.json"
+    paired.main(
+        [f"--first={F / 'vanilla_confirm'}", f"--second={ACT4 / 'vanilla_confirm'}", f"--output={output}"]
+    )
+    got = json.loads(output.read_text())
+    assert [(got["tasks"][t]["first"], got["tasks"][t]["second"]) for t in ("task1", "task5")] == [
+        (13, 10),
+        (14, 12),
+    ]
+    assert (got["total"]["won"], got["total"]["lost"]) == (1, 6)
+    committed = RESULTS / "libero_object10_arm_more" / "reports" / "paired_f_act4_vanilla_confirm.json"
+    assert got == json.loads(committed.read_text())
