@@ -156,6 +156,12 @@ FINE_TUNES = {
         "research/results/libero_object10_arm/train/ebvla_joint_fast_cpu_arm/last/pretrained_model",
         FINE_TUNE_RATE,
     ),
+    # G (2026-11-30, late morning): F trained on 2000 more steps on F's own 668 demonstrations, nothing added: D's, E's
+    # and F's demonstrations each moved the fixed states by at most 7 of 200, and C's L1 was still falling slowly.
+    "ebvla_joint_fast_cpu_arm_more_longer": FineTune(
+        "research/results/libero_object10_arm_more/train/ebvla_joint_fast_cpu_arm_more/last/pretrained_model",
+        FINE_TUNE_RATE,
+    ),
 }
 for _name in FINE_TUNES:  # each start descends from C: the flags it was trained with
     RUNS[_name] = RUNS["ebvla_joint_fast_cpu"]
