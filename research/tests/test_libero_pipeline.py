@@ -744,6 +744,14 @@ def test_a_fine_tune_starts_from_its_saved_weights_with_its_own_rate_then_resume
     ]
 
 
+@pytest.mark.parametrize("run", sorted(pipeline.FINE_TUNES))
+def test_every_fine_tune_starts_from_committed_weights_trained_with_cs_flags(run):
+    """Each fine-tune's start is a committed checkpoint, and it trains with C's flags (its ancestors' own)."""
+    start = pipeline.REPOSITORY / pipeline.FINE_TUNES[run].start
+    assert (start / "model.safetensors").exists() and (start / "config.json").exists()
+    assert pipeline.RUNS[run] == pipeline.RUNS["ebvla_joint_fast_cpu"]
+
+
 def test_first_moves_the_named_conditions_jobs_to_the_front_in_that_order():
     args = (["ebvla_cpu"], [2, 3], 20, 5, ())
     whole = pipeline.eval_jobs(*args, calibration=10, fresh=10, confirm=20, fresh_arm=10)
