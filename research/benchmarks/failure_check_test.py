@@ -142,6 +142,24 @@ def targets(result: dict) -> list[tuple[str, bool, str]]:
     return found
 
 
+def rows_table(title: str, found: dict, name=str, name_column: str = "Score") -> list[str]:
+    """A held-out set's rows (`row`) as a markdown table under its title: counts per side, balanced accuracy, AUROC."""
+    lines = [
+        "",
+        f"### {title}: {found['failed']} of {found['rollouts']} failed",
+        "",
+        f"| {name_column} | Failed alarmed | Successful alarmed | Bal. acc. | AUROC [95 % CI] |",
+        "|---|---:|---:|---:|---|",
+    ]
+    for r in found["rows"]:
+        low, high = r["auroc_interval"]
+        lines.append(
+            f"| {name(r['score'])} | {r['failed_alarmed']}/{r['failed']} | {r['successful_alarmed']}/{r['successful']} "
+            f"| {r['balanced_accuracy']:.1%} | {r['auroc']:.3f} [{low:.3f}, {high:.3f}] |"
+        )
+    return lines
+
+
 def markdown(result: dict) -> str:
     choice = result["choice"]
     lines = [
@@ -150,19 +168,7 @@ def markdown(result: dict) -> str:
         f"(of {result['calibration_rollouts']})."
     ]
     for title, found in result["sets"].items():
-        lines += [
-            "",
-            f"### {title}: {found['failed']} of {found['rollouts']} failed",
-            "",
-            "| Score | Failed alarmed | Successful alarmed | Bal. acc. | AUROC [95 % CI] |",
-            "|---|---:|---:|---:|---|",
-        ]
-        for r in found["rows"]:
-            low, high = r["auroc_interval"]
-            lines.append(
-                f"| `{r['score']}` | {r['failed_alarmed']}/{r['failed']} | {r['successful_alarmed']}/{r['successful']} "
-                f"| {r['balanced_accuracy']:.1%} | {r['auroc']:.3f} [{low:.3f}, {high:.3f}] |"
-            )
+        lines += rows_table(title, found, lambda name: f"`{name}`")
         lead = found["leads"]
         lines.append(
             f"\nCaught {lead['caught']}: {lead['at_or_before_onset']} at or before the onset; median lead to the onset "

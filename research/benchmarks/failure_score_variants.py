@@ -24,7 +24,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from failure_check_test import BASELINE, row
+from failure_check_test import BASELINE, row, rows_table
 
 from lerobot_policy_ebvla.monitoring.baselines import RegisteredScoreModel, chunk_context_nn
 from lerobot_policy_ebvla.monitoring.records import load_episodes
@@ -90,19 +90,7 @@ def markdown(result: dict) -> str:
         "sigma of the successful calibration rollouts; all held-out rollouts of each run together."
     ]
     for run, found in result["runs"].items():
-        lines += [
-            "",
-            f"### {run}: {found['failed']} of {found['rollouts']} failed",
-            "",
-            "| Reading | Failed alarmed | Successful alarmed | Bal. acc. | AUROC [95 % CI] |",
-            "|---|---:|---:|---:|---|",
-        ]
-        for r in found["rows"]:
-            low, high = r["auroc_interval"]
-            lines.append(
-                f"| {r['score']} | {r['failed_alarmed']}/{r['failed']} | {r['successful_alarmed']}/{r['successful']} "
-                f"| {r['balanced_accuracy']:.1%} | {r['auroc']:.3f} [{low:.3f}, {high:.3f}] |"
-            )
+        lines += rows_table(run, found, name_column="Reading")
     return "\n".join(lines) + "\n"
 
 
