@@ -179,6 +179,15 @@ def markdown(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def write_report(result: dict, text: str, output: Path | None) -> None:
+    """Prints the report; with `output`, writes the result there as JSON and the text beside it (.md)."""
+    print(text)
+    if output is not None:
+        output.parent.mkdir(parents=True, exist_ok=True)
+        output.write_text(json.dumps(result, indent=1) + "\n")
+        output.with_suffix(".md").write_text(text)
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -199,12 +208,7 @@ def main(argv=None) -> None:
     held_out = {Path(pattern).parent.name: load_episodes([pattern]) for pattern in args.held_out}
     result = test_choice(json.loads(args.choice.read_text()), calibration, held_out, args.beside)
     result["targets"] = [{"target": t, "met": met, "figures": f} for t, met, f in targets(result)]
-    text = markdown(result)
-    print(text)
-    if args.output is not None:
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.write_text(json.dumps(result, indent=1) + "\n")
-        args.output.with_suffix(".md").write_text(text)
+    write_report(result, markdown(result), args.output)
 
 
 if __name__ == "__main__":

@@ -19,12 +19,11 @@ and tested, so no variant's figure here is held out.
 """
 
 import argparse
-import json
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from failure_check_test import BASELINE, row, rows_table
+from failure_check_test import BASELINE, row, rows_table, write_report
 
 from lerobot_policy_ebvla.monitoring.baselines import RegisteredScoreModel, chunk_context_nn
 from lerobot_policy_ebvla.monitoring.records import load_episodes
@@ -121,12 +120,7 @@ def main(argv=None) -> None:
             if list(Path(folder).glob(f"{condition}/task*"))
         ]
         result["runs"][name] = run_rows(calibration, load_episodes(held), args.chunks)
-    text = markdown(result)
-    print(text)
-    if args.output is not None:
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.write_text(json.dumps(result, indent=1) + "\n")
-        args.output.with_suffix(".md").write_text(text)
+    write_report(result, markdown(result), args.output)
 
 
 if __name__ == "__main__":
