@@ -706,10 +706,11 @@ def eval_command(work: Path, job: EvalJob, device: str, episode_length: int | No
     if episode_length is not None:
         cmd.append(f"--env.episode_length={episode_length}")
     variant = INFERENCE_VARIANTS.get(job.run)
+    executed = None if variant is None else variant.n_action_steps
     if variant is not None:
         cmd += variant.flags
-        if variant.n_action_steps is not None:
-            cmd.append(f"--policy.n_action_steps={variant.n_action_steps}")
+    if executed is not None:
+        cmd.append(f"--policy.n_action_steps={executed}")
     if job.condition in (FRESH_CONDITION, FRESH_ARM_CONDITION):
         # LeRobot's env then keeps the placements LIBERO's reset samples from the episode's seed.
         cmd.append("--env.init_states=false")
@@ -719,12 +720,11 @@ def eval_command(work: Path, job: EvalJob, device: str, episode_length: int | No
         cmd.append("--record_context_features=true")
         # The policy reads a frame every n_action_steps steps; the others are not rendered (the same rollouts,
         # about half the time on two cores). ebvla-eval raises should a chunk be refined from another step.
-        config = last_checkpoint(work, job.run) / "config.json"
-        n_action_steps = json.loads(config.read_text())["n_action_steps"] if config.exists() else 1
-        if variant is not None and variant.n_action_steps is not None:
-            n_action_steps = variant.n_action_steps
-        if n_action_steps > 1:
-            cmd.append(f"--env.render_every={n_action_steps}")
+        if executed is None:
+            config = last_checkpoint(work, job.run) / "config.json"
+            executed = json.loads(config.read_text())["n_action_steps"] if config.exists() else 1
+        if executed > 1:
+            cmd.append(f"--env.render_every={executed}")
     return cmd
 
 

@@ -29,6 +29,15 @@ def successes(folder: Path) -> list[int | None]:
     return counts
 
 
+def recomputed_paired(tmp_path: Path, first: Path, second: Path, committed: Path) -> dict:
+    """`paired_success.py` of two runs' records, recomputed here and checked equal to the committed report."""
+    output = tmp_path / "paired.json"
+    load_benchmark("paired_success").main([f"--first={first}", f"--second={second}", f"--output={output}"])
+    got = json.loads(output.read_text())
+    assert got == json.loads(committed.read_text())
+    return got
+
+
 @pytest.mark.skipif(not GPU.exists(), reason="E's GPU records are not committed here")
 def test_es_success_on_the_lent_gpu_is_the_docs():
     assert successes(GPU / "vanilla_confirm") == [17, 12, 15, 14, 18, 5, 10, 12, 19, 19]  # 141/200
@@ -90,22 +99,18 @@ def test_best_of_8_on_d_is_partial_by_its_rule_and_no_better_episode_by_episode(
     """The same section's result: D with best of 8 by energy 172/200 on the states 30-49 (one chain: 170), 8 episodes
     won and 6 lost on the same states (sign test p = 0.79)."""
     eval_dir = RESULTS / "libero_object10_more" / "eval"
-    paired = load_benchmark("paired_success")
-    output = tmp_path / "paired.json"
-    paired.main(
-        [
-            f"--first={eval_dir / 'ebvla_joint_fast_cpu_more' / 'vanilla_confirm'}",
-            f"--second={eval_dir / 'ebvla_joint_fast_cpu_more_best8' / 'vanilla_confirm'}",
-            f"--output={output}",
-        ]
+    got = recomputed_paired(
+        tmp_path,
+        eval_dir / "ebvla_joint_fast_cpu_more" / "vanilla_confirm",
+        eval_dir / "ebvla_joint_fast_cpu_more_best8" / "vanilla_confirm",
+        RESULTS / "libero_object10_more" / "reports" / "paired_best8_vanilla_confirm.json",
     )
-    got = json.loads(output.read_text())
-    committed = RESULTS / "libero_object10_more" / "reports" / "paired_best8_vanilla_confirm.json"
-    assert got == json.loads(committed.read_text())
     assert got["total"] == {"first": 170, "second": 172, "episodes": 200, "won": 8, "lost": 6}
     assert 171 <= got["total"]["second"] <= 179  # "partial" by the rule written before it ran
     assert got["sign_test_p"] == pytest.approx(0.7905, abs=1e-4)
-    assert paired.sign_test(14, 1) == pytest.approx(0.001, abs=5e-4)  # MetaWorld's best of 8 (BENCHMARKS.md)
+    assert load_benchmark("paired_success").sign_test(14, 1) == pytest.approx(
+        0.001, abs=5e-4
+    )  # MetaWorld's best of 8 (BENCHMARKS.md)
 
 
 F = RESULTS / "libero_object10_arm_more" / "eval" / "ebvla_joint_fast_cpu_arm_more"
@@ -126,14 +131,10 @@ def test_f_is_partial_on_the_fixed_states_30_49_and_keeps_the_fresh_placements(t
     assert heldout == [19, 14, 18, 20, 17, 15, 18, 19, 20, 18]
     assert sum(heldout) + sum(confirm) == 355
 
-    paired = load_benchmark("paired_success")
-    output = tmp_path / "paired.json"
-    paired.main(
-        [f"--first={CPU / 'vanilla_confirm'}", f"--second={F / 'vanilla_confirm'}", f"--output={output}"]
+    reports = RESULTS / "libero_object10_arm_more" / "reports"
+    got = recomputed_paired(
+        tmp_path, CPU / "vanilla_confirm", F / "vanilla_confirm", reports / "paired_e_f_vanilla_confirm.json"
     )
-    got = json.loads(output.read_text())
-    committed = RESULTS / "libero_object10_arm_more" / "reports" / "paired_e_f_vanilla_confirm.json"
-    assert got == json.loads(committed.read_text())
     assert got["total"] == {"first": 174, "second": 177, "episodes": 200, "won": 10, "lost": 7}
     assert (got["tasks"]["task5"]["won"], got["tasks"]["task5"]["lost"]) == (4, 0)
     assert (got["tasks"]["task1"]["won"], got["tasks"]["task1"]["lost"]) == (2, 4)
@@ -181,19 +182,17 @@ ACT4 = RESULTS / "libero_object10_arm_more" / "eval" / "ebvla_joint_fast_cpu_arm
 @pytest.mark.skipif(not ACT4.exists(), reason="F's re-planning records are not committed here")
 def test_re_planning_every_four_steps_loses_grasps_against_f_on_the_same_states(tmp_path):
     """research/docs/libero_runs.md, "F re-planning every 4 steps": tasks 1 and 5, 22/40 against F's 27/40."""
-    paired = load_benchmark("paired_success")
-    output = tmp_path / "paired.json"
-    paired.main(
-        [f"--first={F / 'vanilla_confirm'}", f"--second={ACT4 / 'vanilla_confirm'}", f"--output={output}"]
+    got = recomputed_paired(
+        tmp_path,
+        F / "vanilla_confirm",
+        ACT4 / "vanilla_confirm",
+        RESULTS / "libero_object10_arm_more" / "reports" / "paired_f_act4_vanilla_confirm.json",
     )
-    got = json.loads(output.read_text())
     assert [(got["tasks"][t]["first"], got["tasks"][t]["second"]) for t in ("task1", "task5")] == [
         (13, 10),
         (14, 12),
     ]
     assert (got["total"]["won"], got["total"]["lost"]) == (1, 6)
-    committed = RESULTS / "libero_object10_arm_more" / "reports" / "paired_f_act4_vanilla_confirm.json"
-    assert got == json.loads(committed.read_text())
 
 
 G = RESULTS / "libero_object10_arm_more" / "eval" / "ebvla_joint_fast_cpu_arm_more_longer"
@@ -206,13 +205,11 @@ def test_g_trained_longer_is_partial_on_the_fixed_states_and_pairs_with_f_as_the
     assert successes(G / "vanilla_confirm") == [19, 15, 20, 18, 19, 11, 19, 19, 20, 18]
     # Descriptive: the states 10-29, 180/200, so 358/400 over states 10-49 (the issue's target: 360).
     assert successes(G / "vanilla_heldout") == [18, 14, 18, 20, 20, 12, 20, 19, 20, 19]
-    paired = load_benchmark("paired_success")
-    output = tmp_path / "paired.json"
-    paired.main(
-        [f"--first={F / 'vanilla_confirm'}", f"--second={G / 'vanilla_confirm'}", f"--output={output}"]
+    got = recomputed_paired(
+        tmp_path,
+        F / "vanilla_confirm",
+        G / "vanilla_confirm",
+        RESULTS / "libero_object10_arm_more" / "reports" / "paired_f_g_vanilla_confirm.json",
     )
-    got = json.loads(output.read_text())
     assert (got["total"]["first"], got["total"]["second"]) == (177, 178)
     assert (got["total"]["won"], got["total"]["lost"]) == (7, 6)
-    committed = RESULTS / "libero_object10_arm_more" / "reports" / "paired_f_g_vanilla_confirm.json"
-    assert got == json.loads(committed.read_text())
