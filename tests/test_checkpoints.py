@@ -8,7 +8,7 @@ import torch
 
 from lerobot_policy_ebvla import EBVLAPolicy
 
-from .conftest import tiny_batch, write_tiny_dataset
+from .conftest import tiny_batch, tiny_config, write_tiny_dataset
 from .test_lerobot_integration import lerobot_train
 
 
@@ -112,3 +112,23 @@ def test_an_out_of_range_saved_config_value_names_the_file_and_the_field(tiny_po
     (path / "config.json").write_text(json.dumps(config), encoding="utf-8")
     with pytest.raises(ValueError, match=r"config\.json .*`energy_temperature` must be > 0"):
         EBVLAPolicy.from_pretrained(path)
+
+
+def test_a_checkpoint_loads_at_another_frame_size_with_its_own_keypoint_grid(tmp_path):
+    torch.manual_seed(0)
+    saved = EBVLAPolicy(tiny_config(joint_energy={"weight": 0.1, "target": "observation"}))
+    path = _saved(saved, tmp_path)
+    larger = tiny_config(resnet={"resize_shape": (96, 96)}, joint_energy={"weight": 0.1, "target": "observation"})
+    policy = EBVLAPolicy.from_pretrained(path, config=larger)
+
+    saved_weights, loaded_weights = saved.state_dict(), policy.state_dict()
+    grids = [key for key in saved_weights if key.endswith("pool.pos_grid")]
+    assert len(grids) == 2  # the policy's encoder and E_c's own
+    for key in grids:  # a 64 px frame gives a 16 x 16 map at 2 stages, a 96 px one 24 x 24
+        assert loaded_weights[key].shape[0] > saved_weights[key].shape[0]
+    for key, value in saved_weights.items():
+        if key not in grids:
+            torch.testing.assert_close(loaded_weights[key], value, rtol=0, atol=0, msg=key)
+    policy.eval()
+    action = policy.select_action(tiny_batch(policy.config, with_action=False))
+    assert torch.isfinite(action).all()

@@ -162,6 +162,13 @@ FINE_TUNES = {
         "research/results/libero_object10_arm_more/train/ebvla_joint_fast_cpu_arm_more/last/pretrained_model",
         FINE_TUNE_RATE,
     ),
+    # H (2026-11-30, afternoon): G's weights at the demonstrations' own 128 px frames instead of 96, 2000 steps on F's
+    # 668 demonstrations: G's L1 is flat, and the misses are small-object grasps. The keypoints' grid is rebuilt for
+    # the larger map (`backbone_resnet.keep_own_keypoint_grid`); every learned weight starts as G's.
+    "ebvla_joint_fast_cpu_arm_more_128px": FineTune(
+        "research/results/libero_object10_arm_more/train/ebvla_joint_fast_cpu_arm_more_longer/last/pretrained_model",
+        (*FINE_TUNE_RATE, "--policy.resnet.resize_shape=[128,128]"),
+    ),
 }
 for _name in FINE_TUNES:  # each start descends from C: the flags it was trained with
     RUNS[_name] = RUNS["ebvla_joint_fast_cpu"]

@@ -40,6 +40,17 @@ def keep_resnet_stages(encoder: DiffusionRgbEncoder, num_stages: int, config) ->
     return encoder
 
 
+def keep_own_keypoint_grid(module: SpatialSoftmax, state_dict: dict, prefix: str, *_) -> None:
+    """Load pre-hook: a saved keypoint grid of another feature-map size gives way to `module`'s own.
+
+    `pos_grid` is a function of the feature map's shape alone, so replacing it lets a checkpoint's weights load at
+    another `resnet.resize_shape` (fine-tuning on larger frames); every learned weight still has to match.
+    """
+    key = prefix + "pos_grid"
+    if key in state_dict and state_dict[key].shape != module.pos_grid.shape:
+        state_dict[key] = module.pos_grid.detach().clone()
+
+
 def diffusion_encoder_fields(config: EBVLAConfig) -> SimpleNamespace:
     """The light backbone's fields (`config.resnet`, under Diffusion Policy's names) with the cameras: what
     `DiffusionRgbEncoder` and `keep_resnet_stages` read from a `DiffusionConfig`."""
@@ -102,6 +113,9 @@ class EBVLAResNetBackbone(nn.Module):
                 for _ in range(n_encoders)
             )
             tokens_per_camera = 1
+            for module in self.rgb_encoders.modules():
+                if isinstance(module, SpatialSoftmax):
+                    module.register_load_state_dict_pre_hook(keep_own_keypoint_grid)
         self.camera_proj = nn.Linear(self.rgb_encoders[0].feature_dim, self.context_dim)
         # Cross-attention is permutation invariant: learned embeddings tell the head which camera (and which
         # feature-map cell) a token comes from.
