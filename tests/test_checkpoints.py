@@ -118,7 +118,9 @@ def test_a_checkpoint_loads_at_another_frame_size_with_its_own_keypoint_grid(tmp
     torch.manual_seed(0)
     saved = EBVLAPolicy(tiny_config(joint_energy={"weight": 0.1, "target": "observation"}))
     path = _saved(saved, tmp_path)
-    larger = tiny_config(resnet={"resize_shape": (96, 96)}, joint_energy={"weight": 0.1, "target": "observation"})
+    larger = tiny_config(
+        resnet={"resize_shape": (96, 96)}, joint_energy={"weight": 0.1, "target": "observation"}
+    )
     policy = EBVLAPolicy.from_pretrained(path, config=larger)
 
     saved_weights, loaded_weights = saved.state_dict(), policy.state_dict()

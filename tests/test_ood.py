@@ -15,6 +15,7 @@ import torch
 from lerobot_policy_ebvla.monitoring.baselines import ContextFeatureModel, available_scores
 from lerobot_policy_ebvla.monitoring.metrics import (
     auroc,
+    bootstrap_auroc_difference_interval,
     bootstrap_auroc_interval,
     roc_curve,
     wilson_interval,
@@ -109,6 +110,30 @@ def test_bootstrap_interval_is_reproducible_with_its_seed():
 
 def test_bootstrap_interval_without_positives_is_nan():
     assert all(math.isnan(v) for v in bootstrap_auroc_interval([1.0, 2.0], []))
+
+
+def test_paired_difference_interval_of_a_score_with_itself_is_zero():
+    rng = np.random.default_rng(4)
+    vanilla, ood = rng.normal(size=30), rng.normal(1.0, size=20)
+    assert bootstrap_auroc_difference_interval(vanilla, ood, vanilla, ood) == (0.0, 0.0)
+
+
+def test_paired_difference_interval_tells_a_score_from_its_noisier_copy_on_the_same_rollouts():
+    rng = np.random.default_rng(5)
+    vanilla, ood = rng.normal(size=200), rng.normal(1.5, size=60)
+    noisy_vanilla, noisy_ood = vanilla + rng.normal(0, 1.0, 200), ood + rng.normal(0, 1.0, 60)
+    difference = auroc(vanilla, ood) - auroc(noisy_vanilla, noisy_ood)
+    low, high = bootstrap_auroc_difference_interval(vanilla, ood, noisy_vanilla, noisy_ood, seed=0)
+    assert 0 < low <= difference <= high
+    # The separate intervals overlap: only the pairing shows the difference.
+    assert bootstrap_auroc_interval(vanilla, ood)[0] < bootstrap_auroc_interval(noisy_vanilla, noisy_ood)[1]
+    _, reversed_high = bootstrap_auroc_difference_interval(noisy_vanilla, noisy_ood, vanilla, ood, seed=0)
+    assert reversed_high < 0
+
+
+def test_paired_difference_interval_needs_the_same_rollouts():
+    with pytest.raises(ValueError, match="3 and 2 negatives, 2 and 2 positives"):
+        bootstrap_auroc_difference_interval([1.0, 2.0, 3.0], [4.0, 5.0], [1.0, 2.0], [4.0, 5.0])
 
 
 # Rollout scores.

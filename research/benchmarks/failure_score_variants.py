@@ -5,7 +5,9 @@ Each variant aggregates the per-chunk components of `joint_phase_energy` (z_c,t 
 E - E_c, each against the vanilla value at chunk index t, fitted on the checkpoint's calibration rollouts, each of
 those scored against the fit without it) into one number per rollout; T = mu + k sigma of the successful calibration
 rollouts, as the shipped check sets it. Beside them, `chunk_context_nn` (the pooled context at chunk N against the
-successful calibration rollouts' at that chunk: no energy). Every rollout of the held-out sets of each run (held-out
+successful calibration rollouts' at that chunk: no energy); each reading's AUROC also minus the baseline's on the
+same rollouts, with a paired bootstrap interval (`metrics.bootstrap_auroc_difference_interval`): wholly below 0, the
+reading is below the baseline beyond resampling noise. Every rollout of the held-out sets of each run (held-out
 and confirmation fixed states, fresh placements) is judged together; failed rollouts are the positives.
 
 Written on 2026-11-30 after the quick look of that morning (research/docs/libero_runs.md, "Left to do") to make its
@@ -26,6 +28,7 @@ import numpy as np
 from failure_check_test import BASELINE, row, rows_table, write_report
 
 from lerobot_policy_ebvla.monitoring.baselines import RegisteredScoreModel, chunk_context_nn
+from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_difference_interval
 from lerobot_policy_ebvla.monitoring.records import load_episodes
 from lerobot_policy_ebvla.runtime.scores import SCORES
 
@@ -77,9 +80,17 @@ def run_rows(calibration: dict, held_out: dict, n: int = CHUNKS, k: float = K) -
         chunk_context_nn(calibration, held_out, n - 1),
     )
     rows = []
+    baseline = values[BASELINE][1]
     for name, (cal_values, held_values) in values.items():
         reference = cal_values[successful]
         rows.append(row(name, held_values, float(reference.mean() + k * reference.std()), failed))
+        if name != BASELINE:
+            rows[-1]["auroc_minus_baseline"] = rows[-1]["auroc"] - auroc(baseline[~failed], baseline[failed])
+            rows[-1]["auroc_minus_baseline_interval"] = list(
+                bootstrap_auroc_difference_interval(
+                    held_values[~failed], held_values[failed], baseline[~failed], baseline[failed]
+                )
+            )
     return {"rollouts": int(failed.size), "failed": int(failed.sum()), "rows": rows}
 
 
@@ -90,6 +101,13 @@ def markdown(result: dict) -> str:
     ]
     for run, found in result["runs"].items():
         lines += rows_table(run, found, name_column="Reading")
+        lines += ["", f"AUROC minus `{BASELINE}`'s on the same rollouts [paired bootstrap 95 % CI]:"]
+        lines += [
+            f"- {r['score']}: {r['auroc_minus_baseline']:+.3f} [{low:+.3f}, {high:+.3f}]"
+            for r in found["rows"]
+            if "auroc_minus_baseline" in r
+            for low, high in [r["auroc_minus_baseline_interval"]]
+        ]
     return "\n".join(lines) + "\n"
 
 

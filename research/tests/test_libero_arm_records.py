@@ -174,6 +174,8 @@ def test_no_reading_of_the_joint_energy_reaches_the_feature_baseline_on_e_and_th
     assert len(rows) == 8
     assert all(r["balanced_accuracy"] < baseline["balanced_accuracy"] for r in rows.values())
     assert all(r["auroc"] < baseline["auroc"] for r in rows.values())
+    # Paired on the same rollouts, the shipped reading is below the baseline beyond resampling noise.
+    assert rows["mean of both (shipped)"]["auroc_minus_baseline_interval"][1] < 0
 
 
 ACT4 = RESULTS / "libero_object10_arm_more" / "eval" / "ebvla_joint_fast_cpu_arm_more_act4"

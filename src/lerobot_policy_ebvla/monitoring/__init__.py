@@ -21,7 +21,13 @@ Everything here studies rollouts; it imports the policy and `runtime/`, and neit
 The threshold rule, the calibration and the failure alarm that ship with a checkpoint live in `runtime/`.
 """
 
-from .metrics import BinaryRates, auroc, bootstrap_auroc_interval, roc_curve
+from .metrics import (
+    BinaryRates,
+    auroc,
+    bootstrap_auroc_difference_interval,
+    bootstrap_auroc_interval,
+    roc_curve,
+)
 from .recorder import EnergyRecorder
 from .records import (
     ENERGY_RECORDS_FILENAME,
@@ -41,6 +47,7 @@ __all__ = [
     "EnergyRecorder",
     "EpisodeKey",
     "auroc",
+    "bootstrap_auroc_difference_interval",
     "bootstrap_auroc_interval",
     "episode_scores",
     "group_by_episode",

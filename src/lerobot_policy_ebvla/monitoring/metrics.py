@@ -108,6 +108,21 @@ def _pairwise_wins(negatives: np.ndarray, positives: np.ndarray) -> np.ndarray:
     return (positives[:, None] > negatives[None, :]) + 0.5 * (positives[:, None] == negatives[None, :])
 
 
+def _stratified_bootstrap_interval(
+    wins: np.ndarray, n_resamples: int, level: float, seed: int
+) -> tuple[float, float]:
+    """Percentile interval of the mean of (n_pos, n_neg) pairwise `wins` over rollouts resampled within each class."""
+    n_positive, n_negative = wins.shape
+    rng = np.random.default_rng(seed)
+    # A resample is a count per rollout; its mean is the count-weighted mean of the pairwise wins.
+    pos_counts = rng.multinomial(n_positive, np.full(n_positive, 1 / n_positive), n_resamples)
+    neg_counts = rng.multinomial(n_negative, np.full(n_negative, 1 / n_negative), n_resamples)
+    means = np.sum((pos_counts @ wins) * neg_counts, axis=1) / (n_positive * n_negative)
+    tail = 100 * (1 - level) / 2
+    low, high = np.percentile(means, [tail, 100 - tail])
+    return float(low), float(high)
+
+
 def auroc(negative_scores: ArrayLike, positive_scores: ArrayLike) -> float:
     """Area under the ROC curve: the probability that a positive scores higher than a negative.
 
@@ -144,15 +159,47 @@ def bootstrap_auroc_interval(
     _check_no_nan(positives, "positive_scores")
     if negatives.size == 0 or positives.size == 0:
         return math.nan, math.nan
-    rng = np.random.default_rng(seed)
-    wins = _pairwise_wins(negatives, positives)
-    # A resample is a count per sample; its AUROC is the count-weighted mean of the pairwise wins.
-    pos_counts = rng.multinomial(positives.size, np.full(positives.size, 1 / positives.size), n_resamples)
-    neg_counts = rng.multinomial(negatives.size, np.full(negatives.size, 1 / negatives.size), n_resamples)
-    areas = np.sum((pos_counts @ wins) * neg_counts, axis=1) / (positives.size * negatives.size)
-    tail = 100 * (1 - level) / 2
-    low, high = np.percentile(areas, [tail, 100 - tail])
-    return float(low), float(high)
+    return _stratified_bootstrap_interval(_pairwise_wins(negatives, positives), n_resamples, level, seed)
+
+
+def bootstrap_auroc_difference_interval(
+    negative_scores: ArrayLike,
+    positive_scores: ArrayLike,
+    other_negative_scores: ArrayLike,
+    other_positive_scores: ArrayLike,
+    n_resamples: int = 1000,
+    level: float = 0.95,
+    seed: int = 0,
+) -> tuple[float, float]:
+    """Paired percentile bootstrap interval of AUROC(first score) - AUROC(other score) on the same rollouts.
+
+    Both scores are read on the same rollouts, in the same order, so each resample draws one count per rollout
+    (stratified by class, as `bootstrap_auroc_interval`) and applies it to both: the interval is of the difference,
+    which is narrower than the two intervals side by side because the rollouts that are hard for one are mostly
+    hard for the other. An interval wholly below 0: the first score is below the other beyond resampling noise.
+
+    Returns:
+        (low, high); NaN when either class is empty.
+
+    Raises:
+        ValueError: The two scores were not read on as many negatives and positives, or a score is NaN.
+    """
+    scores = [
+        as_array(s) for s in (negative_scores, positive_scores, other_negative_scores, other_positive_scores)
+    ]
+    names = ("negative_scores", "positive_scores", "other_negative_scores", "other_positive_scores")
+    for values, name in zip(scores, names, strict=True):
+        _check_no_nan(values, name)
+    negatives, positives, other_negatives, other_positives = scores
+    if negatives.shape != other_negatives.shape or positives.shape != other_positives.shape:
+        raise ValueError(
+            f"A paired interval needs both scores on the same rollouts: got {negatives.size} and "
+            f"{other_negatives.size} negatives, {positives.size} and {other_positives.size} positives."
+        )
+    if negatives.size == 0 or positives.size == 0:
+        return math.nan, math.nan
+    wins = _pairwise_wins(negatives, positives) - _pairwise_wins(other_negatives, other_positives)
+    return _stratified_bootstrap_interval(wins, n_resamples, level, seed)
 
 
 def format_auroc(
