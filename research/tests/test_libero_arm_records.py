@@ -215,3 +215,23 @@ def test_g_trained_longer_is_partial_on_the_fixed_states_and_pairs_with_f_as_the
     )
     assert (got["total"]["first"], got["total"]["second"]) == (177, 178)
     assert (got["total"]["won"], got["total"]["lost"]) == (7, 6)
+
+
+H = RESULTS / "libero_object10_arm_more" / "eval" / "ebvla_joint_fast_cpu_arm_more_128px"
+
+
+@pytest.mark.skipif(not (H / "vanilla_confirm").exists(), reason="H's records are not committed here")
+def test_h_at_128_px_is_not_the_lever_on_the_fixed_states_and_pairs_with_g_as_the_docs_say(tmp_path):
+    """research/docs/libero_runs.md, "H": 169/200 on states 30-49 (not the lever: 178 or fewer), 10 won and 19 lost
+    against G; 167/200 on states 10-29."""
+    assert successes(H / "vanilla_confirm") == [15, 12, 18, 18, 16, 12, 20, 19, 20, 19]
+    # Run whatever the verdict, as fixed before it: the states 10-29, 167/200, so 336/400 over states 10-49.
+    assert successes(H / "vanilla_heldout") == [16, 8, 19, 20, 18, 9, 20, 20, 20, 17]
+    got = recomputed_paired(
+        tmp_path,
+        G / "vanilla_confirm",
+        H / "vanilla_confirm",
+        RESULTS / "libero_object10_arm_more" / "reports" / "paired_g_h_vanilla_confirm.json",
+    )
+    assert (got["total"]["first"], got["total"]["second"]) == (178, 169)
+    assert (got["total"]["won"], got["total"]["lost"]) == (10, 19)
