@@ -38,6 +38,14 @@ def recomputed_paired(tmp_path: Path, first: Path, second: Path, committed: Path
     return got
 
 
+def recomputed_paired_confirm(tmp_path: Path, first: Path, second: Path, report: str) -> dict:
+    """`recomputed_paired` of two runs' fixed states 30-49, against their report in libero_object10_arm_more."""
+    reports = RESULTS / "libero_object10_arm_more" / "reports"
+    return recomputed_paired(
+        tmp_path, first / "vanilla_confirm", second / "vanilla_confirm", reports / report
+    )
+
+
 @pytest.mark.skipif(not GPU.exists(), reason="E's GPU records are not committed here")
 def test_es_success_on_the_lent_gpu_is_the_docs():
     assert successes(GPU / "vanilla_confirm") == [17, 12, 15, 14, 18, 5, 10, 12, 19, 19]  # 141/200
@@ -184,12 +192,7 @@ ACT4 = RESULTS / "libero_object10_arm_more" / "eval" / "ebvla_joint_fast_cpu_arm
 @pytest.mark.skipif(not ACT4.exists(), reason="F's re-planning records are not committed here")
 def test_re_planning_every_four_steps_loses_grasps_against_f_on_the_same_states(tmp_path):
     """research/docs/libero_runs.md, "F re-planning every 4 steps": tasks 1 and 5, 22/40 against F's 27/40."""
-    got = recomputed_paired(
-        tmp_path,
-        F / "vanilla_confirm",
-        ACT4 / "vanilla_confirm",
-        RESULTS / "libero_object10_arm_more" / "reports" / "paired_f_act4_vanilla_confirm.json",
-    )
+    got = recomputed_paired_confirm(tmp_path, F, ACT4, "paired_f_act4_vanilla_confirm.json")
     assert [(got["tasks"][t]["first"], got["tasks"][t]["second"]) for t in ("task1", "task5")] == [
         (13, 10),
         (14, 12),
@@ -207,14 +210,8 @@ def test_g_trained_longer_is_partial_on_the_fixed_states_and_pairs_with_f_as_the
     assert successes(G / "vanilla_confirm") == [19, 15, 20, 18, 19, 11, 19, 19, 20, 18]
     # Descriptive: the states 10-29, 180/200, so 358/400 over states 10-49 (the issue's target: 360).
     assert successes(G / "vanilla_heldout") == [18, 14, 18, 20, 20, 12, 20, 19, 20, 19]
-    got = recomputed_paired(
-        tmp_path,
-        F / "vanilla_confirm",
-        G / "vanilla_confirm",
-        RESULTS / "libero_object10_arm_more" / "reports" / "paired_f_g_vanilla_confirm.json",
-    )
-    assert (got["total"]["first"], got["total"]["second"]) == (177, 178)
-    assert (got["total"]["won"], got["total"]["lost"]) == (7, 6)
+    got = recomputed_paired_confirm(tmp_path, F, G, "paired_f_g_vanilla_confirm.json")
+    assert got["total"] == {"first": 177, "second": 178, "episodes": 200, "won": 7, "lost": 6}
 
 
 H = RESULTS / "libero_object10_arm_more" / "eval" / "ebvla_joint_fast_cpu_arm_more_128px"
@@ -227,11 +224,5 @@ def test_h_at_128_px_is_not_the_lever_on_the_fixed_states_and_pairs_with_g_as_th
     assert successes(H / "vanilla_confirm") == [15, 12, 18, 18, 16, 12, 20, 19, 20, 19]
     # Run whatever the verdict, as fixed before it: the states 10-29, 167/200, so 336/400 over states 10-49.
     assert successes(H / "vanilla_heldout") == [16, 8, 19, 20, 18, 9, 20, 20, 20, 17]
-    got = recomputed_paired(
-        tmp_path,
-        G / "vanilla_confirm",
-        H / "vanilla_confirm",
-        RESULTS / "libero_object10_arm_more" / "reports" / "paired_g_h_vanilla_confirm.json",
-    )
-    assert (got["total"]["first"], got["total"]["second"]) == (178, 169)
-    assert (got["total"]["won"], got["total"]["lost"]) == (10, 19)
+    got = recomputed_paired_confirm(tmp_path, G, H, "paired_g_h_vanilla_confirm.json")
+    assert got["total"] == {"first": 178, "second": 169, "episodes": 200, "won": 10, "lost": 19}
