@@ -126,7 +126,7 @@ def test_a_checkpoint_loads_at_another_frame_size_with_its_own_keypoint_grid(tmp
     saved_weights, loaded_weights = saved.state_dict(), policy.state_dict()
     grids = [key for key in saved_weights if key.endswith("pool.pos_grid")]
     assert len(grids) == 2  # the policy's encoder and E_c's own
-    for key in grids:  # a 64 px frame gives a 16 x 16 map at 2 stages, a 96 px one 24 x 24
+    for key in grids:  # the tiny config's 4 stages: a 2 x 2 map at 64 px, 3 x 3 at 96
         assert loaded_weights[key].shape[0] > saved_weights[key].shape[0]
     for key, value in saved_weights.items():
         if key not in grids:

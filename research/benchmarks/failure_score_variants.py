@@ -81,14 +81,16 @@ def run_rows(calibration: dict, held_out: dict, n: int = CHUNKS, k: float = K) -
     )
     rows = []
     baseline = values[BASELINE][1]
+    baseline_negatives, baseline_positives = baseline[~failed], baseline[failed]
+    baseline_auroc = auroc(baseline_negatives, baseline_positives)
     for name, (cal_values, held_values) in values.items():
         reference = cal_values[successful]
         rows.append(row(name, held_values, float(reference.mean() + k * reference.std()), failed))
         if name != BASELINE:
-            rows[-1]["auroc_minus_baseline"] = rows[-1]["auroc"] - auroc(baseline[~failed], baseline[failed])
+            rows[-1]["auroc_minus_baseline"] = rows[-1]["auroc"] - baseline_auroc
             rows[-1]["auroc_minus_baseline_interval"] = list(
                 bootstrap_auroc_difference_interval(
-                    held_values[~failed], held_values[failed], baseline[~failed], baseline[failed]
+                    held_values[~failed], held_values[failed], baseline_negatives, baseline_positives
                 )
             )
     return {"rollouts": int(failed.size), "failed": int(failed.sum()), "rows": rows}

@@ -116,9 +116,8 @@ def test_best_of_8_on_d_is_partial_by_its_rule_and_no_better_episode_by_episode(
     assert got["total"] == {"first": 170, "second": 172, "episodes": 200, "won": 8, "lost": 6}
     assert 171 <= got["total"]["second"] <= 179  # "partial" by the rule written before it ran
     assert got["sign_test_p"] == pytest.approx(0.7905, abs=1e-4)
-    assert load_benchmark("paired_success").sign_test(14, 1) == pytest.approx(
-        0.001, abs=5e-4
-    )  # MetaWorld's best of 8 (BENCHMARKS.md)
+    # MetaWorld's best of 8 (BENCHMARKS.md)
+    assert load_benchmark("paired_success").sign_test(14, 1) == pytest.approx(0.001, abs=5e-4)
 
 
 F = RESULTS / "libero_object10_arm_more" / "eval" / "ebvla_joint_fast_cpu_arm_more"
@@ -139,10 +138,7 @@ def test_f_is_partial_on_the_fixed_states_30_49_and_keeps_the_fresh_placements(t
     assert heldout == [19, 14, 18, 20, 17, 15, 18, 19, 20, 18]
     assert sum(heldout) + sum(confirm) == 355
 
-    reports = RESULTS / "libero_object10_arm_more" / "reports"
-    got = recomputed_paired(
-        tmp_path, CPU / "vanilla_confirm", F / "vanilla_confirm", reports / "paired_e_f_vanilla_confirm.json"
-    )
+    got = recomputed_paired_confirm(tmp_path, CPU, F, "paired_e_f_vanilla_confirm.json")
     assert got["total"] == {"first": 174, "second": 177, "episodes": 200, "won": 10, "lost": 7}
     assert (got["tasks"]["task5"]["won"], got["tasks"]["task5"]["lost"]) == (4, 0)
     assert (got["tasks"]["task1"]["won"], got["tasks"]["task1"]["lost"]) == (2, 4)
