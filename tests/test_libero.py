@@ -478,6 +478,49 @@ def test_expert_grasps_a_long_box_clear_of_a_tall_neighbour_and_a_can_at_its_cen
     assert low[0] < grasp[0] < high[0] and grasp[1] == pytest.approx(centre[1])
 
 
+@requires_libero
+@pytest.mark.slow
+def test_expert_with_a_missed_first_grasp_rises_reopens_and_lifts_the_object_at_its_second_grasp(monkeypatch):
+    """A recovery demonstration (`miss_first_grasp`): the first grasp closes 5 cm beside the tomato sauce (task 5), the
+    hand rises and finds nothing held, reopens, and the second grasp, aimed at the object, lifts it."""
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    from lerobot_policy_ebvla.recording.libero import LiberoObjectExpert, first_grasp_miss
+
+    cfg = LiberoEBVLAEnv(task_ids=[5], init_states=False, observation_height=32, observation_width=32)
+    vec_env = cfg.create_envs(n_envs=1)["libero_object"][5]
+    env = vec_env.envs[0]
+    try:
+        observation, _ = env.reset(seed=310000)
+        expert = LiberoObjectExpert(env, regrasp=True, miss=first_grasp_miss(0.05, 310000))
+        first_aim = expert._grasp_position(expert.object_name) - expert._position(expert.object_name)
+        phases = []
+        while expert.grasps < 2 or expert.phase in ("grasp", "raise"):
+            observation, *_ = env.step(expert.act(np.asarray(observation["robot_state"]["eef"]["pos"])))
+            phases.append(expert.phase)
+            assert len(phases) < 260, f"no second grasp lifted the object: phases {sorted(set(phases))}"
+        retry_aim = expert._grasp_position(expert.object_name) - expert._position(expert.object_name)
+        held = expert.holds_object()
+    finally:
+        vec_env.close()
+    assert abs(first_aim[0]) == pytest.approx(0.05, abs=0.02) and abs(retry_aim[0]) < 0.03
+    reopened = phases.index("reopen")
+    assert "raise" in phases[:reopened] and "approach" in phases[reopened:]
+    assert expert.phase == "lift" and held
+
+
+def test_a_missed_first_grasp_needs_regrasp():
+    from lerobot_policy_ebvla.recording.libero import RecordLiberoConfig, first_grasp_miss
+
+    assert RecordLiberoConfig(regrasp=True, miss_first_grasp=0.05).miss_first_grasp == 0.05
+    with pytest.raises(ValueError, match="`miss_first_grasp` must be >= 0, and > 0 only with `regrasp=true`"):
+        RecordLiberoConfig(miss_first_grasp=0.05)
+    with pytest.raises(ValueError, match="`miss_first_grasp` must be >= 0"):
+        RecordLiberoConfig(regrasp=True, miss_first_grasp=-0.01)
+    assert first_grasp_miss(0.0, 3) is None
+    sides = {float(first_grasp_miss(0.05, seed)[0]) for seed in range(20)}
+    assert sides == {-0.05, 0.05} and first_grasp_miss(0.05, 7)[1] == 0.0
+
+
 # The options the LIBERO pipelines use (research/benchmarks/libero_pipeline.py): initial states, placements and
 # frame sizes.
 

@@ -169,6 +169,13 @@ FINE_TUNES = {
         "research/results/libero_object10_arm_more/train/ebvla_joint_fast_cpu_arm_more_longer/last/pretrained_model",
         (*FINE_TUNE_RATE, "--policy.resnet.resize_shape=[128,128]"),
     ),
+    # I (2026-11-30, evening): G trained on 1500 steps with F's 668 demonstrations and recovery demonstrations of tasks
+    # 1 and 5 (`record --recovery_episodes`): G's failed rollouts never move their object (a missed grasp, then the
+    # empty hand carried on), and no demonstration shows a grasp tried again.
+    "ebvla_joint_fast_cpu_recover": FineTune(
+        "research/results/libero_object10_arm_more/train/ebvla_joint_fast_cpu_arm_more_longer/last/pretrained_model",
+        FINE_TUNE_RATE,
+    ),
 }
 for _name in FINE_TUNES:  # each start descends from C: the flags it was trained with
     RUNS[_name] = RUNS["ebvla_joint_fast_cpu"]
@@ -269,14 +276,23 @@ def run_logged(cmd: list[str], log: Path, timeout_s: float | None = None) -> int
 ARM_PLACEMENT_SEED = 300000
 
 
-def piece_name(task: int, first: int, arm: bool = False) -> str:
+# Recovery demonstrations (`record --recovery_episodes`, added 2026-11-30 evening): the arm starts the fixed states'
+# way, on placements of their own seeds, and the expert's first grasp aims `RECOVERY_MISS` beside the object, so that
+# it closes on nothing, rises, reopens and grasps again (`RecordLiberoConfig.miss_first_grasp`).
+RECOVERY_PLACEMENT_SEED = 310000
+RECOVERY_MISS = 0.05
+# A piece's kind: plain, the arm's start (`arm`), or recovery (`recover`).
+PLAIN, ARM, RECOVER = "", "arm", "recover"
+
+
+def piece_name(task: int, first: int, kind: str = PLAIN) -> str:
     """The folder of a recorder process's piece under `<work>/data`."""
-    return f"task{task}_arm_from{first}" if arm else f"task{task}_from{first}"
+    return f"task{task}_{kind}_from{first}" if kind else f"task{task}_from{first}"
 
 
-def piece_report(work: Path, task: int, first: int, arm: bool = False) -> Path:
+def piece_report(work: Path, task: int, first: int, kind: str = PLAIN) -> Path:
     """The recorder's report of a piece (task, first initial state): it exists once the piece is recorded."""
-    return work / "data" / piece_name(task, first, arm) / "meta" / "recording_report.json"
+    return work / "data" / piece_name(task, first, kind) / "meta" / "recording_report.json"
 
 
 def record(
@@ -294,6 +310,7 @@ def record(
     pieces_from: list[Path] | None = None,
     arm_episodes: int = 0,
     more_arm_episodes: dict[int, int] | None = None,
+    recovery_episodes: dict[int, int] | None = None,
 ) -> Path:
     """Records each task in `parts` processes (each from its own initial states), then aggregates every part
     into `<work>/data/all`.
@@ -303,6 +320,8 @@ def record(
     many to every task, in one piece of its own (`task<t>_arm_from0`), the arm's start drawn as the
     fixed states' (`--env.robot_init_noise`, FIXED_STATES_ARM_NOISE) on placements of ARM_PLACEMENT_SEED + attempt;
     `more_arm_episodes` adds such attempts to some tasks (task -> count), in more pieces of `arm_episodes` each.
+    `recovery_episodes` (task -> count) adds one piece per task of recovery demonstrations (`RECOVERY_MISS`), the arm
+    started as the fixed states', on placements of RECOVERY_PLACEMENT_SEED + attempt.
     Pieces saved results folders already hold (`pieces_from`, their `data/`: pieces recorded as video) are linked,
     not recorded again.
 
@@ -315,26 +334,27 @@ def record(
         print(f"record: {merged} exists")
         return merged
     pieces = [
-        (*piece, False) for piece in record_pieces(tasks, episodes_per_task, parts, more_episodes or {})
+        (*piece, PLAIN) for piece in record_pieces(tasks, episodes_per_task, parts, more_episodes or {})
     ]
     if arm_episodes:  # one piece a task: a recorder's start-up is not repeated for a few attempts
-        pieces += [(*piece, True) for piece in record_pieces(tasks, arm_episodes, 1, more_arm_episodes or {})]
+        pieces += [(*piece, ARM) for piece in record_pieces(tasks, arm_episodes, 1, more_arm_episodes or {})]
     elif more_arm_episodes:
         raise ValueError(
             "`more_arm_episodes` adds pieces of `arm_episodes` attempts each: give `arm_episodes` too."
         )
-    for task, first, _, arm in pieces:
-        piece = work / "data" / piece_name(task, first, arm)
+    pieces += [(task, 0, n, RECOVER) for task, n in sorted((recovery_episodes or {}).items()) if n]
+    for task, first, _, kind in pieces:
+        piece = work / "data" / piece_name(task, first, kind)
         recorded = (folder / "data" / piece.name for folder in pieces_from or [])
         saved = next((s for s in recorded if (s / "meta" / "recording_report.json").exists()), None)
         if saved is not None and not piece.exists():
             piece.parent.mkdir(parents=True, exist_ok=True)
             piece.symlink_to(saved.resolve(), target_is_directory=True)
 
-    def record_piece(piece: tuple[int, int, int, bool]) -> int:
-        task, first, n, arm = piece
-        root = work / "data" / piece_name(task, first, arm)
-        if piece_report(work, task, first, arm).exists():
+    def record_piece(piece: tuple[int, int, int, str]) -> int:
+        task, first, n, kind = piece
+        root = work / "data" / piece_name(task, first, kind)
+        if piece_report(work, task, first, kind).exists():
             return 0
         cmd = [
             bin_path("ebvla-record-libero"),
@@ -351,25 +371,32 @@ def record(
         ]
         if max_steps is not None:
             cmd.append(f"--max_steps={max_steps}")
-        if arm:
+        if kind == ARM:
             cmd += [
                 f"--placement_seed={ARM_PLACEMENT_SEED}",
                 f"--env.robot_init_noise={FIXED_STATES_ARM_NOISE}",
+            ]
+        elif kind == RECOVER:
+            cmd += [
+                f"--placement_seed={RECOVERY_PLACEMENT_SEED}",
+                f"--env.robot_init_noise={FIXED_STATES_ARM_NOISE}",
+                "--regrasp=true",
+                f"--miss_first_grasp={RECOVERY_MISS}",
             ]
         elif placement_seed is not None:
             cmd.append(f"--placement_seed={placement_seed}")
         return run_logged(cmd, work / "logs" / f"record_{root.name}.log")
 
-    recorded_before = all(piece_report(work, task, first, arm).exists() for task, first, _, arm in pieces)
+    recorded_before = all(piece_report(work, task, first, kind).exists() for task, first, _, kind in pieces)
     start = time.time()
     with ThreadPoolExecutor(jobs) as pool:
         statuses = list(pool.map(record_piece, pieces))
     print(f"record: {len(pieces)} pieces in {time.time() - start:.0f} s, exit statuses {statuses}")
     reports = {}
-    for task, first, _, arm in pieces:
-        path = piece_report(work, task, first, arm)
+    for task, first, _, kind in pieces:
+        path = piece_report(work, task, first, kind)
         if path.exists():
-            reports[(task, first, arm)] = json.loads(path.read_text())
+            reports[(task, first, kind)] = json.loads(path.read_text())
     kept = [piece_name(*key) for key, report in reports.items() if report["n_kept"] > 0]
     if not kept:
         raise RuntimeError(f"No task recorded a successful episode; logs in {work / 'logs'}.")
@@ -390,11 +417,14 @@ def record(
         "arm_episodes": arm_episodes,
         "more_arm_episodes": {str(task): n for task, n in sorted((more_arm_episodes or {}).items())},
         "arm_placement_seed": ARM_PLACEMENT_SEED if arm_episodes else None,
-        "robot_init_noise": FIXED_STATES_ARM_NOISE if arm_episodes else 0.0,
+        "robot_init_noise": FIXED_STATES_ARM_NOISE if arm_episodes or recovery_episodes else 0.0,
+        "recovery_episodes": {str(task): n for task, n in sorted((recovery_episodes or {}).items())},
+        "recovery_placement_seed": RECOVERY_PLACEMENT_SEED if recovery_episodes else None,
+        "recovery_miss": RECOVERY_MISS if recovery_episodes else None,
         "use_videos": use_videos,
         "tasks": {},
     }
-    for (task, _, arm), report in sorted(reports.items()):
+    for (task, _, kind), report in sorted(reports.items()):
         name = next(iter(report["success_rate_per_task"]))
         entry = summary["tasks"].setdefault(
             task, {"task": name, "attempts": 0, "kept": 0, "steps_of_kept": []}
@@ -402,9 +432,9 @@ def record(
         entry["attempts"] += report["n_attempted"]
         entry["kept"] += report["n_kept"]
         entry["steps_of_kept"] += [ep["n_steps"] for ep in report["episodes"] if ep["kept"]]
-        if arm:
-            entry["arm_attempts"] = entry.get("arm_attempts", 0) + report["n_attempted"]
-            entry["arm_kept"] = entry.get("arm_kept", 0) + report["n_kept"]
+        if kind:
+            entry[f"{kind}_attempts"] = entry.get(f"{kind}_attempts", 0) + report["n_attempted"]
+            entry[f"{kind}_kept"] = entry.get(f"{kind}_kept", 0) + report["n_kept"]
     # Pieces restored from saved results were recorded by an earlier session: its recording time stands, and
     # aggregating them again adds nothing to it.
     path = work / "recording_summary.json"
@@ -1094,6 +1124,13 @@ def main(argv: list[str] | None = None) -> None:
         metavar="TASK=N",
         help="record: N more attempts of TASK with the fixed states' arm start, after its --arm_episodes",
     )
+    parser.add_argument(
+        "--recovery_episodes",
+        nargs="*",
+        default=[],
+        metavar="TASK=N",
+        help="record: N recovery demonstrations of TASK (a first grasp beside the object, then the grasp again)",
+    )
     parser.add_argument("--jobs", type=int, default=10, help="processes side by side (record, eval)")
     parser.add_argument("--runs", nargs="+", choices=list(RUNS), default=["ebvla_paper", "diffusion"])
     parser.add_argument(
@@ -1209,6 +1246,7 @@ def main(argv: list[str] | None = None) -> None:
             [folder.resolve() for folder in args.pieces_from],
             args.arm_episodes,
             task_counts(args.more_arm_episodes),
+            task_counts(args.recovery_episodes),
         )
     elif args.stage == "train":
         train(

@@ -41,6 +41,8 @@ CAPTURE_FILE = "plan_capture.pt"
 # Chunks 0..19 of an episode: the failure checks read the first 16 (Table IV at chunk 16), and a window of a few
 # chunks around each.
 MAX_CHUNKS = 20
+# fp16 keys and values move the head energy by at most 0.009 over D's first 400 calibration chunks.
+CAPTURE_TOLERANCE = 0.05
 
 
 def eval_one(argv: list[str]) -> None:
@@ -148,6 +150,18 @@ def captured_episodes(folder: Path) -> list[dict]:
     return found
 
 
+def check_same_rollouts(folder: Path, committed: Path) -> None:
+    """Raises unless a captured job's records are the committed job's: every chunk's final energy and success."""
+    from lerobot_policy_ebvla.monitoring.records import read_energy_records, records_file_in
+
+    ours, theirs = (read_energy_records(records_file_in(f)) for f in (folder, committed))
+    same = len(ours) == len(theirs) and all(
+        abs(a.final_energy - b.final_energy) < 1e-4 and a.success == b.success for a, b in zip(ours, theirs, strict=True)
+    )
+    if not same:
+        raise ValueError(f"{folder}: the re-run rollouts differ from the committed ones in {committed}.")
+
+
 @torch.no_grad()
 def head_energies(head, kv: list, candidates: torch.Tensor) -> torch.Tensor:
     """E_head(a, C) of N candidate chunks (N, H, d_a) under one chunk's keys/values: (N,)."""
@@ -161,10 +175,17 @@ def plan_gaps(
     """s_k for k < CHUNKS (fewer when the episode ends sooner): min over the bank's chunks of indices k - w..k + w
     (none of the episode's own: `own_id`) of E_head under C_k, minus E_head of the episode's own refined chunk."""
     gaps = []
-    for chunk in episode["chunks"][:CHUNKS]:
+    for chunk, record in zip(episode["chunks"][:CHUNKS], episode["records"], strict=False):
         k = chunk["chunk_index"]
         plans = [a for i in range(k - window, k + window + 1) for rid, a in bank.get(i, []) if rid != own_id]
         energies = head_energies(head, chunk["kv"], torch.cat([torch.stack(plans), chunk["actions"]]))
+        # The captured keys/values are fp16: the own chunk's head energy must still be the recorded E - E_c.
+        recorded = record.final_energy - record.context_energy
+        if abs(float(energies[-1]) - recorded) > CAPTURE_TOLERANCE:
+            raise ValueError(
+                f"Episode {record.episode_index}, chunk {k}: captured head energy {float(energies[-1]):.4f}, "
+                f"recorded E - E_c {recorded:.4f}."
+            )
         gaps.append(float(energies[:-1].min() - energies[-1]))
     return np.array(gaps)
 
@@ -186,7 +207,7 @@ def phase_z(gaps: np.ndarray, mu: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     return (gaps - mu[: len(gaps)]) / sigma[: len(gaps)]
 
 
-def readings(cal_gaps: dict, gaps: dict, terms: list[np.ndarray], mu: np.ndarray, sigma: np.ndarray) -> dict:
+def readings(gaps: dict, terms: list[np.ndarray], mu: np.ndarray, sigma: np.ndarray) -> dict:
     """The candidate readings of one rollout (fixed before any plan gap was seen; research/docs/libero_runs.md, "The
     energy of the successful plans"): `gaps[w]` its s_k, `terms` its (n, 2) z_c, z_h of `joint_phase_energy`."""
     z = phase_z(gaps[1], mu, sigma)
@@ -216,7 +237,11 @@ def score_set(args: argparse.Namespace, held_condition: str) -> dict:
     root = args.work / "eval" / args.run
 
     def load(condition: str) -> list[dict]:
-        return [e for task in range(10) for e in captured_episodes(root / condition / f"task{task}")]
+        folders = [root / condition / f"task{task}" for task in range(10)]
+        if args.results is not None:
+            for folder in folders:
+                check_same_rollouts(folder, args.results / "eval" / args.run / condition / folder.name)
+        return [e for folder in folders for e in captured_episodes(folder)]
 
     calibration, held = load("vanilla_calib"), load(held_condition)
     bank = success_bank(calibration)
@@ -231,8 +256,8 @@ def score_set(args: argparse.Namespace, held_condition: str) -> dict:
     cal_terms, held_terms = components(
         [e["records"] for e in calibration], [e["records"] for e in held], CHUNKS
     )
-    cal_values = [readings(None, g, t, mu, sigma) for g, t in zip(cal_gaps, cal_terms, strict=True)]
-    held_values = [readings(None, g, t, mu, sigma) for g, t in zip(held_gaps, held_terms, strict=True)]
+    cal_values = [readings(g, t, mu, sigma) for g, t in zip(cal_gaps, cal_terms, strict=True)]
+    held_values = [readings(g, t, mu, sigma) for g, t in zip(held_gaps, held_terms, strict=True)]
     names = list(cal_values[0])
     values = {
         name: (np.array([v[name] for v in cal_values]), np.array([v[name] for v in held_values]))
@@ -284,6 +309,7 @@ def main(argv: list[str] | None = None) -> None:
     sco = sub.add_parser("score")
     sco.add_argument("--work", type=Path, required=True)
     sco.add_argument("--run", required=True)
+    sco.add_argument("--results", type=Path, default=None, help="check the rollouts against this results folder's")
     sco.add_argument("--held_out", default=DEV, choices=(DEV, TEST))
     sco.add_argument("--output", type=Path, default=None)
     args = parser.parse_args(argv)

@@ -720,6 +720,31 @@ def test_more_arm_pieces_continue_their_tasks_placements_in_pieces_of_the_arm_si
         pipeline.record(tmp_path / "other", [1], 2, 128, jobs=1, more_arm_episodes={1: 4})
 
 
+def test_recovery_pieces_miss_their_first_grasp_with_the_arm_started_as_the_fixed_states(
+    tmp_path, monkeypatch
+):
+    import lerobot.datasets.aggregate
+
+    work, commands, aggregated = tmp_path / "work", [], []
+    monkeypatch.setattr(pipeline, "run_logged", fake_recorder(commands))
+    monkeypatch.setattr(
+        lerobot.datasets.aggregate, "aggregate_datasets", lambda **kwargs: aggregated.append(kwargs["roots"])
+    )
+    pipeline.record(work, [1, 2], 2, 128, jobs=1, placement_seed=100000, recovery_episodes={1: 3})
+    recover = [cmd for cmd in commands if "--regrasp=true" in cmd]
+    assert len(recover) == 1 and "--episodes_per_task=3" in recover[0]
+    assert f"--placement_seed={pipeline.RECOVERY_PLACEMENT_SEED}" in recover[0]
+    assert (
+        "--env.robot_init_noise=0.02" in recover[0]
+        and f"--miss_first_grasp={pipeline.RECOVERY_MISS}" in recover[0]
+    )
+    assert not any("--regrasp=true" in cmd for cmd in commands if cmd is not recover[0])
+    assert [root.name for root in aggregated[0]] == ["task1_from0", "task2_from0", "task1_recover_from0"]
+    summary = json.loads((work / "recording_summary.json").read_text())
+    assert summary["recovery_episodes"] == {"1": 3} and summary["tasks"]["1"]["recover_kept"] == 3
+    assert "recover_kept" not in summary["tasks"]["2"]
+
+
 def test_task_counts_read_task_equals_n_and_name_a_malformed_item():
     assert pipeline.task_counts(["1=20", "5=20"]) == {1: 20, 5: 20}
     with pytest.raises(ValueError, match="'1:20'"):

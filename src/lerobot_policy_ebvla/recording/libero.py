@@ -77,6 +77,10 @@ HAND_CLEARANCE_X = 0.08
 GRASP_END_MARGIN = 0.015  # a grasp slid towards an end of a long object stays this far inside it
 GRASP_SLIDE_GAIN = 0.01  # slide only when it gains at least this much clearance
 GRASP_SLIDE_ELONGATION = 1.5  # and only along an object at least this much longer in x than wide in y
+# With `regrasp`, a closed hand first rises this far (metres), then carries on lifting if the object has risen at
+# least `LIFTED` off where it lay, or reopens there.
+RAISE_HEIGHT = 0.08
+LIFTED = 0.04
 
 
 @dataclass
@@ -103,6 +107,14 @@ class RecordLiberoConfig(RecordingConfig):
     # recorded so never share a scene with an evaluation, which starts from the fixed states (LeRobot's env
     # starts episode i at state i). None: the fixed initial states.
     placement_seed: int | None = None
+    # After closing the hand, rise a little and, when the object stayed where it lay, reopen and grasp again, instead
+    # of carrying nothing to the basket (off: the expert that recorded the datasets before 2026-11-30, whose
+    # attempts repeat).
+    regrasp: bool = False
+    # Recovery demonstrations (needs `regrasp`): the first grasp of every attempt aims this far (metres) from the
+    # object along world x, to one side drawn from the attempt's seed, so that it closes on nothing; the expert then
+    # reopens and grasps the object. 0: every grasp aims at the object.
+    miss_first_grasp: float = 0.0
 
     def __post_init__(self):
         super().__post_init__()
@@ -118,6 +130,11 @@ class RecordLiberoConfig(RecordingConfig):
         self.env.observation_height = self.env.observation_width = self.image_size
         if self.max_steps is not None and self.max_steps < 1:
             raise ValueError(f"`max_steps` must be >= 1 or None, got {self.max_steps}.")
+        if self.miss_first_grasp < 0 or (self.miss_first_grasp > 0 and not self.regrasp):
+            raise ValueError(
+                f"`miss_first_grasp` must be >= 0, and > 0 only with `regrasp=true` (a missed grasp is never "
+                f"recovered without it); got {self.miss_first_grasp} with regrasp={self.regrasp}."
+            )
         if self.placement_seed is not None:
             if self.placement_seed < 0:
                 raise ValueError(f"`placement_seed` must be >= 0 or None, got {self.placement_seed}.")
@@ -145,9 +162,12 @@ class LiberoObjectExpert:
 
     Args:
         env: A `LiberoEBVLAGymEnv` (or LeRobot's `LiberoEnv`) that has been reset.
+        regrasp: Rise a little after closing the hand (`RAISE_HEIGHT`) and, if the object stayed where it lay,
+            reopen and grasp again (`RecordLiberoConfig`).
+        miss: Horizontal offset (metres, world x and y) of the first grasp from the object; None: none.
     """
 
-    def __init__(self, env: Any):
+    def __init__(self, env: Any, regrasp: bool = False, miss: np.ndarray | None = None):
         # Here, not at the top: `envs.libero` imports LIBERO, which asks questions on stdin until
         # `require_libero_ready` has pointed it at the assets (an env given here has been built, so it is).
         from ..envs.libero import goal_object_and_container
@@ -163,6 +183,10 @@ class LiberoObjectExpert:
         self.phase = "approach"
         self.phase_steps = 0
         self._slide: float | None = None
+        self.regrasp = regrasp
+        self._miss = None if miss is None else np.array([*miss, 0.0])
+        self._resting_height = self._position(self.object_name)[2]
+        self.grasps = 0  # grasps closed so far: 2 or more after a recovery
 
     def _position(self, name: str) -> np.ndarray:
         return np.array(self.scene.sim.data.body_xpos[self.scene.obj_body_id[name]])
@@ -219,7 +243,11 @@ class LiberoObjectExpert:
         position = self._position(name)
         position[0] += self._slide
         position[2] = max(position[2], high[2] - FINGER_DEPTH)
-        return position
+        return position if self._miss is None else position + self._miss
+
+    def holds_object(self) -> bool:
+        """Whether the object has risen off where it lay (`LIFTED`): asked once the closed hand has risen."""
+        return self._position(self.object_name)[2] > self._resting_height + LIFTED
 
     def _waypoint(self, eef: np.ndarray) -> tuple[np.ndarray, float, str | None]:
         """(target position, gripper command, next phase once the target is reached) of the current phase."""
@@ -229,9 +257,15 @@ class LiberoObjectExpert:
         if self.phase == "descend":
             return obj, GRIPPER_OPEN, "grasp"
         if self.phase == "grasp":
-            return eef, GRIPPER_CLOSED, "lift" if self.phase_steps >= GRIP_STEPS else None
+            after = "raise" if self.regrasp else "lift"
+            return eef, GRIPPER_CLOSED, after if self.phase_steps >= GRIP_STEPS else None
+        if self.phase == "raise":
+            target = np.array([*eef[:2], self._raise_to])
+            return target, GRIPPER_CLOSED, "lift" if self.holds_object() else "reopen"
         if self.phase == "lift":
             return np.array([*eef[:2], CARRY_HEIGHT]), GRIPPER_CLOSED, "carry"
+        if self.phase == "reopen":
+            return eef, GRIPPER_OPEN, "approach" if self.phase_steps >= GRIP_STEPS else None
         if self.phase == "carry":
             return np.array([*container[:2], CARRY_HEIGHT]), GRIPPER_CLOSED, "lower"
         if self.phase == "lower":
@@ -245,10 +279,15 @@ class LiberoObjectExpert:
         """The next 7-d action for an end-effector at `eef_position` (the raw observation's `robot0_eef_pos`)."""
         target, gripper, next_phase = self._waypoint(eef_position)
         error = target - eef_position
-        done = self.phase in ("grasp", "release") or (
+        done = self.phase in ("grasp", "release", "reopen") or (
             self.phase == "descend" and self.phase_steps >= DESCEND_MAX_STEPS
         )
         if next_phase is not None and (done or np.linalg.norm(error) < REACHED):
+            if self.phase == "grasp":
+                self.grasps += 1
+                self._raise_to = eef_position[2] + RAISE_HEIGHT
+            elif self.phase == "reopen":
+                self._miss = None  # the retry aims at the object
             self.phase, self.phase_steps = next_phase, 0
         else:
             self.phase_steps += 1
@@ -279,13 +318,27 @@ def _add_batch_dim(tree: Any) -> Any:
     return np.asarray(tree)[None]
 
 
+def first_grasp_miss(distance: float, seed: int) -> np.ndarray | None:
+    """The first grasp's offset (world x, y) for `miss_first_grasp`: `distance` along x, to the side `seed` draws."""
+    if distance == 0:
+        return None
+    side = 1.0 if np.random.default_rng(seed).random() < 0.5 else -1.0
+    return np.array([side * distance, 0.0])
+
+
 def record_expert_episode(
-    env: Any, dataset: Any, max_steps: int, seed: int | None = None
+    env: Any,
+    dataset: Any,
+    max_steps: int,
+    seed: int | None = None,
+    regrasp: bool = False,
+    miss: np.ndarray | None = None,
 ) -> tuple[bool, int]:
     """Rolls the expert out once from the env's next initial state (or, for an env without fixed initial
-    states, from the placements its reset with `seed` samples), adding every frame to the episode buffer."""
+    states, from the placements its reset with `seed` samples), adding every frame to the episode buffer.
+    `regrasp` and `miss` are the expert's (`LiberoObjectExpert`)."""
     observation, _ = env.reset(seed=seed)
-    expert = LiberoObjectExpert(env)
+    expert = LiberoObjectExpert(env, regrasp=regrasp, miss=miss)
     success, n_steps = False, 0
     while n_steps < max_steps and not success:
         action = expert.act(np.asarray(observation["robot_state"]["eef"]["pos"]))
@@ -295,6 +348,8 @@ def record_expert_episode(
         success = bool(info["is_success"])
         if terminated and not success:
             break
+    if expert.grasps > 1:
+        logging.info("The expert closed the hand %d times (a recovered grasp).", expert.grasps)
     return success, n_steps
 
 
@@ -305,11 +360,14 @@ def expert_episodes(
     dataset: Any,
     first_init_state: int = 0,
     placement_seed: int | None = None,
+    regrasp: bool = False,
+    miss_first_grasp: float = 0.0,
 ) -> Generator[Episode, None, None]:
     """The episodes to attempt, task by task; each task's vector env is closed once its episodes are recorded.
 
     Attempt i starts from the fixed initial state `first_init_state` + i, or with `placement_seed`, from the
-    placements sampled with seed `placement_seed` + `first_init_state` + i.
+    placements sampled with seed `placement_seed` + `first_init_state` + i. `regrasp` and `miss_first_grasp` are
+    `RecordLiberoConfig`'s; the side of a missed first grasp is drawn from the attempt's seed (or index).
     """
     for task_id, vec_env in envs.items():
         env = vec_env.envs[0]
@@ -321,11 +379,12 @@ def expert_episodes(
                 else:
                     seed = placement_seed + attempt
                     start, where = {"task_id": task_id, "placement_seed": seed}, f"placements of seed {seed}"
+                miss = first_grasp_miss(miss_first_grasp, attempt if seed is None else seed)
                 yield Episode(
                     task=env.task,
                     start=start,
                     label=f"task {task_id} ({env.task}) {where}",
-                    rollout=partial(record_expert_episode, env, dataset, max_steps, seed),
+                    rollout=partial(record_expert_episode, env, dataset, max_steps, seed, regrasp, miss),
                 )
         finally:
             vec_env.close()
@@ -352,7 +411,14 @@ def record_libero(cfg: RecordLiberoConfig) -> dict:
     episodes = record_episodes(
         dataset,
         expert_episodes(
-            envs, cfg.episodes_per_task, max_steps, dataset, cfg.env.first_init_state, cfg.placement_seed
+            envs,
+            cfg.episodes_per_task,
+            max_steps,
+            dataset,
+            cfg.env.first_init_state,
+            cfg.placement_seed,
+            cfg.regrasp,
+            cfg.miss_first_grasp,
         ),
         cfg.keep_failed,
     )
@@ -367,6 +433,8 @@ def record_libero(cfg: RecordLiberoConfig) -> dict:
             "first_init_state": cfg.env.first_init_state,
         },
         "placement_seed": cfg.placement_seed,
+        "regrasp": cfg.regrasp,
+        "miss_first_grasp": cfg.miss_first_grasp,
         "image_size": cfg.image_size,
         "max_steps": max_steps,
         "use_videos": cfg.use_videos,
