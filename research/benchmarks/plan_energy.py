@@ -14,10 +14,14 @@ It stores the calibration's successful action chunks (H x d_a numbers each), no 
 
 Stages (every stage skips what its folder holds, so a cut run resumes):
 
-    W=outputs/plan_energy_D; C=research/results/libero_object10_more
-    python research/benchmarks/plan_energy.py capture --work=$W --results=$C --run=ebvla_joint_fast_cpu_more \
-        --conditions vanilla_calib vanilla_heldout --jobs=2
-    python research/benchmarks/plan_energy.py score --work=$W --run=ebvla_joint_fast_cpu_more
+    W=outputs/plan_energy_D; C=research/results/libero_object10_more; P=research/benchmarks/plan_energy.py
+    MUJOCO_GL=egl python $P capture --work=$W --results=$C --run=ebvla_joint_fast_cpu_more \
+        --conditions vanilla_calib vanilla_heldout vanilla_confirm --jobs=2
+    OMP_NUM_THREADS=1 python $P score --work=$W --run=ebvla_joint_fast_cpu_more --results=$C \
+        --held_out=vanilla_heldout --output=$C/reports/plan_energy_choice.json
+
+`score` runs one head pass per chunk (about 1 s a rollout on one thread); beside a training run it slows that
+run several-fold (the training's threads wait on each other), so run it alone or beside single-threaded rollouts.
 
 `capture` re-runs the pipeline's jobs (same initial states and seeds) under `ebvla-eval` with two hooks that keep,
 for the first `MAX_CHUNKS` chunks of every episode, the head's per-block keys and values and the refined chunk
@@ -156,7 +160,8 @@ def check_same_rollouts(folder: Path, committed: Path) -> None:
 
     ours, theirs = (read_energy_records(records_file_in(f)) for f in (folder, committed))
     same = len(ours) == len(theirs) and all(
-        abs(a.final_energy - b.final_energy) < 1e-4 and a.success == b.success for a, b in zip(ours, theirs, strict=True)
+        abs(a.final_energy - b.final_energy) < 1e-4 and a.success == b.success
+        for a, b in zip(ours, theirs, strict=True)
     )
     if not same:
         raise ValueError(f"{folder}: the re-run rollouts differ from the committed ones in {committed}.")
@@ -170,15 +175,24 @@ def head_energies(head, kv: list, candidates: torch.Tensor) -> torch.Tensor:
 
 
 def plan_gaps(
-    head, episode: dict, bank: dict[int, list[tuple[int, torch.Tensor]]], window: int, own_id
-) -> np.ndarray:
-    """s_k for k < CHUNKS (fewer when the episode ends sooner): min over the bank's chunks of indices k - w..k + w
-    (none of the episode's own: `own_id`) of E_head under C_k, minus E_head of the episode's own refined chunk."""
-    gaps = []
+    head, episode: dict, bank: dict[int, list[tuple[int, torch.Tensor]]], own_id, windows=(0, 1, 2)
+) -> dict[int, np.ndarray]:
+    """{w: s_k for k < CHUNKS} (fewer chunks when the episode ends sooner): the minimum over the bank's chunks of
+    indices k - w..k + w (none of the episode's own: `own_id`) of E_head under C_k, minus E_head of the episode's own
+    refined chunk. One head pass per chunk scores the widest window's plans and the own chunk together."""
+    widest = max(windows)
+    gaps = {w: [] for w in windows}
     for chunk, record in zip(episode["chunks"][:CHUNKS], episode["records"], strict=False):
         k = chunk["chunk_index"]
-        plans = [a for i in range(k - window, k + window + 1) for rid, a in bank.get(i, []) if rid != own_id]
-        energies = head_energies(head, chunk["kv"], torch.cat([torch.stack(plans), chunk["actions"]]))
+        plans = [
+            (i, a) for i in range(k - widest, k + widest + 1) for rid, a in bank.get(i, []) if rid != own_id
+        ]
+        if not any(i == k for i, _ in plans):
+            raise ValueError(
+                f"No successful calibration rollout (but this one) has a chunk {k} to compare with."
+            )
+        candidates = torch.cat([torch.stack([a for _, a in plans]), chunk["actions"]])
+        energies = head_energies(head, chunk["kv"], candidates)
         # The captured keys/values are fp16: the own chunk's head energy must still be the recorded E - E_c.
         recorded = record.final_energy - record.context_energy
         if abs(float(energies[-1]) - recorded) > CAPTURE_TOLERANCE:
@@ -186,8 +200,10 @@ def plan_gaps(
                 f"Episode {record.episode_index}, chunk {k}: captured head energy {float(energies[-1]):.4f}, "
                 f"recorded E - E_c {recorded:.4f}."
             )
-        gaps.append(float(energies[:-1].min() - energies[-1]))
-    return np.array(gaps)
+        offsets = torch.tensor([abs(i - k) for i, _ in plans])
+        for w in windows:
+            gaps[w].append(float(energies[:-1][offsets <= w].min() - energies[-1]))
+    return {w: np.array(values) for w, values in gaps.items()}
 
 
 def success_bank(calibration: list[dict]) -> dict[int, list[tuple[int, torch.Tensor]]]:
@@ -222,18 +238,28 @@ def readings(gaps: dict, terms: list[np.ndarray], mu: np.ndarray, sigma: np.ndar
     }
 
 
-def score_set(args: argparse.Namespace, held_condition: str) -> dict:
-    from failure_check_test import BASELINE, row
-    from failure_score_variants import components
+def task_episodes(root: Path, condition: str) -> list[list]:
+    """A condition's episodes (each its records), tasks 0-9 in order, each task's in its records' order."""
+    from lerobot_policy_ebvla.monitoring.records import group_by_episode, read_energy_records, records_file_in
 
+    return [
+        records
+        for task in range(10)
+        for records in group_by_episode(
+            read_energy_records(records_file_in(root / condition / f"task{task}"))
+        ).values()
+    ]
+
+
+def capture_gaps(args: argparse.Namespace, held_condition: str) -> dict:
+    """Every calibration and held-out rollout's s_k for each window (`plan_gaps`), from the captures: the expensive
+    part, written to the result so that `rows_of` (and the test) can recompute the table from it."""
     from lerobot_policy_ebvla import EBVLAPolicy
-    from lerobot_policy_ebvla.monitoring.baselines import chunk_context_nn
-    from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_difference_interval
 
-    head = EBVLAPolicy.from_pretrained(
+    policy = EBVLAPolicy.from_pretrained(
         args.work / "train" / args.run / "checkpoints" / "last" / "pretrained_model"
     )
-    head = head.eval().model.head
+    head = policy.eval().model.head
     root = args.work / "eval" / args.run
 
     def load(condition: str) -> list[dict]:
@@ -245,28 +271,46 @@ def score_set(args: argparse.Namespace, held_condition: str) -> dict:
 
     calibration, held = load("vanilla_calib"), load(held_condition)
     bank = success_bank(calibration)
-    cal_gaps = [{w: plan_gaps(head, e, bank, w, rid) for w in WINDOWS} for rid, e in enumerate(calibration)]
-    held_gaps = [{w: plan_gaps(head, e, bank, w, None) for w in WINDOWS} for e in held]
-    successful = np.array([e["success"] for e in calibration])
-    failed = np.array([not e["success"] for e in held])
+
+    def listed(gaps: dict[int, np.ndarray]) -> dict[str, list[float]]:
+        return {str(w): [round(float(v), 6) for v in values] for w, values in gaps.items()}
+
+    return {
+        "calibration": [listed(plan_gaps(head, e, bank, rid, WINDOWS)) for rid, e in enumerate(calibration)],
+        "held_out": [listed(plan_gaps(head, e, bank, None, WINDOWS)) for e in held],
+    }
+
+
+def rows_of(calibration: list[list], held: list[list], gaps: dict) -> dict:
+    """Each reading's and `chunk_context_nn`'s row on the held-out rollouts (their records), at T = mu + K sigma of the
+    successful calibration rollouts, with the AUROC minus the baseline's and its paired interval."""
+    from failure_check_test import BASELINE, row
+    from failure_score_variants import components
+
+    from lerobot_policy_ebvla.monitoring.baselines import chunk_context_nn
+    from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_difference_interval
+
+    def arrays(listed: dict) -> dict[int, np.ndarray]:
+        return {int(w): np.array(values) for w, values in listed.items()}
+
+    cal_gaps, held_gaps = [arrays(g) for g in gaps["calibration"]], [arrays(g) for g in gaps["held_out"]]
+    successful = np.array([episode[0].success for episode in calibration])
+    failed = np.array([not episode[0].success for episode in held])
     # Per-chunk vanilla level of s_k (w = 1): the successful calibration rollouts', each scored without itself.
     stacked = [g[1] for g, ok in zip(cal_gaps, successful, strict=True) if ok]
     mu = np.array([np.mean([g[k] for g in stacked if len(g) > k]) for k in range(CHUNKS)])
     sigma = np.array([np.std([g[k] for g in stacked if len(g) > k]) for k in range(CHUNKS)])
-    cal_terms, held_terms = components(
-        [e["records"] for e in calibration], [e["records"] for e in held], CHUNKS
-    )
+    cal_terms, held_terms = components(calibration, held, CHUNKS)
     cal_values = [readings(g, t, mu, sigma) for g, t in zip(cal_gaps, cal_terms, strict=True)]
     held_values = [readings(g, t, mu, sigma) for g, t in zip(held_gaps, held_terms, strict=True)]
-    names = list(cal_values[0])
     values = {
         name: (np.array([v[name] for v in cal_values]), np.array([v[name] for v in held_values]))
-        for name in names
+        for name in cal_values[0]
     }
-    as_map = lambda episodes: {i: e["records"] for i, e in enumerate(episodes)}  # noqa: E731
+    cal_map, held_map = dict(enumerate(calibration)), dict(enumerate(held))
     values[BASELINE] = (
-        chunk_context_nn(as_map(calibration), as_map(calibration), CHUNKS - 1),
-        chunk_context_nn(as_map(calibration), as_map(held), CHUNKS - 1),
+        chunk_context_nn(cal_map, cal_map, CHUNKS - 1),
+        chunk_context_nn(cal_map, held_map, CHUNKS - 1),
     )
     baseline = values[BASELINE][1]
     rows = []
@@ -281,13 +325,41 @@ def score_set(args: argparse.Namespace, held_condition: str) -> dict:
                 )
             )
     return {
-        "held_out": held_condition,
         "calibration_rollouts": int(successful.size),
         "calibration_successful": int(successful.sum()),
         "rollouts": int(failed.size),
         "failed": int(failed.sum()),
         "rows": rows,
     }
+
+
+def markdown(result: dict) -> str:
+    """The rows as a table, each reading's AUROC minus the baseline's, and the choice."""
+    from failure_check_test import rows_table
+
+    lines = [
+        f"Plan gaps of `{result['run']}` over the first {result['chunks']} chunks, T = mu + {result['k']:g} sigma of "
+        f"the {result['calibration_successful']} successful of {result['calibration_rollouts']} calibration rollouts."
+    ]
+    lines += rows_table(result["held_out"], result, name_column="Reading")
+    lines += ["", "AUROC minus `chunk_context_nn`'s on the same rollouts [paired bootstrap 95 % CI]:"]
+    lines += [
+        f"- {r['score']}: {r['auroc_minus_baseline']:+.3f} [{low:+.3f}, {high:+.3f}]"
+        for r in result["rows"]
+        if "auroc_minus_baseline" in r
+        for low, high in [r["auroc_minus_baseline_interval"]]
+    ]
+    if "chosen" in result:
+        lines += ["", f"Chosen (the highest AUROC): {result['chosen']}"]
+    return "\n".join(lines) + "\n"
+
+
+def chosen(result: dict) -> dict:
+    """The rule's choice among the readings: the highest AUROC, a tie broken by the balanced accuracy at T."""
+    from failure_check_test import BASELINE
+
+    readings_rows = [r for r in result["rows"] if r["score"] != BASELINE]
+    return max(readings_rows, key=lambda r: (r["auroc"], r["balanced_accuracy"]))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -309,19 +381,26 @@ def main(argv: list[str] | None = None) -> None:
     sco = sub.add_parser("score")
     sco.add_argument("--work", type=Path, required=True)
     sco.add_argument("--run", required=True)
-    sco.add_argument("--results", type=Path, default=None, help="check the rollouts against this results folder's")
+    sco.add_argument(
+        "--results", type=Path, default=None, help="check the rollouts against this results folder's"
+    )
     sco.add_argument("--held_out", default=DEV, choices=(DEV, TEST))
     sco.add_argument("--output", type=Path, default=None)
     args = parser.parse_args(argv)
     if args.stage == "capture":
         capture(args)
     else:
-        result = score_set(args, args.held_out)
-        text = json.dumps(result, indent=1)
-        print(text)
+        gaps = capture_gaps(args, args.held_out)
+        root = args.work / "eval" / args.run
+        result = {"run": args.run, "held_out": args.held_out, "chunks": CHUNKS, "k": K}
+        result |= rows_of(task_episodes(root, "vanilla_calib"), task_episodes(root, args.held_out), gaps)
+        if args.held_out == DEV:
+            result["chosen"] = chosen(result)["score"]
+        print(markdown(result))
         if args.output is not None:
             args.output.parent.mkdir(parents=True, exist_ok=True)
-            args.output.write_text(text + "\n")
+            args.output.write_text(json.dumps(result | {"gaps": gaps}) + "\n")
+            args.output.with_suffix(".md").write_text(markdown(result))
 
 
 if __name__ == "__main__":

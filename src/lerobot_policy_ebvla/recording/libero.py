@@ -4,8 +4,9 @@ Every LIBERO-Object task is "pick up the X and place it in the basket". The expe
 the object to move and its container from the task's BDDL goal, the poses of both from the simulator (privileged
 information no policy sees), and drives LIBERO's own controller (OSC_POSE, delta end-effector actions in [-1, 1],
 gripper -1 open / +1 closed) through waypoints: above the object, down to it, close, lift, over the basket,
-down, open. Episodes run in LeRobot's LIBERO env (through `--env.type=libero_ebvla`, so perturbations are the same
-options as in evaluation), starting from LIBERO's fixed initial states (attempt i of a task uses state i, or
+down, open (with `regrasp`, the closed hand first rises a little and reopens to grasp again if the object
+stayed where it lay). Episodes run in LeRobot's LIBERO env (through `--env.type=libero_ebvla`, so perturbations are
+the same options as in evaluation), starting from LIBERO's fixed initial states (attempt i of a task uses state i, or
 state `env.first_init_state` + i), or, with `placement_seed`, from object placements LIBERO samples afresh from
 the task's BDDL regions (attempt i resets with seed `placement_seed` + `env.first_init_state` + i): scenes that
 are never among the 50 fixed initial states on which policies are evaluated.
@@ -187,6 +188,7 @@ class LiberoObjectExpert:
         self._miss = None if miss is None else np.array([*miss, 0.0])
         self._resting_height = self._position(self.object_name)[2]
         self.grasps = 0  # grasps closed so far: 2 or more after a recovery
+        self._raise_to: float | None = None  # height the closed hand rises to before `holds_object` is asked
 
     def _position(self, name: str) -> np.ndarray:
         return np.array(self.scene.sim.data.body_xpos[self.scene.obj_body_id[name]])
