@@ -222,3 +222,21 @@ def test_h_at_128_px_is_not_the_lever_on_the_fixed_states_and_pairs_with_g_as_th
     assert successes(H / "vanilla_heldout") == [16, 8, 19, 20, 18, 9, 20, 20, 20, 17]
     got = recomputed_paired_confirm(tmp_path, G, H, "paired_g_h_vanilla_confirm.json")
     assert got["total"] == {"first": 178, "second": 169, "episodes": 200, "won": 10, "lost": 19}
+
+
+RECOVER = RESULTS / "libero_object10_recover" / "eval" / "ebvla_joint_fast_cpu_recover"
+
+
+def test_i_with_recovery_demonstrations_loses_the_grasps_it_was_meant_to_mend(tmp_path):
+    """research/docs/libero_runs.md, "I": tasks 1 and 5 of the states 30-49, 2/20 and 0/20 against G's 15 and 11, so at
+    most 162/200 whatever the other eight tasks (not the lever: 178 or fewer); they were not run."""
+    assert successes(RECOVER / "vanilla_confirm") == [None, 2, None, None, None, 0, None, None, None, None]
+    got = recomputed_paired(
+        tmp_path,
+        G / "vanilla_confirm",
+        RECOVER / "vanilla_confirm",
+        RESULTS / "libero_object10_recover" / "reports" / "paired_g_i_vanilla_confirm.json",
+    )
+    assert got["total"] == {"first": 26, "second": 2, "episodes": 40, "won": 0, "lost": 24}
+    summary = json.loads((RESULTS / "libero_object10_recover" / "recording_summary.json").read_text())
+    assert [summary["tasks"][t]["recover_kept"] for t in ("1", "5")] == [20, 20]
