@@ -51,8 +51,12 @@ CAPTURE_TOLERANCE = 0.05
 
 def eval_one(argv: list[str]) -> None:
     """`ebvla-eval` with the capture hooks: runs in the job's own process."""
+    from lerobot.configs import parser
+    from lerobot.utils.import_utils import register_third_party_plugins
+    from lerobot.utils.utils import init_logging
+
     from lerobot_policy_ebvla import modeling_ebvla
-    from lerobot_policy_ebvla.scripts import eval_energy
+    from lerobot_policy_ebvla.pipelines.eval_energy import EnergyEvalPipelineConfig, eval_energy
 
     rows: list[dict] = []
     last_kv: dict = {}
@@ -78,8 +82,16 @@ def eval_one(argv: list[str]) -> None:
     modeling_ebvla.EBVLA.encode_context = encode_and_keep
     modeling_ebvla.EBVLAPolicy.predict_action_chunk = predict_and_keep
     output_dir = next(a.split("=", 1)[1] for a in argv if a.startswith("--output_dir="))
+
+    # What `ebvla-eval` runs, with the hooks above in place.
+    @parser.wrap()
+    def run(cfg: EnergyEvalPipelineConfig) -> None:
+        eval_energy(cfg)
+
+    init_logging()
+    register_third_party_plugins()
     sys.argv = ["ebvla-eval", *argv]
-    eval_energy.main()
+    run()
     torch.save(rows, Path(output_dir) / CAPTURE_FILE)
 
 
