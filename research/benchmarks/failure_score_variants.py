@@ -79,6 +79,19 @@ def run_rows(calibration: dict, held_out: dict, n: int = CHUNKS, k: float = K) -
         chunk_context_nn(calibration, calibration, n - 1),
         chunk_context_nn(calibration, held_out, n - 1),
     )
+    return {
+        "rollouts": int(failed.size),
+        "failed": int(failed.sum()),
+        "rows": rows_against_baseline(values, successful, failed, k),
+    }
+
+
+def rows_against_baseline(
+    values: dict, successful: np.ndarray, failed: np.ndarray, k: float = K
+) -> list[dict]:
+    """Each score's row (`row`) at T = mu + k sigma of the successful calibration rollouts, from {name: (calibration
+    values, held-out values)} that holds `BASELINE`; every other score's also with its AUROC minus the baseline's on
+    the same held-out rollouts and that difference's paired bootstrap interval."""
     rows = []
     baseline = values[BASELINE][1]
     baseline_negatives, baseline_positives = baseline[~failed], baseline[failed]
@@ -93,7 +106,7 @@ def run_rows(calibration: dict, held_out: dict, n: int = CHUNKS, k: float = K) -
                     held_values[~failed], held_values[failed], baseline_negatives, baseline_positives
                 )
             )
-    return {"rollouts": int(failed.size), "failed": int(failed.sum()), "rows": rows}
+    return rows
 
 
 def markdown(result: dict) -> str:

@@ -296,11 +296,10 @@ def capture_gaps(args: argparse.Namespace, held_condition: str) -> dict:
 def rows_of(calibration: list[list], held: list[list], gaps: dict) -> dict:
     """Each reading's and `chunk_context_nn`'s row on the held-out rollouts (their records), at T = mu + K sigma of the
     successful calibration rollouts, with the AUROC minus the baseline's and its paired interval."""
-    from failure_check_test import BASELINE, row
-    from failure_score_variants import components
+    from failure_check_test import BASELINE
+    from failure_score_variants import components, rows_against_baseline
 
     from lerobot_policy_ebvla.monitoring.baselines import chunk_context_nn
-    from lerobot_policy_ebvla.monitoring.metrics import auroc, bootstrap_auroc_difference_interval
 
     def arrays(listed: dict) -> dict[int, np.ndarray]:
         return {int(w): np.array(values) for w, values in listed.items()}
@@ -324,18 +323,7 @@ def rows_of(calibration: list[list], held: list[list], gaps: dict) -> dict:
         chunk_context_nn(cal_map, cal_map, CHUNKS - 1),
         chunk_context_nn(cal_map, held_map, CHUNKS - 1),
     )
-    baseline = values[BASELINE][1]
-    rows = []
-    for name, (cal, values_held) in values.items():
-        reference = cal[successful]
-        rows.append(row(name, values_held, float(reference.mean() + K * reference.std()), failed))
-        if name != BASELINE:
-            rows[-1]["auroc_minus_baseline"] = rows[-1]["auroc"] - auroc(baseline[~failed], baseline[failed])
-            rows[-1]["auroc_minus_baseline_interval"] = list(
-                bootstrap_auroc_difference_interval(
-                    values_held[~failed], values_held[failed], baseline[~failed], baseline[failed]
-                )
-            )
+    rows = rows_against_baseline(values, successful, failed, K)
     return {
         "calibration_rollouts": int(successful.size),
         "calibration_successful": int(successful.sum()),
