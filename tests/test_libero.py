@@ -508,10 +508,51 @@ def test_expert_with_a_missed_first_grasp_rises_reopens_and_lifts_the_object_at_
     assert expert.phase == "lift" and held
 
 
+class FrameList:
+    """The part of a LeRobotDataset's episode buffer `record_expert_episode` writes to."""
+
+    def __init__(self):
+        self.frames = []
+
+    def add_frame(self, frame):
+        self.frames.append(frame)
+
+
+@requires_libero
+@pytest.mark.slow
+def test_a_recovery_demonstration_stores_its_frames_from_the_rise_after_the_miss(monkeypatch):
+    """Without `store_missed_grasp` the approach, descent and closing beside the object are run but not stored:
+    the first frame is the closed hand rising from its miss, and the reopening and the second grasp are stored."""
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    from lerobot_policy_ebvla.recording.libero import (
+        GRIPPER_CLOSED,
+        GRIPPER_OPEN,
+        first_grasp_miss,
+        record_expert_episode,
+    )
+
+    cfg = LiberoEBVLAEnv(task_ids=[5], init_states=False, observation_height=32, observation_width=32)
+    vec_env = cfg.create_envs(n_envs=1)["libero_object"][5]
+    dataset = FrameList()
+    try:
+        miss = first_grasp_miss(0.05, 310000)
+        success, n_steps = record_expert_episode(vec_env.envs[0], dataset, 280, 310000, True, miss)
+    finally:
+        vec_env.close()
+    actions = np.stack([frame[ACTION] for frame in dataset.frames])
+    assert success and 0 < len(actions) < n_steps
+    # The grasp holds the hand still while it closes; the rise moves it up, still closed.
+    assert actions[0][6] == GRIPPER_CLOSED and actions[0][2] > 0
+    reopened = int(np.argmax(actions[:, 6] == GRIPPER_OPEN))
+    assert reopened > 0 and (actions[reopened:, 6] == GRIPPER_CLOSED).any()
+    assert dataset.frames[0][OBS_STATE].shape == (8,)
+
+
 def test_a_missed_first_grasp_needs_regrasp():
     from lerobot_policy_ebvla.recording.libero import RecordLiberoConfig, first_grasp_miss
 
-    assert RecordLiberoConfig(regrasp=True, miss_first_grasp=0.05).miss_first_grasp == 0.05
+    recovery = RecordLiberoConfig(regrasp=True, miss_first_grasp=0.05)
+    assert recovery.miss_first_grasp == 0.05 and not recovery.store_missed_grasp
     with pytest.raises(ValueError, match="`miss_first_grasp` must be >= 0, and > 0 only with `regrasp=true`"):
         RecordLiberoConfig(miss_first_grasp=0.05)
     with pytest.raises(ValueError, match="`miss_first_grasp` must be >= 0"):

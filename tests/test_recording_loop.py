@@ -8,10 +8,14 @@ from lerobot_policy_ebvla.recording.loop import Episode, format_report, prepare_
 class FakeDataset:
     """The part of a LeRobotDataset in write mode the loop uses."""
 
-    def __init__(self):
+    def __init__(self, frames_per_episode: int = 7):
         self.num_episodes = 0
         self.buffer_cleared = 0
         self.finalized = False
+        self.frames_per_episode = frames_per_episode
+
+    def has_pending_frames(self):
+        return self.frames_per_episode > 0
 
     def save_episode(self):
         self.num_episodes += 1
@@ -45,6 +49,15 @@ def test_successful_episodes_are_saved_and_failed_ones_cleared_unless_kept():
 
     reports = record_episodes(FakeDataset(), episodes([False], []), keep_failed=True)
     assert reports[0].kept and reports[0].dataset_episode_index == 0
+
+
+def test_a_kept_failure_that_stored_no_frame_is_left_out_not_saved_empty():
+    """A recorder that stores part of an attempt (a recovery demonstration's frames from its miss on) can end an
+    attempt with nothing stored: LeRobot refuses to save an empty episode, so the loop reports it left out."""
+    dataset = FakeDataset(frames_per_episode=0)
+    reports = record_episodes(dataset, episodes([False], []), keep_failed=True)
+    assert not reports[0].kept and reports[0].dataset_episode_index is None
+    assert (dataset.num_episodes, dataset.buffer_cleared) == (0, 1)
 
 
 def test_an_episode_that_raises_still_closes_the_env_and_finalizes_the_dataset():

@@ -176,6 +176,12 @@ FINE_TUNES = {
         "research/results/libero_object10_arm_more/train/ebvla_joint_fast_cpu_arm_more_longer/last/pretrained_model",
         FINE_TUNE_RATE,
     ),
+    # J (2026-11-30, night): I with its recovery demonstrations stored from the rise after the miss on (`record
+    # --recovery_from_rise`): I learned the stored misses. Only the data differs from I's fine-tune.
+    "ebvla_joint_fast_cpu_recover_rise": FineTune(
+        "research/results/libero_object10_arm_more/train/ebvla_joint_fast_cpu_arm_more_longer/last/pretrained_model",
+        FINE_TUNE_RATE,
+    ),
 }
 for _name in FINE_TUNES:  # each start descends from C: the flags it was trained with
     RUNS[_name] = RUNS["ebvla_joint_fast_cpu"]
@@ -281,8 +287,9 @@ ARM_PLACEMENT_SEED = 300000
 # it closes on nothing, rises, reopens and grasps again (`RecordLiberoConfig.miss_first_grasp`).
 RECOVERY_PLACEMENT_SEED = 310000
 RECOVERY_MISS = 0.05
-# A piece's kind: plain, the arm's start (`arm`), or recovery (`recover`).
-PLAIN, ARM, RECOVER = "", "arm", "recover"
+# A piece's kind: plain, the arm's start (`arm`), or recovery: I's, its miss stored (`recover`), or J's, stored from
+# the rise after the miss on (`recoverrise`, `record --recovery_from_rise`; added 2026-11-30, night).
+PLAIN, ARM, RECOVER, RECOVER_RISE = "", "arm", "recover", "recoverrise"
 
 
 def piece_name(task: int, first: int, kind: str = PLAIN) -> str:
@@ -311,6 +318,7 @@ def record(
     arm_episodes: int = 0,
     more_arm_episodes: dict[int, int] | None = None,
     recovery_episodes: dict[int, int] | None = None,
+    recovery_from_rise: bool = False,
 ) -> Path:
     """Records each task in `parts` processes (each from its own initial states), then aggregates every part
     into `<work>/data/all`.
@@ -321,7 +329,8 @@ def record(
     fixed states' (`--env.robot_init_noise`, FIXED_STATES_ARM_NOISE) on placements of ARM_PLACEMENT_SEED + attempt;
     `more_arm_episodes` adds such attempts to some tasks (task -> count), in more pieces of `arm_episodes` each.
     `recovery_episodes` (task -> count) adds one piece per task of recovery demonstrations (`RECOVERY_MISS`), the arm
-    started as the fixed states', on placements of RECOVERY_PLACEMENT_SEED + attempt.
+    started as the fixed states', on placements of RECOVERY_PLACEMENT_SEED + attempt: with `recovery_from_rise`, their
+    frames stored from the rise after the miss on (`RecordLiberoConfig.store_missed_grasp` off), else every frame.
     Pieces saved results folders already hold (`pieces_from`, their `data/`: pieces recorded as video) are linked,
     not recorded again.
 
@@ -342,7 +351,8 @@ def record(
         raise ValueError(
             "`more_arm_episodes` adds pieces of `arm_episodes` attempts each: give `arm_episodes` too."
         )
-    pieces += [(task, 0, n, RECOVER) for task, n in sorted((recovery_episodes or {}).items()) if n]
+    recovery = RECOVER_RISE if recovery_from_rise else RECOVER
+    pieces += [(task, 0, n, recovery) for task, n in sorted((recovery_episodes or {}).items()) if n]
     for task, first, _, kind in pieces:
         piece = work / "data" / piece_name(task, first, kind)
         recorded = (folder / "data" / piece.name for folder in pieces_from or [])
@@ -376,12 +386,13 @@ def record(
                 f"--placement_seed={ARM_PLACEMENT_SEED}",
                 f"--env.robot_init_noise={FIXED_STATES_ARM_NOISE}",
             ]
-        elif kind == RECOVER:
+        elif kind in (RECOVER, RECOVER_RISE):
             cmd += [
                 f"--placement_seed={RECOVERY_PLACEMENT_SEED}",
                 f"--env.robot_init_noise={FIXED_STATES_ARM_NOISE}",
                 "--regrasp=true",
                 f"--miss_first_grasp={RECOVERY_MISS}",
+                f"--store_missed_grasp={str(kind == RECOVER).lower()}",
             ]
         elif placement_seed is not None:
             cmd.append(f"--placement_seed={placement_seed}")
@@ -421,6 +432,7 @@ def record(
         "recovery_episodes": {str(task): n for task, n in sorted((recovery_episodes or {}).items())},
         "recovery_placement_seed": RECOVERY_PLACEMENT_SEED if recovery_episodes else None,
         "recovery_miss": RECOVERY_MISS if recovery_episodes else None,
+        "recovery_from_rise": recovery_from_rise,
         "use_videos": use_videos,
         "tasks": {},
     }
@@ -1131,6 +1143,11 @@ def main(argv: list[str] | None = None) -> None:
         metavar="TASK=N",
         help="record: N recovery demonstrations of TASK (a first grasp beside the object, then the grasp again)",
     )
+    parser.add_argument(
+        "--recovery_from_rise",
+        action="store_true",
+        help="record: store the recovery demonstrations' frames from the rise after the miss on (J), not all (I)",
+    )
     parser.add_argument("--jobs", type=int, default=10, help="processes side by side (record, eval)")
     parser.add_argument("--runs", nargs="+", choices=list(RUNS), default=["ebvla_paper", "diffusion"])
     parser.add_argument(
@@ -1247,6 +1264,7 @@ def main(argv: list[str] | None = None) -> None:
             args.arm_episodes,
             task_counts(args.more_arm_episodes),
             task_counts(args.recovery_episodes),
+            args.recovery_from_rise,
         )
     elif args.stage == "train":
         train(

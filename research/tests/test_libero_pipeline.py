@@ -743,6 +743,25 @@ def test_recovery_pieces_miss_their_first_grasp_with_the_arm_started_as_the_fixe
     summary = json.loads((work / "recording_summary.json").read_text())
     assert summary["recovery_episodes"] == {"1": 3} and summary["tasks"]["1"]["recover_kept"] == 3
     assert "recover_kept" not in summary["tasks"]["2"]
+    assert "--store_missed_grasp=true" in recover[0] and not summary["recovery_from_rise"]
+
+
+def test_recovery_pieces_from_the_rise_are_stored_without_their_miss(tmp_path, monkeypatch):
+    """J's pieces: the same attempts as I's, recorded with `--store_missed_grasp=false` under a name of their own."""
+    import lerobot.datasets.aggregate
+
+    work, commands, aggregated = tmp_path / "work", [], []
+    monkeypatch.setattr(pipeline, "run_logged", fake_recorder(commands))
+    monkeypatch.setattr(
+        lerobot.datasets.aggregate, "aggregate_datasets", lambda **kwargs: aggregated.append(kwargs["roots"])
+    )
+    pipeline.record(work, [5], 2, 128, jobs=1, recovery_episodes={5: 2}, recovery_from_rise=True)
+    recover = [cmd for cmd in commands if "--regrasp=true" in cmd]
+    assert len(recover) == 1 and "--store_missed_grasp=false" in recover[0]
+    assert f"--placement_seed={pipeline.RECOVERY_PLACEMENT_SEED}" in recover[0]
+    assert [root.name for root in aggregated[0]] == ["task5_from0", "task5_recoverrise_from0"]
+    summary = json.loads((work / "recording_summary.json").read_text())
+    assert summary["recovery_from_rise"] and summary["tasks"]["5"]["recoverrise_kept"] == 2
 
 
 def test_task_counts_read_task_equals_n_and_name_a_malformed_item():

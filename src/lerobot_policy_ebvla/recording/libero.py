@@ -116,6 +116,11 @@ class RecordLiberoConfig(RecordingConfig):
     # object along world x, to one side drawn from the attempt's seed, so that it closes on nothing; the expert then
     # reopens and grasps the object. 0: every grasp aims at the object.
     miss_first_grasp: float = 0.0
+    # Store the frames of the deliberate miss (the approach, the descent and the hand closing beside the object).
+    # Off: a recovery demonstration's frames start where the closed hand rises from its miss, the state a policy is
+    # in after missing a grasp of its own. A policy fine-tuned on the stored misses learned to close beside the
+    # object (research/docs/libero_runs.md, "I"): the miss is the expert's device, not behaviour to imitate.
+    store_missed_grasp: bool = False
 
     def __post_init__(self):
         super().__post_init__()
@@ -335,16 +340,22 @@ def record_expert_episode(
     seed: int | None = None,
     regrasp: bool = False,
     miss: np.ndarray | None = None,
+    store_missed_grasp: bool = False,
 ) -> tuple[bool, int]:
     """Rolls the expert out once from the env's next initial state (or, for an env without fixed initial
-    states, from the placements its reset with `seed` samples), adding every frame to the episode buffer.
-    `regrasp` and `miss` are the expert's (`LiberoObjectExpert`)."""
+    states, from the placements its reset with `seed` samples), adding its frames to the episode buffer: every
+    frame, or with a `miss` and not `store_missed_grasp`, those from the first grasp's rise on. `regrasp` and
+    `miss` are the expert's (`LiberoObjectExpert`). Returns (success, steps run: the stored frames and any skipped)."""
     observation, _ = env.reset(seed=seed)
     expert = LiberoObjectExpert(env, regrasp=regrasp, miss=miss)
+    skip_miss = miss is not None and not store_missed_grasp
     success, n_steps = False, 0
     while n_steps < max_steps and not success:
+        # `grasps` counts closings completed: from then on the expert rises from its miss.
+        store = not skip_miss or expert.grasps > 0
         action = expert.act(np.asarray(observation["robot_state"]["eef"]["pos"]))
-        dataset.add_frame({**policy_frame(observation), ACTION: action, "task": env.task_description})
+        if store:
+            dataset.add_frame({**policy_frame(observation), ACTION: action, "task": env.task_description})
         observation, _, terminated, _, info = env.step(action)
         n_steps += 1
         success = bool(info["is_success"])
@@ -364,15 +375,25 @@ def expert_episodes(
     placement_seed: int | None = None,
     regrasp: bool = False,
     miss_first_grasp: float = 0.0,
+    store_missed_grasp: bool = False,
 ) -> Generator[Episode, None, None]:
     """The episodes to attempt, task by task; each task's vector env is closed once its episodes are recorded.
 
     Attempt i starts from the fixed initial state `first_init_state` + i, or with `placement_seed`, from the
-    placements sampled with seed `placement_seed` + `first_init_state` + i. `regrasp` and `miss_first_grasp` are
-    `RecordLiberoConfig`'s; the side of a missed first grasp is drawn from the attempt's seed (or index).
+    placements sampled with seed `placement_seed` + `first_init_state` + i. `regrasp`, `miss_first_grasp` and
+    `store_missed_grasp` are `RecordLiberoConfig`'s; the side of a missed first grasp is drawn from the attempt's
+    seed (or index).
     """
     for task_id, vec_env in envs.items():
         env = vec_env.envs[0]
+        record = partial(
+            record_expert_episode,
+            env,
+            dataset,
+            max_steps,
+            regrasp=regrasp,
+            store_missed_grasp=store_missed_grasp,
+        )
         try:
             for attempt in range(first_init_state, first_init_state + episodes_per_task):
                 if placement_seed is None:
@@ -386,7 +407,7 @@ def expert_episodes(
                     task=env.task,
                     start=start,
                     label=f"task {task_id} ({env.task}) {where}",
-                    rollout=partial(record_expert_episode, env, dataset, max_steps, seed, regrasp, miss),
+                    rollout=partial(record, seed=seed, miss=miss),
                 )
         finally:
             vec_env.close()
@@ -421,6 +442,7 @@ def record_libero(cfg: RecordLiberoConfig) -> dict:
             cfg.placement_seed,
             cfg.regrasp,
             cfg.miss_first_grasp,
+            cfg.store_missed_grasp,
         ),
         cfg.keep_failed,
     )
@@ -437,6 +459,7 @@ def record_libero(cfg: RecordLiberoConfig) -> dict:
         "placement_seed": cfg.placement_seed,
         "regrasp": cfg.regrasp,
         "miss_first_grasp": cfg.miss_first_grasp,
+        "store_missed_grasp": cfg.store_missed_grasp,
         "image_size": cfg.image_size,
         "max_steps": max_steps,
         "use_videos": cfg.use_videos,

@@ -131,7 +131,8 @@ def record_episodes(
         for episode in episodes:
             start = time.perf_counter()
             success, n_steps = episode.rollout()
-            kept = success or keep_failed
+            # A recorder that stores part of an attempt (a recovery's frames from its miss on) may store none.
+            kept = (success or keep_failed) and dataset.has_pending_frames()
             index = dataset.num_episodes if kept else None
             if kept:
                 dataset.save_episode()
