@@ -240,3 +240,37 @@ def test_i_with_recovery_demonstrations_loses_the_grasps_it_was_meant_to_mend(tm
     assert got["total"] == {"first": 26, "second": 2, "episodes": 40, "won": 0, "lost": 24}
     summary = json.loads((RESULTS / "libero_object10_recover" / "recording_summary.json").read_text())
     assert [summary["tasks"][t]["recover_kept"] for t in ("1", "5")] == [20, 20]
+
+
+RISE = RESULTS / "libero_object10_recover_rise" / "eval" / "ebvla_joint_fast_cpu_recover_rise"
+
+
+def objects_moved(folder: Path) -> int:
+    """Rollouts whose goal distance ever fell 2 cm below its first chunk's (the object was carried at least a little)."""
+    import gzip
+
+    moved = 0
+    for records in sorted(folder.glob("task*/energy_records.jsonl.gz")):
+        episodes: dict[int, list[float]] = {}
+        for line in gzip.open(records, "rt"):
+            row = json.loads(line)
+            episodes.setdefault(row["episode_index"], []).append(row["goal_distance"])
+        moved += sum(min(d) < d[0] - 0.02 for d in episodes.values())
+    return moved
+
+
+def test_j_recovery_demonstrations_without_their_miss_lose_the_grasps_too(tmp_path):
+    """research/docs/libero_runs.md, "J": I's recovery demonstrations stored from the rise after the miss on; tasks 1 and
+    5 of the states 30-49, 1/20 and 0/20 against G's 15 and 11 (at most 161/200: not the lever), the object moved in 1
+    of the 40 rollouts; the other tasks were not run."""
+    assert successes(RISE / "vanilla_confirm") == [None, 1, None, None, None, 0, None, None, None, None]
+    assert objects_moved(RISE / "vanilla_confirm") == 1
+    got = recomputed_paired(
+        tmp_path,
+        G / "vanilla_confirm",
+        RISE / "vanilla_confirm",
+        RESULTS / "libero_object10_recover_rise" / "reports" / "paired_g_j_vanilla_confirm.json",
+    )
+    assert got["total"] == {"first": 26, "second": 1, "episodes": 40, "won": 0, "lost": 25}
+    summary = json.loads((RESULTS / "libero_object10_recover_rise" / "recording_summary.json").read_text())
+    assert summary["recovery_from_rise"] and [summary["tasks"][t]["recoverrise_kept"] for t in ("1", "5")] == [20, 20]

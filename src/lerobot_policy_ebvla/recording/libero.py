@@ -118,8 +118,8 @@ class RecordLiberoConfig(RecordingConfig):
     miss_first_grasp: float = 0.0
     # Store the frames of the deliberate miss (the approach, the descent and the hand closing beside the object).
     # Off: a recovery demonstration's frames start where the closed hand rises from its miss, the state a policy is
-    # in after missing a grasp of its own. A policy fine-tuned on the stored misses learned to close beside the
-    # object (research/docs/libero_runs.md, "I"): the miss is the expert's device, not behaviour to imitate.
+    # in after missing a grasp of its own: the miss is the expert's device, not behaviour to imitate (a policy
+    # fine-tuned on stored misses closed beside the object: research/docs/libero_runs.md, "I").
     store_missed_grasp: bool = False
 
     def __post_init__(self):
