@@ -94,7 +94,9 @@ def test_the_joint_phase_energy_averages_the_two_terms_z_at_the_chunks_index():
     np.testing.assert_allclose(calibration.chunk_score(readout), [0.25, 12.25])
     # A rollout: each term's mean over its chunks (-1.25 and 13.75), then their mean.
     assert score_rollout(score, score.components(ChunkInputs.of(readout)), "mean") == pytest.approx(6.25)
-    assert score_rollout(score, score.components(ChunkInputs.of(readout)), "max") == pytest.approx((2.5 + 22.0) / 2)
+    assert score_rollout(score, score.components(ChunkInputs.of(readout)), "max") == pytest.approx(
+        (2.5 + 22.0) / 2
+    )
     saved = score.to_json()
     assert JointPhaseEnergy.from_json(saved) == score
     with pytest.raises(

@@ -252,9 +252,10 @@ def objects_moved(folder: Path) -> int:
     moved = 0
     for records in sorted(folder.glob("task*/energy_records.jsonl.gz")):
         episodes: dict[int, list[float]] = {}
-        for line in gzip.open(records, "rt"):
-            row = json.loads(line)
-            episodes.setdefault(row["episode_index"], []).append(row["goal_distance"])
+        with gzip.open(records, "rt") as lines:
+            for line in lines:
+                row = json.loads(line)
+                episodes.setdefault(row["episode_index"], []).append(row["goal_distance"])
         moved += sum(min(d) < d[0] - 0.02 for d in episodes.values())
     return moved
 
@@ -273,4 +274,6 @@ def test_j_recovery_demonstrations_without_their_miss_lose_the_grasps_too(tmp_pa
     )
     assert got["total"] == {"first": 26, "second": 1, "episodes": 40, "won": 0, "lost": 25}
     summary = json.loads((RESULTS / "libero_object10_recover_rise" / "recording_summary.json").read_text())
-    assert summary["recovery_from_rise"] and [summary["tasks"][t]["recoverrise_kept"] for t in ("1", "5")] == [20, 20]
+    assert summary["recovery_from_rise"] and [
+        summary["tasks"][t]["recoverrise_kept"] for t in ("1", "5")
+    ] == [20, 20]

@@ -39,7 +39,10 @@ def test_the_committed_check_found_the_recorders_frames_in_the_cut_piece():
     assert check["frames_recorded"] == check["frames_cut"] > 0
     assert check["max_abs_state_difference"] == 0 and check["max_abs_action_difference"] == 0
     assert check["max_mean_abs_pixel_difference"] < 6.0 and check["equal"]
-    cuts = json.loads((RESULTS / "data" / "task5_recoverrise_from0" / "meta" / "recording_report.json").read_text())
-    assert cuts["store_missed_grasp"] is False and cuts["cuts"][0]["frames"] - cuts["cuts"][0]["first_kept"] == (
-        check["frames_cut"]
+    cuts = json.loads(
+        (RESULTS / "data" / "task5_recoverrise_from0" / "meta" / "recording_report.json").read_text()
+    )
+    assert (
+        cuts["store_missed_grasp"] is False
+        and cuts["cuts"][0]["frames"] - cuts["cuts"][0]["first_kept"] == (check["frames_cut"])
     )
