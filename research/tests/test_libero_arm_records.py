@@ -224,27 +224,6 @@ def test_h_at_128_px_is_not_the_lever_on_the_fixed_states_and_pairs_with_g_as_th
     assert got["total"] == {"first": 178, "second": 169, "episodes": 200, "won": 10, "lost": 19}
 
 
-RECOVER = RESULTS / "libero_object10_recover" / "eval" / "ebvla_joint_fast_cpu_recover"
-
-
-def test_i_with_recovery_demonstrations_loses_the_grasps_it_was_meant_to_mend(tmp_path):
-    """research/docs/libero_runs.md, "I": tasks 1 and 5 of the states 30-49, 2/20 and 0/20 against G's 15 and 11, so at
-    most 162/200 whatever the other eight tasks (not the lever: 178 or fewer); they were not run."""
-    assert successes(RECOVER / "vanilla_confirm") == [None, 2, None, None, None, 0, None, None, None, None]
-    got = recomputed_paired(
-        tmp_path,
-        G / "vanilla_confirm",
-        RECOVER / "vanilla_confirm",
-        RESULTS / "libero_object10_recover" / "reports" / "paired_g_i_vanilla_confirm.json",
-    )
-    assert got["total"] == {"first": 26, "second": 2, "episodes": 40, "won": 0, "lost": 24}
-    summary = json.loads((RESULTS / "libero_object10_recover" / "recording_summary.json").read_text())
-    assert [summary["tasks"][t]["recover_kept"] for t in ("1", "5")] == [20, 20]
-
-
-RISE = RESULTS / "libero_object10_recover_rise" / "eval" / "ebvla_joint_fast_cpu_recover_rise"
-
-
 def objects_moved(folder: Path) -> int:
     """Rollouts whose goal distance ever fell 2 cm below its first chunk's (the object was carried at least a little)."""
     import gzip
@@ -260,20 +239,39 @@ def objects_moved(folder: Path) -> int:
     return moved
 
 
-def test_j_recovery_demonstrations_without_their_miss_lose_the_grasps_too(tmp_path):
-    """research/docs/libero_runs.md, "J": I's recovery demonstrations stored from the rise after the miss on; tasks 1 and
-    5 of the states 30-49, 1/20 and 0/20 against G's 15 and 11 (at most 161/200: not the lever), the object moved in 1
-    of the 40 rollouts; the other tasks were not run."""
-    assert successes(RISE / "vanilla_confirm") == [None, 1, None, None, None, 0, None, None, None, None]
-    assert objects_moved(RISE / "vanilla_confirm") == 1
+@pytest.mark.parametrize(
+    ("results", "run", "kind", "task_1_and_5", "moved"),
+    [
+        # "I": recovery demonstrations whose deliberate miss is stored; the hand closes beside the object.
+        ("libero_object10_recover", "ebvla_joint_fast_cpu_recover", "recover", (2, 0), 3),
+        # "J": the same demonstrations stored from the rise after the miss on; the hand hovers over the object.
+        ("libero_object10_recover_rise", "ebvla_joint_fast_cpu_recover_rise", "recoverrise", (1, 0), 1),
+    ],
+)
+def test_recovery_demonstrations_lose_the_grasps_they_were_meant_to_mend(
+    tmp_path, results, run, kind, task_1_and_5, moved
+):
+    """research/docs/libero_runs.md, "I" and "J": tasks 1 and 5 of the states 30-49 against G's 15 and 11 of 20, so at
+    most 162/200 whatever the other eight tasks (not the lever: 178 or fewer); they were not run. Paired with G, every
+    one of the two tasks' rollouts that differs is lost."""
+    confirm = RESULTS / results / "eval" / run / "vanilla_confirm"
+    ones, fives = task_1_and_5
+    assert successes(confirm) == [None, ones, None, None, None, fives, None, None, None, None]
+    assert objects_moved(confirm) == moved
+    name = {"recover": "i", "recoverrise": "j"}[kind]
     got = recomputed_paired(
         tmp_path,
         G / "vanilla_confirm",
-        RISE / "vanilla_confirm",
-        RESULTS / "libero_object10_recover_rise" / "reports" / "paired_g_j_vanilla_confirm.json",
+        confirm,
+        RESULTS / results / "reports" / f"paired_g_{name}_vanilla_confirm.json",
     )
-    assert got["total"] == {"first": 26, "second": 1, "episodes": 40, "won": 0, "lost": 25}
-    summary = json.loads((RESULTS / "libero_object10_recover_rise" / "recording_summary.json").read_text())
-    assert summary["recovery_from_rise"] and [
-        summary["tasks"][t]["recoverrise_kept"] for t in ("1", "5")
-    ] == [20, 20]
+    assert got["total"] == {
+        "first": 26,
+        "second": ones + fives,
+        "episodes": 40,
+        "won": 0,
+        "lost": 26 - ones - fives,
+    }
+    summary = json.loads((RESULTS / results / "recording_summary.json").read_text())
+    assert [summary["tasks"][t][f"{kind}_kept"] for t in ("1", "5")] == [20, 20]
+    assert summary.get("recovery_from_rise", False) == (kind == "recoverrise")
