@@ -351,7 +351,26 @@ def markdown(result: dict) -> str:
     ]
     if "chosen" in result:
         lines += ["", f"Chosen (the highest AUROC): {result['chosen']}"]
+    if "shipped" in result:
+        shipped = result["shipped"]
+        lines += [
+            "",
+            f"`joint_phase_energy` (shipped) on the same rollouts at its own T: balanced accuracy "
+            f"{shipped['balanced_accuracy']:.1%}, AUROC {shipped['auroc']:.3f}",
+        ]
     return "\n".join(lines) + "\n"
+
+
+def shipped_row(root: Path, held_condition: str) -> dict:
+    """`joint_phase_energy`'s row (the shipped failure check: the mean of both terms) on the same held-out rollouts, at
+    its own T: the test's second reading compares the chosen plan gap with it."""
+    from failure_score_variants import run_rows
+
+    calibration = dict(enumerate(task_episodes(root, "vanilla_calib")))
+    held = dict(enumerate(task_episodes(root, held_condition)))
+    return next(
+        r for r in run_rows(calibration, held, CHUNKS, K)["rows"] if r["score"] == "mean of both (shipped)"
+    )
 
 
 def chosen(result: dict) -> dict:
@@ -396,6 +415,8 @@ def main(argv: list[str] | None = None) -> None:
         result |= rows_of(task_episodes(root, "vanilla_calib"), task_episodes(root, args.held_out), gaps)
         if args.held_out == DEV:
             result["chosen"] = chosen(result)["score"]
+        else:
+            result["shipped"] = shipped_row(root, args.held_out)
         print(markdown(result))
         if args.output is not None:
             args.output.parent.mkdir(parents=True, exist_ok=True)
