@@ -5,7 +5,7 @@ I's recovery demonstrations (`record --recovery_episodes`, recorded with the mis
 beside the object. The recorder now stores a recovery's frames from the rise after its miss on
 (`RecordLiberoConfig.store_missed_grasp`, off by default). The simulator is deterministic, so the frames it would store
 are I's frames from that step on: `cut` writes them as the pieces `libero_pipeline.py record --recovery_from_rise`
-expects (about 2 minutes, where recording the 40 attempts again takes about 40), and `check` records one attempt with
+expects (3 minutes for I's 40, where recording them again takes about 40), and `check` records one attempt with
 the package's recorder and compares it with the cut piece's episode: states and actions equal, frames within the video
 codec's error (I's frames were decoded and encoded again).
 
@@ -26,6 +26,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
+from lerobot_policy_ebvla.recording.libero import GRIPPER_CLOSED  # noqa: E402
 from research.benchmarks.libero_pipeline import (  # noqa: E402
     FIXED_STATES_ARM_NOISE,
     RECOVER,
@@ -37,7 +38,6 @@ from research.benchmarks.libero_pipeline import (  # noqa: E402
     piece_name,
 )
 
-GRIPPER_CLOSED = 1.0
 # The largest mean absolute difference (of 255) between a frame the recorder stores and the same frame decoded and
 # encoded once more: AV1 at crf 30 on 128 px frames.
 CODEC_TOLERANCE = 6.0
