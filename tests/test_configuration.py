@@ -81,6 +81,7 @@ def test_is_registered_as_ebvla():
         ("joint_energy.corruption_strength", (0.5, 0.2)),
         ("joint_energy.gradient_penalty", 0.1),  # needs target "observation" and a weight
         ("dropout", 1.0),
+        ("energy_bias_init", math.nan),
         ("num_restarts", 0),
         ("restart_energy_threshold", 2.0),  # with num_restarts 1: nothing to restart with
         ("restart_energy_threshold", math.inf),

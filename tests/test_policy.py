@@ -41,6 +41,38 @@ def test_head_scores_n_candidates_per_context_as_against_copies_of_it(tiny_polic
     assert changed.tolist() == [True] * candidates + [False] * (2 * candidates)
 
 
+def test_energy_bias_init_raises_every_energy_by_b_and_each_first_step_by_exp_b_over_tau():
+    """The readout's initial bias is the only weight it changes: every e_t rises by b, and Eq. 3's first step
+    from the same a^(0) is exp(b / tau) times longer where the gradient is not clipped."""
+    b = 4.5
+    policies = {}
+    for bias in (0.0, b):
+        torch.manual_seed(0)
+        policies[bias] = EBVLAPolicy(tiny_config(energy_bias_init=bias, grad_clip=1e6)).eval()
+    plain, raised = policies[0.0].state_dict(), policies[b].state_dict()
+    assert [k for k in plain if not torch.equal(plain[k], raised[k])] == ["model.head.energy_out.bias"]
+    batch = tiny_batch(policies[0.0].config, batch_size=3)
+    start = torch.randn(
+        3, policies[0.0].config.chunk_size, policies[0.0].config.action_dim, generator=seeded()
+    )
+    energies, steps = {}, {}
+    for bias, policy in policies.items():
+        kv = policy.model.encode_context(batch)
+        energies[bias] = policy.model.head(start, kv)
+        moved = refine_actions(
+            lambda a, kv=kv, policy=policy: policy.model.head(a, kv),
+            start,
+            step_sizes=[0.1],
+            temperature=policy.config.energy_temperature,
+            grad_clip=policy.config.grad_clip,
+            action_clamp=policy.config.action_clamp,
+            langevin_std=0.0,
+        ).actions
+        steps[bias] = moved - start
+    torch.testing.assert_close(energies[b], energies[0.0] + b, rtol=0, atol=1e-4)
+    torch.testing.assert_close(steps[b], steps[0.0] * math.exp(b / 9.0), rtol=1e-4, atol=1e-6)
+
+
 def test_head_rejects_a_candidate_count_that_does_not_divide_by_the_contexts(tiny_policy):
     kv = tiny_policy.model.encode_context(tiny_batch(tiny_policy.config, batch_size=2))
     actions = torch.zeros(3, tiny_policy.config.chunk_size, tiny_policy.config.action_dim)

@@ -87,6 +87,12 @@ class EBVLAConfig(PreTrainedConfig):
         train_straight_through_clip: In training, differentiate the element-wise gradient clip c as the
             identity (the forward values stay clipped). The paper's hard clip passes no learning signal
             through any gradient entry it clips. Inference is unchanged.
+        energy_bias_init: Initial bias b of the head's energy readout (its last linear layer). Every e_t starts
+            near b, so every MCMC step starts exp(b / tau) times longer (Eq. 3); the readout still learns b. A
+            chain of few steps from a^(0) ~ N(0, sigma_init^2) (the light preset's K_train 2-4) reaches the data
+            only once the head has raised its energy so far, which took the light policy about 700 of its 1000
+            steps from b = 0 (research/docs/benchmarks_speed.md, "The energy's starting level"). 0 (the default):
+            the plain initialization, the paper's recipe unchanged. Read once, when the head is built.
         train_compile_mode: torch.compile a training step's backbone pass (forward and backward) and its
             K - 1 warm-up MCMC steps in this mode (`compile_ebvla.py`); the last, second-order step stays eager.
             "off" (the default) trains eagerly; the modes are `compile_mode`'s but "chunk-graph" (inference
@@ -191,6 +197,7 @@ class EBVLAConfig(PreTrainedConfig):
     # Training signal beyond the paper (off by default).
     train_step_size_sampling: str = "per_chain"
     train_straight_through_clip: bool = False
+    energy_bias_init: float = 0.0
     train_compile_mode: str = "off"
     contrastive: ContrastiveConfig = field(default_factory=ContrastiveConfig)
     joint_energy: JointEnergyConfig = field(default_factory=JointEnergyConfig)
@@ -259,6 +266,8 @@ class EBVLAConfig(PreTrainedConfig):
                 "head size (RoPE rotates pairs of channels)."
             )
         check_fraction(self, "", "dropout")
+        if not math.isfinite(self.energy_bias_init):
+            raise ValueError(f"`energy_bias_init` must be a finite energy. Got {self.energy_bias_init}.")
 
     def _validate_mcmc(self) -> None:
         check_positive(self, "", "energy_temperature", "grad_clip", "action_clamp", "inference_step_size")

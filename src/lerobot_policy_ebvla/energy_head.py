@@ -162,6 +162,8 @@ class EBVLAEnergyHead(nn.Module):
         self.final_norm = nn.RMSNorm(config.dim_model)
         self.energy_out = nn.Linear(config.dim_model, 1)
         self.apply(self._init_weights)
+        # Eq. 3 scales each step by exp(e_t / tau): the readout's bias sets how far the first chains can move.
+        nn.init.constant_(self.energy_out.bias, config.energy_bias_init)
 
     @staticmethod
     def _init_weights(module: nn.Module) -> None:

@@ -1,0 +1,106 @@
+"""research/docs/benchmarks_speed.md, "The energy's starting level": the main job's runs with and without the head's
+raised starting energy (`energy_bias_init`), recomputed from their committed records under
+`research/results/quickstart_budget/`: successes, the training curve's L1, the default monitor on both shifts and the
+failure check over the printed rollouts; then the rule fixed before seeds 2000 and 3000 ran.
+"""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from lerobot_policy_ebvla.monitoring.ood_report import OODReportConfig, score_ood_report
+from lerobot_policy_ebvla.monitoring.records import group_by_episode, read_energy_records
+from lerobot_policy_ebvla.monitoring.summary import monitor_summary
+from research.tests.conftest import RESULTS
+
+BUDGET = RESULTS / "quickstart_budget"
+CONDITIONS = ("vanilla", "blank", "pose_s3")
+
+
+def successes(run: Path) -> tuple[int, ...]:
+    return tuple(
+        sum(
+            episode[0].success for episode in group_by_episode(read_energy_records(run / "eval" / c)).values()
+        )
+        for c in CONDITIONS
+    )
+
+
+def curve_l1(run: Path, step: int) -> float:
+    """The logged L1 at `step`, or at the last logged step at or before it."""
+    logged = json.loads((run / "training_curve.json").read_text())["log_every"]
+    return [row["l1_loss"] for row in logged if row["step"] <= step][-1]
+
+
+def monitor(run: Path, failure_score: str, tmp_path: Path) -> dict:
+    """What the main job's monitor says of the run (`monitor_summary`), its failure check scored by `failure_score`."""
+    eval_root = run / "eval"
+    scored = score_ood_report(
+        OODReportConfig(
+            calibration=[str(eval_root / "calibration")],
+            vanilla=[str(eval_root / "vanilla")],
+            ood=[str(eval_root / c) for c in CONDITIONS[1:]],
+            output_dir=tmp_path / f"{run.name}_{failure_score}",
+            score="context_phase_energy",
+            failure_score=failure_score,
+            n_bootstrap=20,
+        )
+    )
+    return monitor_summary(scored)
+
+
+# run: (vanilla, blank, pose_s3 successes), L1 at step 400 and at the end, camera check (%),
+# (head_energy_two_sided, joint_phase_energy) failed vs successful over the 30 printed rollouts, n failed.
+RUNS = {
+    "bias0_steps1000_seed1000": ((7, 5, 5), 0.937, 0.732, 55.8, (0.525, 0.520), 13),
+    "bias0_episodes40_steps1000_seed1000": ((7, 6, 4), 0.917, 0.686, 59.5, (0.398, 0.584), 13),
+    "bias10_steps1000_seed1000": ((10, 4, 2), 0.639, 0.377, 68.1, (0.737, 0.732), 14),
+    "bias18_steps1000_seed1000": ((10, 3, 4), 0.502, 0.310, 62.6, (0.439, 0.873), 13),
+    "bias18_steps600_seed1000": ((10, 6, 5), 0.506, 0.388, 61.5, (0.794, 0.683), 9),
+    "bias18_steps500_seed1000": ((6, 6, 6), 0.583, 0.533, 49.6, (0.486, 0.486), 12),
+    "bias18_steps500_lr1e-3_seed1000": ((7, 6, 7), 0.561, 0.511, 45.2, (0.315, 0.585), 10),
+    "bias18_steps600_seed2000": ((7, 5, 3), 0.491, 0.381, 68.7, (0.724, 0.507), 15),
+    "bias18_steps600_seed3000": ((9, 3, 2), 0.452, 0.403, 58.3, (0.839, 0.759), 16),
+    "bias18_steps1000_seed2000": ((9, 2, 2), 0.454, 0.318, 63.5, (0.457, 0.756), 17),
+    "bias18_steps1000_seed3000": ((10, 2, 3), 0.468, 0.254, 71.4, (0.844, 0.809), 15),
+    "bias0_steps1000_seed2000": ((4, 0, 5), 0.931, 0.709, 83.9, (0.381, 0.693), 21),
+    "bias0_steps1000_seed3000": ((6, 4, 3), 0.917, 0.652, 54.8, (0.570, 0.566), 17),
+}
+
+
+@pytest.mark.parametrize("name", RUNS)
+def test_each_runs_reported_figures_come_out_of_its_records(name, tmp_path):
+    run = BUDGET / name
+    wins, l1_400, l1_end, camera, (head, joint), n_failed = RUNS[name]
+    assert successes(run) == wins
+    assert (curve_l1(run, 400), curve_l1(run, 10**6)) == (l1_400, l1_end)
+    summary = json.loads((run / "summary.json").read_text())
+    assert round(100 * summary["camera_check"]["chunk_change"], 1) == camera
+    for failure_score, expected in (("head_energy_two_sided", head), ("joint_phase_energy", joint)):
+        said = monitor(run, failure_score, tmp_path)
+        assert said["failing"]["auroc"] == pytest.approx(expected, abs=5e-4), failure_score
+        assert said["failing"]["n_failed"] == n_failed
+    # The default monitor flags every blanked and moved-camera rollout in every run but the one at a peak rate of
+    # 1e-3, whose moved camera it reads as more familiar than vanilla (0.14).
+    aurocs = [row["auroc_first_chunks"] for c, row in said["unfamiliar"].items() if c != "vanilla"]
+    assert aurocs == ([1.0, pytest.approx(0.14, abs=5e-3)] if "lr1e-3" in name else [1.0, 1.0])
+
+
+def test_the_rules_verdicts_come_out_of_the_records():
+    """600 steps: item 1 (vanilla >= 9/10) fails on seed 2000, so the main job keeps 1000. b = 18 at 1000 steps:
+    vanilla at least b = 0's on both seeds (9 against 4, 10 against 6), camera check >= 30 %, the default monitor
+    1.00 on both shifts (the parametrized test above): the preset keeps b = 18."""
+    assert [successes(BUDGET / f"bias18_steps600_seed{s}")[0] >= 9 for s in (2000, 3000)] == [False, True]
+    for seed in (2000, 3000):
+        raised, plain = (successes(BUDGET / f"bias{b}_steps1000_seed{seed}")[0] for b in (18, 0))
+        assert raised >= plain and (raised, plain) == {2000: (9, 4), 3000: (10, 6)}[seed]
+
+
+def test_forty_more_vanilla_rollouts_of_seed_2000s_checkpoint_all_succeed():
+    """The failure check on vanilla alone cannot be read on this checkpoint: none of 40 fresh rollouts failed."""
+    extra = group_by_episode(
+        read_energy_records(BUDGET / "bias18_steps1000_seed2000" / "eval" / "vanilla_extra")
+    )
+    assert len(extra) == 40 and all(chunks[0].success for chunks in extra.values())
+    assert {chunks[0].seed for chunks in extra.values()} == set(range(5000, 5040))
