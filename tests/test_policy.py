@@ -51,10 +51,9 @@ def test_energy_bias_init_raises_every_energy_by_b_and_each_first_step_by_exp_b_
         policies[bias] = EBVLAPolicy(tiny_config(energy_bias_init=bias, grad_clip=1e6)).eval()
     plain, raised = policies[0.0].state_dict(), policies[b].state_dict()
     assert [k for k in plain if not torch.equal(plain[k], raised[k])] == ["model.head.energy_out.bias"]
-    batch = tiny_batch(policies[0.0].config, batch_size=3)
-    start = torch.randn(
-        3, policies[0.0].config.chunk_size, policies[0.0].config.action_dim, generator=seeded()
-    )
+    config = policies[0.0].config
+    batch = tiny_batch(config, batch_size=3)
+    start = torch.randn(3, config.chunk_size, config.action_dim, generator=seeded())
     energies, steps = {}, {}
     for bias, policy in policies.items():
         kv = policy.model.encode_context(batch)
@@ -70,7 +69,9 @@ def test_energy_bias_init_raises_every_energy_by_b_and_each_first_step_by_exp_b_
         ).actions
         steps[bias] = moved - start
     torch.testing.assert_close(energies[b], energies[0.0] + b, rtol=0, atol=1e-4)
-    torch.testing.assert_close(steps[b], steps[0.0] * math.exp(b / 9.0), rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(
+        steps[b], steps[0.0] * math.exp(b / config.energy_temperature), rtol=1e-4, atol=1e-6
+    )
 
 
 def test_head_rejects_a_candidate_count_that_does_not_divide_by_the_contexts(tiny_policy):
