@@ -1,7 +1,8 @@
 """research/docs/benchmarks_speed.md, "The energy's starting level": the main job's runs with and without the head's
 raised starting energy (`energy_bias_init`), recomputed from their committed records under
 `research/results/quickstart_budget/`: successes, the training curve's L1, the default monitor on both shifts and the
-failure check over the printed rollouts; then the rule fixed before seeds 2000 and 3000 ran.
+failure check over the printed rollouts; then the rule fixed before seeds 2000 and 3000 ran. Also the first stage of
+"Both E_c levers with the raised starting energy" (`levers_b18_*`: E_c's encoder at 32 px, its penalty on one step in 4).
 """
 
 import json
@@ -65,6 +66,9 @@ RUNS = {
     "bias18_steps1000_fp32_seed1000": ((10, 5, 3), 0.476, 0.291, 64.0, (0.843, 0.759), 12),
     "bias0_steps1000_seed2000": ((4, 0, 5), 0.931, 0.709, 83.9, (0.381, 0.693), 21),
     "bias0_steps1000_seed3000": ((6, 4, 3), 0.917, 0.652, 54.8, (0.570, 0.566), 17),
+    "levers_b18_steps1000_seed1000": ((10, 4, 1), 0.477, 0.297, 72.8, (0.884, 0.756), 15),
+    "levers_b18_steps1000_seed2000": ((10, 0, 2), 0.449, 0.312, 194.3, (0.704, 0.954), 18),
+    "levers_b18_steps1000_seed3000": ((9, 3, 2), 0.501, 0.257, 58.8, (0.768, 0.790), 16),
 }
 
 
@@ -105,3 +109,24 @@ def test_forty_more_vanilla_rollouts_of_seed_2000s_checkpoint_all_succeed():
     )
     assert len(extra) == 40 and all(chunks[0].success for chunks in extra.values())
     assert {chunks[0].seed for chunks in extra.values()} == set(range(5000, 5040))
+
+
+def test_both_e_c_levers_with_b_18_hold_the_main_jobs_first_stage(tmp_path):
+    """ "Both E_c levers with the raised starting energy", stage 1: on seeds 1000-3000 the job takes at most 5.0 minutes
+    (its timed stages), vanilla succeeds at least 9/10 and the camera check is at least 30 % (the monitor's 1.00 on
+    both shifts: the parametrized test). Beside it: seed 3000's default monitor alarms on 5 of 10 held-out vanilla
+    rollouts, where every other run at 1000 steps alarms on at most 1."""
+    for seed, seconds in ((1000, 291.1), (2000, 273.6), (3000, 257.5)):
+        run = BUDGET / f"levers_b18_steps1000_seed{seed}"
+        summary = json.loads((run / "summary.json").read_text())
+        assert sum(summary["timings_s"].values()) == pytest.approx(seconds, abs=0.05) and seconds <= 300
+        assert successes(run)[0] >= 9 and summary["camera_check"]["chunk_change"] >= 0.30
+    alarmed = {
+        name: monitor(BUDGET / name, "head_energy_two_sided", tmp_path)["unfamiliar"]["vanilla"]["alarmed"]
+        for name in ("levers_b18_steps1000_seed3000", "bias18_steps1000_seed3000", "bias0_steps1000_seed3000")
+    }
+    assert alarmed == {
+        "levers_b18_steps1000_seed3000": [5, 10],
+        "bias18_steps1000_seed3000": [1, 10],
+        "bias0_steps1000_seed3000": [0, 10],
+    }
