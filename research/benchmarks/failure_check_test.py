@@ -160,6 +160,14 @@ def rows_table(title: str, found: dict, name=str, name_column: str = "Score") ->
     return lines
 
 
+def lead_line(lead: dict) -> str:
+    """The caught failures' leads (`leads`) as a sentence of the report."""
+    return (
+        f"\nCaught {lead['caught']}: {lead['at_or_before_onset']} at or before the onset; median lead to the onset "
+        f"{lead['median_lead_to_onset']} chunks, to the episode's end {lead['median_lead_to_end']}."
+    )
+
+
 def markdown(result: dict) -> str:
     choice = result["choice"]
     lines = [
@@ -169,11 +177,7 @@ def markdown(result: dict) -> str:
     ]
     for title, found in result["sets"].items():
         lines += rows_table(title, found, lambda name: f"`{name}`")
-        lead = found["leads"]
-        lines.append(
-            f"\nCaught {lead['caught']}: {lead['at_or_before_onset']} at or before the onset; median lead to the onset "
-            f"{lead['median_lead_to_onset']} chunks, to the episode's end {lead['median_lead_to_end']}."
-        )
+        lines.append(lead_line(found["leads"]))
     lines += ["", "Targets (all held out): "]
     lines += [f"- {name}: {'met' if met else 'missed'} ({figures})" for name, met, figures in targets(result)]
     return "\n".join(lines) + "\n"

@@ -109,6 +109,16 @@ def rows_against_baseline(
     return rows
 
 
+def difference_lines(rows: list[dict], name=str) -> list[str]:
+    """Each row's AUROC minus the baseline's with its paired interval (`rows_against_baseline`), as report lines."""
+    return ["", f"AUROC minus `{BASELINE}`'s on the same rollouts [paired bootstrap 95 % CI]:"] + [
+        f"- {name(r['score'])}: {r['auroc_minus_baseline']:+.3f} [{low:+.3f}, {high:+.3f}]"
+        for r in rows
+        if "auroc_minus_baseline" in r
+        for low, high in [r["auroc_minus_baseline_interval"]]
+    ]
+
+
 def markdown(result: dict) -> str:
     lines = [
         f"`{SCORE}`'s components over the first {result['chunks']} chunks, read each way; T = mu + {result['k']:g} "
@@ -116,13 +126,7 @@ def markdown(result: dict) -> str:
     ]
     for run, found in result["runs"].items():
         lines += rows_table(run, found, name_column="Reading")
-        lines += ["", f"AUROC minus `{BASELINE}`'s on the same rollouts [paired bootstrap 95 % CI]:"]
-        lines += [
-            f"- {r['score']}: {r['auroc_minus_baseline']:+.3f} [{low:+.3f}, {high:+.3f}]"
-            for r in found["rows"]
-            if "auroc_minus_baseline" in r
-            for low, high in [r["auroc_minus_baseline_interval"]]
-        ]
+        lines += difference_lines(found["rows"])
     return "\n".join(lines) + "\n"
 
 

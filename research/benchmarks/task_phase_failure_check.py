@@ -23,8 +23,16 @@ from collections.abc import Hashable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
-from failure_check_test import BASELINE, MIN_BALANCED_ACCURACY, leads, rows_table, scores_at, write_report
-from failure_score_variants import rows_against_baseline
+from failure_check_test import (
+    BASELINE,
+    MIN_BALANCED_ACCURACY,
+    lead_line,
+    leads,
+    rows_table,
+    scores_at,
+    write_report,
+)
+from failure_score_variants import difference_lines, rows_against_baseline
 
 from lerobot_policy_ebvla.monitoring.records import Episode, load_episodes
 from lerobot_policy_ebvla.runtime.statistics import PhaseStatistics, energies_by_index
@@ -156,18 +164,8 @@ def markdown(result: dict) -> str:
     ]
     for title, found in result["sets"].items():
         lines += rows_table(title, found, lambda name: f"`{name}`")
-        lines += ["", f"AUROC minus `{BASELINE}`'s on the same rollouts [paired bootstrap 95 % CI]:"]
-        lines += [
-            f"- `{r['score']}`: {r['auroc_minus_baseline']:+.3f} [{low:+.3f}, {high:+.3f}]"
-            for r in found["rows"]
-            if "auroc_minus_baseline" in r
-            for low, high in [r["auroc_minus_baseline_interval"]]
-        ]
-        lead = found["leads"]
-        lines.append(
-            f"\nCaught {lead['caught']}: {lead['at_or_before_onset']} at or before the onset; median lead to the onset "
-            f"{lead['median_lead_to_onset']} chunks, to the episode's end {lead['median_lead_to_end']}."
-        )
+        lines += difference_lines(found["rows"], lambda name: f"`{name}`")
+        lines.append(lead_line(found["leads"]))
     lines += ["", "Targets (all held out):"]
     lines += [f"- {name}: {'met' if met else 'missed'} ({figures})" for name, met, figures in targets(result)]
     return "\n".join(lines) + "\n"
