@@ -967,6 +967,53 @@ def test_e_c_trained_on_appearance_corruptions_fails_its_untouched_check():
     assert not any("!" in row[5] for row in defaults.values())
 
 
+def test_the_cheaper_context_energy_passes_its_rule_with_the_raised_starting_energy():
+    """context_energy_r1_fast_b18.md and paired_shift_diagnosis_r1_fast_b18.md (the same variant on the preset with
+    `energy_bias_init=18`; summary.md, "A cheaper E_c with the raised starting energy", rule written before the seeds
+    ran), recomputed for seed 25000: no condition moves chunk-0 E_c down by a scene spread; `context_phase_energy`
+    pools 0.973 on both seeds (at most 0.03 below observation_r1's 0.962 and 0.984), with at most 20 % held-out
+    alarms, nothing confidently under 0.5 and every success-cutting shift at 1.000: light_direction 3, still near
+    0.5, no longer costs success."""
+    run = seed_run(25000, "observation_r1_fast_b18") / "context_energy_full"
+    summaries_md = (FULL / "context_energy_r1_fast_b18.md").read_text()
+    assert summaries.score_summary(run) == section(summaries_md, "seed25000")
+    committed = (FULL / "paired_shift_diagnosis_r1_fast_b18.md").read_text()
+    scenes, centres = paired.run_tables(paired.RunRecords.read(run), "context_phase_energy")
+    assert (
+        paired.run_section("seed25000", scenes, centres, "context_phase_energy").strip()
+        == f"## seed25000\n\n{section(committed, 'seed25000')}"
+    )
+    rows = default_rows("context_energy_r1_fast_b18.md", (24000, 25000), "context_phase_energy")
+    for seed, reference in ((24000, 0.962), (25000, 0.984)):
+        moves = {
+            r[0]: float(r[1].split()[0])
+            for r in (
+                table_cells(line)
+                for line in section(committed, f"seed{seed}").splitlines()
+                if line.startswith("| ")
+            )
+            if r[0].endswith(("_s3", "_s5"))
+        }
+        assert len(moves) == 26 and min(moves.values()) > -1, seed
+        pooled, alarms, inverted, cutting = (
+            float(rows[seed][0].split()[0]),
+            rows[seed][1],
+            rows[seed][5],
+            rows[seed][7],
+        )
+        assert pooled == 0.973 and pooled >= reference - 0.03, seed
+        assert (
+            int(alarms.split("%")[0]) <= 20 and "!" not in inverted and float(cutting.split("min ")[1]) == 1.0
+        ), seed
+        cutting_conditions = (
+            section(summaries_md, f"seed{seed}").split("below vanilla's success (")[1].split(")")[0]
+        )
+        assert (
+            "light_direction 3" not in cutting_conditions.split(", ")
+            and "light_direction 3 0.5" in rows[seed][4]
+        )
+
+
 R1_DESIGN, R1_UNTOUCHED = (12000, 15000), (24000, 25000)
 
 
