@@ -65,8 +65,14 @@ def test_the_light_preset_saved_before_the_groups_loads_as_todays_light_preset()
     # The preset's starting energy came after the fixture: read only when a head is built, it changes nothing of
     # a saved checkpoint, whose weights hold the bias it trained to; an old config keeps the plain 0.
     assert loaded.energy_bias_init == 0.0 and expected.energy_bias_init == 18.0
+    # So did E_c's 32 px encoder and its penalty on one step in 4: an old checkpoint's E_c keeps the frames and the
+    # penalty it trained with.
+    old_e_c, new_e_c = loaded.joint_energy, expected.joint_energy
+    assert (old_e_c.encoder_resize_shape, old_e_c.gradient_penalty_every) == (None, 1)
+    assert (new_e_c.encoder_resize_shape, new_e_c.gradient_penalty_every) == ((32, 32), 4)
+    assert dataclasses.replace(new_e_c, encoder_resize_shape=None, gradient_penalty_every=1) == old_e_c
     for field in dataclasses.fields(EBVLAConfig):
-        if field.name not in ("monitor", "energy_bias_init"):
+        if field.name not in ("monitor", "energy_bias_init", "joint_energy"):
             assert getattr(loaded, field.name) == getattr(expected, field.name), field.name
     # A config saved before the monitor group names no score: its training signal decides it, as for a new one
     # (this preset trains E_c on its own encoder); its calibrations, saved apart, name their own score.

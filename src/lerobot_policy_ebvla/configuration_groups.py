@@ -283,8 +283,9 @@ class JointEnergyConfig:
             reads the scene to tell it from the training data, not to act in it: a coarser frame costs its
             encoder (two passes and the penalty's double backward at each training step, one pass per chunk
             at inference) a quarter at half the side. On the MetaWorld sweep, 32 px with the penalty on one
-            step in 4 pooled as the light preset's 64 px but missed a mild light shift on one of two seeds
-            (research/results/metaworld_sweep_margin_full/summary.md, "A cheaper E_c"): opt-in.
+            step in 4 pools as 64 px; a mild light-direction shift stays near chance at either side
+            (research/results/metaworld_sweep_margin_full/summary.md, "A cheaper E_c" and "... with the raised
+            starting energy"). The light preset sets (32, 32) and `gradient_penalty_every=4`.
     """
 
     weight: float = 0.0
