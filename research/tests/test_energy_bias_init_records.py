@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from lerobot_policy_ebvla.monitoring.metrics import auroc
 from lerobot_policy_ebvla.monitoring.ood_report import OODReportConfig, score_ood_report
 from lerobot_policy_ebvla.monitoring.records import group_by_episode, read_energy_records
 from lerobot_policy_ebvla.monitoring.summary import condition_summary, monitor_summary
@@ -69,6 +70,11 @@ RUNS = {
     "levers_b18_steps1000_seed1000": ((10, 4, 1), 0.477, 0.297, 72.8, (0.884, 0.756), 15),
     "levers_b18_steps1000_seed2000": ((10, 0, 2), 0.449, 0.312, 194.3, (0.704, 0.954), 18),
     "levers_b18_steps1000_seed3000": ((9, 3, 2), 0.501, 0.257, 58.8, (0.768, 0.790), 16),
+    "fresh_clone_5aa37fd_seed1000": ((10, 4, 1), 0.477, 0.297, 72.8, (0.884, 0.756), 15),
+    "preset_5aa37fd_seed4000": ((10, 6, 4), 0.440, 0.299, 66.3, (0.730, 0.700), 10),
+    "preset_5aa37fd_seed5000": ((10, 4, 4), 0.495, 0.307, 67.8, (0.630, 0.769), 12),
+    "preset_5aa37fd_seed6000": ((10, 8, 5), 0.488, 0.306, 92.7, (0.739, 0.609), 7),
+    "avx2_imitated_5aa37fd_seed1000": ((10, 3, 1), 0.459, 0.288, 59.8, (0.701, 0.804), 16),
 }
 
 
@@ -130,3 +136,62 @@ def test_both_e_c_levers_with_b_18_hold_the_main_jobs_first_stage(tmp_path):
         "bias18_steps1000_seed3000": [1, 10],
         "bias0_steps1000_seed3000": [0, 10],
     }
+
+
+
+def extra_vanilla(run: Path, tmp_path: Path) -> tuple[int, list[int], float | None]:
+    """The checkpoint's 40 extra vanilla rollouts (`eval/vanilla_extra`) scored by its own calibration: successes,
+    rollouts the default monitor alarms by chunk 3, and the failure check's AUROC on them alone (None: none failed)."""
+    scored = score_ood_report(
+        OODReportConfig(
+            calibration=[str(run / "eval" / "calibration")],
+            vanilla=[str(run / "eval" / "vanilla_extra")],
+            ood=[str(run / "eval" / "blank")],
+            output_dir=tmp_path / run.name,
+            score="context_phase_energy",
+            failure_score="head_energy_two_sided",
+            n_bootstrap=20,
+        )
+    )
+    # The held-out rollouts are the vanilla ones first, then the shift's.
+    failed, scores = scored.held_out_failed()[:40], scored.held_out("head_energy_two_sided", 3)[:40]
+    alarmed = monitor_summary(scored)["unfamiliar"]["vanilla"]["alarmed"]
+    return 40 - int(failed.sum()), alarmed, (auroc(scores[~failed], scores[failed]) if failed.any() else None)
+
+
+def test_the_fresh_clone_of_the_new_preset_trains_stage_1s_realization():
+    """The README's job from a fresh clone of 5aa37fd on the newer AVX512-BF16 CPU (family 26 model 2): every logged L1
+    as stage 1's seed 1000 on the older one (the parametrized test recomputes the printed figures), in 2.8 minutes of
+    timed stages; torch held to AVX2 kernels, another realization, 3.6 minutes."""
+    fresh, stage_1 = (BUDGET / name for name in ("fresh_clone_5aa37fd_seed1000", "levers_b18_steps1000_seed1000"))
+    logged = [json.loads((run / "training_curve.json").read_text())["log_every"] for run in (fresh, stage_1)]
+    assert logged[0] == logged[1]
+    minutes = {
+        name: sum(json.loads((BUDGET / name / "summary.json").read_text())["timings_s"].values()) / 60
+        for name in ("fresh_clone_5aa37fd_seed1000", "avx2_imitated_5aa37fd_seed1000")
+    }
+    assert minutes == {
+        "fresh_clone_5aa37fd_seed1000": pytest.approx(2.83, abs=0.005),
+        "avx2_imitated_5aa37fd_seed1000": pytest.approx(3.61, abs=0.005),
+    }
+
+
+@pytest.mark.parametrize(
+    ("name", "seeds", "expected"),
+    [
+        ("fresh_clone_5aa37fd_seed1000", range(5000, 5040), (38, [0, 40], 0.658)),
+        ("preset_5aa37fd_seed4000", range(9000, 9040), (39, [0, 40], 0.821)),
+        ("preset_5aa37fd_seed5000", range(9000, 9040), (35, [1, 40], 0.897)),
+        ("preset_5aa37fd_seed6000", range(9000, 9040), (40, [2, 40], None)),
+    ],
+)
+def test_the_new_presets_extra_vanilla_rollouts(name, seeds, expected, tmp_path):
+    """40 more vanilla rollouts of each checkpoint: 152 of 160 succeed, the default monitor alarms on 3, and the
+    failure check on vanilla alone is never inverted where a rollout failed (0.66 with 2 failed, 0.82 with 1, 0.90
+    with 5)."""
+    run = BUDGET / name
+    extra = group_by_episode(read_energy_records(run / "eval" / "vanilla_extra"))
+    assert {chunks[0].seed for chunks in extra.values()} == set(seeds)
+    successes_, alarmed, failure_auroc = extra_vanilla(run, tmp_path)
+    assert (successes_, alarmed) == expected[:2]
+    assert failure_auroc == (None if expected[2] is None else pytest.approx(expected[2], abs=5e-4))
