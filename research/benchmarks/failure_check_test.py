@@ -168,19 +168,26 @@ def lead_line(lead: dict) -> str:
     )
 
 
-def markdown(result: dict) -> str:
-    choice = result["choice"]
+def report_markdown(score: str, chunks: int, k: float, result: dict, targets, beside_rows=None) -> str:
+    """A failure check's report: its T, each held-out set's rows (then `beside_rows(found)`, if given) and lead line,
+    and the fixed targets as (target, met, figures)."""
     lines = [
-        f"Failure check `{choice['score']}` over the first {choice['chunks']} chunks, T = mu + {choice['k']:g} sigma "
+        f"Failure check `{score}` over the first {chunks} chunks, T = mu + {k:g} sigma "
         f"of the {result['calibration_rollouts'] - result['calibration_failed']} successful calibration rollouts "
         f"(of {result['calibration_rollouts']})."
     ]
     for title, found in result["sets"].items():
         lines += rows_table(title, found, lambda name: f"`{name}`")
+        lines += beside_rows(found) if beside_rows else []
         lines.append(lead_line(found["leads"]))
-    lines += ["", "Targets (all held out): "]
-    lines += [f"- {name}: {'met' if met else 'missed'} ({figures})" for name, met, figures in targets(result)]
+    lines += ["", "Targets (all held out):"]
+    lines += [f"- {name}: {'met' if met else 'missed'} ({figures})" for name, met, figures in targets]
     return "\n".join(lines) + "\n"
+
+
+def markdown(result: dict) -> str:
+    choice = result["choice"]
+    return report_markdown(choice["score"], choice["chunks"], choice["k"], result, targets(result))
 
 
 def write_report(result: dict, text: str, output: Path | None) -> None:

@@ -26,9 +26,8 @@ import numpy as np
 from failure_check_test import (
     BASELINE,
     MIN_BALANCED_ACCURACY,
-    lead_line,
     leads,
-    rows_table,
+    report_markdown,
     scores_at,
     write_report,
 )
@@ -157,18 +156,14 @@ def targets(result: dict) -> list[tuple[str, bool, str]]:
 
 
 def markdown(result: dict) -> str:
-    lines = [
-        f"Failure check `{CHOSEN}` over the first {result['chunks']} chunks, T = mu + {result['k']:g} sigma of the "
-        f"{result['calibration_rollouts'] - result['calibration_failed']} successful calibration rollouts "
-        f"(of {result['calibration_rollouts']})."
-    ]
-    for title, found in result["sets"].items():
-        lines += rows_table(title, found, lambda name: f"`{name}`")
-        lines += difference_lines(found["rows"], lambda name: f"`{name}`")
-        lines.append(lead_line(found["leads"]))
-    lines += ["", "Targets (all held out):"]
-    lines += [f"- {name}: {'met' if met else 'missed'} ({figures})" for name, met, figures in targets(result)]
-    return "\n".join(lines) + "\n"
+    return report_markdown(
+        CHOSEN,
+        result["chunks"],
+        result["k"],
+        result,
+        targets(result),
+        lambda found: difference_lines(found["rows"], lambda name: f"`{name}`"),
+    )
 
 
 def main(argv=None) -> None:

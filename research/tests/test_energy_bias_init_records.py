@@ -138,7 +138,6 @@ def test_both_e_c_levers_with_b_18_hold_the_main_jobs_first_stage(tmp_path):
     }
 
 
-
 def extra_vanilla(run: Path, tmp_path: Path) -> tuple[int, list[int], float | None]:
     """The checkpoint's 40 extra vanilla rollouts (`eval/vanilla_extra`) scored by its own calibration: successes,
     rollouts the default monitor alarms by chunk 3, and the failure check's AUROC on them alone (None: none failed)."""
@@ -163,7 +162,9 @@ def test_the_fresh_clone_of_the_new_preset_trains_stage_1s_realization():
     """The README's job from a fresh clone of 5aa37fd on the newer AVX512-BF16 CPU (family 26 model 2): every logged L1
     as stage 1's seed 1000 on the older one (the parametrized test recomputes the printed figures), in 2.8 minutes of
     timed stages; torch held to AVX2 kernels, another realization, 3.6 minutes."""
-    fresh, stage_1 = (BUDGET / name for name in ("fresh_clone_5aa37fd_seed1000", "levers_b18_steps1000_seed1000"))
+    fresh, stage_1 = (
+        BUDGET / name for name in ("fresh_clone_5aa37fd_seed1000", "levers_b18_steps1000_seed1000")
+    )
     logged = [json.loads((run / "training_curve.json").read_text())["log_every"] for run in (fresh, stage_1)]
     assert logged[0] == logged[1]
     minutes = {
