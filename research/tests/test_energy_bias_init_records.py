@@ -196,3 +196,44 @@ def test_the_new_presets_extra_vanilla_rollouts(name, seeds, expected, tmp_path)
     successes_, alarmed, failure_auroc = extra_vanilla(run, tmp_path)
     assert (successes_, alarmed) == expected[:2]
     assert failure_auroc == (None if expected[2] is None else pytest.approx(expected[2], abs=5e-4))
+
+
+def test_thirty_calibration_rollouts_do_not_lift_the_failure_check(tmp_path):
+    """The job's 10 calibration rollouts against 30 (20 more of the next seeds, `eval/calibration_extra`) on four
+    checkpoints of the preset: the failure check over the printed rollouts moves by at most 0.05 and falls on seed
+    5000, and the default monitor alarms on more held-out vanilla rollouts (6/40 against 2/40)."""
+    found = {}
+    for name in (
+        "fresh_clone_5aa37fd_seed1000",
+        "preset_5aa37fd_seed4000",
+        "preset_5aa37fd_seed5000",
+        "preset_5aa37fd_seed6000",
+    ):
+        eval_root = BUDGET / name / "eval"
+        for extra in ((), ("calibration_extra",)):
+            scored = score_ood_report(
+                OODReportConfig(
+                    calibration=[str(eval_root / c) for c in ("calibration", *extra)],
+                    vanilla=[str(eval_root / "vanilla")],
+                    ood=[str(eval_root / c) for c in CONDITIONS[1:]],
+                    output_dir=tmp_path / f"{name}{len(extra)}",
+                    score="context_phase_energy",
+                    failure_score="head_energy_two_sided",
+                    n_bootstrap=20,
+                )
+            )
+            said = monitor_summary(scored)
+            found[name, 10 + 20 * len(extra)] = (
+                round(said["failing"]["auroc"], 3),
+                said["unfamiliar"]["vanilla"]["alarmed"][0],
+            )
+    assert found == {
+        ("fresh_clone_5aa37fd_seed1000", 10): (0.884, 0),
+        ("fresh_clone_5aa37fd_seed1000", 30): (0.88, 0),
+        ("preset_5aa37fd_seed4000", 10): (0.73, 1),
+        ("preset_5aa37fd_seed4000", 30): (0.73, 2),
+        ("preset_5aa37fd_seed5000", 10): (0.63, 1),
+        ("preset_5aa37fd_seed5000", 30): (0.579, 1),
+        ("preset_5aa37fd_seed6000", 10): (0.739, 0),
+        ("preset_5aa37fd_seed6000", 30): (0.745, 3),
+    }
