@@ -122,6 +122,11 @@ RUNS["ebvla_joint_fast_cpu"] = [
     "--policy.joint_energy.encoder_resize_shape=[48,48]",
     "--policy.joint_energy.gradient_penalty_every=4",
 ]
+# K (2026-12-01, research/docs/libero_runs.md, "K: C's recipe from scratch with the raised starting energy"): C's
+# flags with the head's energy readout started at 18 (`energy_bias_init`, the light preset's since 2026-12-01: on
+# MetaWorld's main job its chunk's L1 at step 400 was what the readout at 0 reached at step 1000 or never), trained
+# from scratch on F's 668 demonstrations.
+RUNS["ebvla_joint_fast_cpu_b18"] = [*RUNS["ebvla_joint_fast_cpu"], "--policy.energy_bias_init=18"]
 
 
 # Runs that start from another run's saved weights, on their own work folder's dataset: a new AdamW (the finished
