@@ -1,0 +1,28 @@
+"""research/docs/libero_runs.md, "K: C's recipe from scratch with the raised starting energy": the first slice's
+reading recomputed from K's committed training curve against C's logged L1, and K's checkpoint resumable."""
+
+import json
+
+from research.tests.conftest import RESULTS
+
+K = RESULTS / "libero_object10_b18"
+# C's logged L1 at steps 2000, 4000, 6000 and 8000 (libero_runs.md, "The ten-task check").
+C_L1 = {2000: 0.533, 4000: 0.286, 6000: 0.209, 8000: 0.156}
+
+
+def test_k_learns_faster_than_c_by_the_fixed_reading():
+    """K's L1 at each step the slice reached is at most 0.8 of C's (0.50, 0.57, 0.63, 0.69 of it)."""
+    logged = json.loads((K / "training_curve.json").read_text())["log_every"]
+    l1 = {row["step"]: row["l1_loss"] for row in logged}
+    assert max(l1) == 11200
+    ratios = {step: round(l1[step] / c, 2) for step, c in C_L1.items()}
+    assert ratios == {2000: 0.5, 4000: 0.57, 6000: 0.63, 8000: 0.69}
+    assert all(ratio <= 0.8 for ratio in ratios.values())
+
+
+def test_ks_last_checkpoint_keeps_its_optimizer_state_to_resume_at_step_11000():
+    last = K / "train" / "ebvla_joint_fast_cpu_b18" / "last"
+    assert json.loads((last / "training_state" / "training_step.json").read_text())["step"] == 11000
+    assert (last / "training_state" / "optimizer_state.safetensors").exists()
+    config = json.loads((last / "pretrained_model" / "config.json").read_text())
+    assert config["energy_bias_init"] == 18.0
