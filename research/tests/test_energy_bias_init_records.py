@@ -33,21 +33,33 @@ def curve_l1(run: Path, step: int) -> float:
     return [row["l1_loss"] for row in logged if row["step"] <= step][-1]
 
 
-def monitor(run: Path, failure_score: str, tmp_path: Path) -> dict:
-    """What the main job's monitor says of the run (`monitor_summary`), its failure check scored by `failure_score`."""
+def scored_report(
+    run: Path,
+    output_dir: Path,
+    failure_score: str = "head_energy_two_sided",
+    calibration: tuple[str, ...] = ("calibration",),
+    vanilla: str = "vanilla",
+    ood: tuple[str, ...] = CONDITIONS[1:],
+):
+    """The main job's monitor (`context_phase_energy`) fitted on the run's `calibration` folders and scored on its
+    `vanilla` and `ood` ones (`score_ood_report`), its failure check scored by `failure_score`."""
     eval_root = run / "eval"
-    scored = score_ood_report(
+    return score_ood_report(
         OODReportConfig(
-            calibration=[str(eval_root / "calibration")],
-            vanilla=[str(eval_root / "vanilla")],
-            ood=[str(eval_root / c) for c in CONDITIONS[1:]],
-            output_dir=tmp_path / f"{run.name}_{failure_score}",
+            calibration=[str(eval_root / c) for c in calibration],
+            vanilla=[str(eval_root / vanilla)],
+            ood=[str(eval_root / c) for c in ood],
+            output_dir=output_dir,
             score="context_phase_energy",
             failure_score=failure_score,
             n_bootstrap=20,
         )
     )
-    return monitor_summary(scored)
+
+
+def monitor(run: Path, failure_score: str, tmp_path: Path) -> dict:
+    """What the main job's monitor says of the run (`monitor_summary`), its failure check scored by `failure_score`."""
+    return monitor_summary(scored_report(run, tmp_path / f"{run.name}_{failure_score}", failure_score))
 
 
 # run: (vanilla, blank, pose_s3 successes), L1 at step 400 and at the end, camera check (%),
@@ -141,17 +153,7 @@ def test_both_e_c_levers_with_b_18_hold_the_main_jobs_first_stage(tmp_path):
 def extra_vanilla(run: Path, tmp_path: Path) -> tuple[int, list[int], float | None]:
     """The checkpoint's 40 extra vanilla rollouts (`eval/vanilla_extra`) scored by its own calibration: successes,
     rollouts the default monitor alarms by chunk 3, and the failure check's AUROC on them alone (None: none failed)."""
-    scored = score_ood_report(
-        OODReportConfig(
-            calibration=[str(run / "eval" / "calibration")],
-            vanilla=[str(run / "eval" / "vanilla_extra")],
-            ood=[str(run / "eval" / "blank")],
-            output_dir=tmp_path / run.name,
-            score="context_phase_energy",
-            failure_score="head_energy_two_sided",
-            n_bootstrap=20,
-        )
-    )
+    scored = scored_report(run, tmp_path / run.name, vanilla="vanilla_extra", ood=("blank",))
     # The held-out rollouts are the vanilla ones first, then the shift's.
     failed, scores = scored.held_out_failed()[:40], scored.held_out("head_energy_two_sided", 3)[:40]
     alarmed = monitor_summary(scored)["unfamiliar"]["vanilla"]["alarmed"]
@@ -209,18 +211,9 @@ def test_thirty_calibration_rollouts_do_not_lift_the_failure_check(tmp_path):
         "preset_5aa37fd_seed5000",
         "preset_5aa37fd_seed6000",
     ):
-        eval_root = BUDGET / name / "eval"
         for extra in ((), ("calibration_extra",)):
-            scored = score_ood_report(
-                OODReportConfig(
-                    calibration=[str(eval_root / c) for c in ("calibration", *extra)],
-                    vanilla=[str(eval_root / "vanilla")],
-                    ood=[str(eval_root / c) for c in CONDITIONS[1:]],
-                    output_dir=tmp_path / f"{name}{len(extra)}",
-                    score="context_phase_energy",
-                    failure_score="head_energy_two_sided",
-                    n_bootstrap=20,
-                )
+            scored = scored_report(
+                BUDGET / name, tmp_path / f"{name}{len(extra)}", calibration=("calibration", *extra)
             )
             said = monitor_summary(scored)
             found[name, 10 + 20 * len(extra)] = (
