@@ -539,12 +539,13 @@ def train(
     until_s: float | None = None,
     save_freq: int | None = None,
     threads: int = 2,
-):
-    """Trains `runs` side by side (each with `workers` loader processes); `detach` returns at once.
+) -> list[subprocess.Popen]:
+    """Trains `runs` side by side (each with `workers` loader processes); `detach` returns at once, with the
+    trainings' processes.
 
     A detached training starts a session of its own, so it outlives the command that started it. `until_s`
-    stops the trainings after that many seconds (their last checkpoint stays; the next call resumes from it),
-    so that a long training runs in parts.
+    stops the trainings after that many seconds, detached or not (their last checkpoint stays; the next call
+    resumes from it), so that a long training runs in parts.
     """
     variants = [run for run in runs if run in INFERENCE_VARIANTS]
     if variants:
@@ -557,7 +558,10 @@ def train(
             print(f"train: {run} done")
             continue
         cmd = train_command(work, run, steps, batch_size, device, workers, save_freq)
-        # Marks the run done only when the training exits 0.
+        # `timeout` rather than a wait here: a detached training has no parent left to stop it.
+        if until_s is not None:
+            cmd = ["timeout", "--signal=TERM", f"{until_s:.0f}", *cmd]
+        # Marks the run done only when the training exits 0 (a timed-out one exits 124).
         script = f'{subprocess.list2cmdline(cmd)} && touch "{work / "train" / run / "DONE"}"'
         log = work / "logs" / f"train_{run}.log"
         log.parent.mkdir(parents=True, exist_ok=True)
@@ -572,15 +576,11 @@ def train(
         )
         print(f"train: {run} started (pid {processes[-1].pid}), log {log}")
     if detach:
-        return
-    stop_at = None if until_s is None else time.time() + until_s
+        return processes
     for process in processes:
-        try:
-            process.wait(timeout=None if stop_at is None else max(stop_at - time.time(), 0))
-        except subprocess.TimeoutExpired:
-            os.killpg(process.pid, signal.SIGTERM)
-            process.wait()
+        if process.wait() == 124:
             print(f"train: stopped after {until_s:.0f} s (pid {process.pid}); the next call resumes")
+    return processes
 
 
 def stop_training(work: Path) -> None:

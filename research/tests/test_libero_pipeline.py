@@ -373,6 +373,14 @@ def test_training_cut_at_its_deadline_is_not_marked_done(work, monkeypatch):
     assert (output_dir / "DONE").exists()
 
 
+def test_detached_training_stops_at_its_deadline(work, monkeypatch):
+    # The slices of a long training are detached: nothing but the training's own script is left to stop it.
+    monkeypatch.setattr(pipeline, "train_command", lambda *args: ["sleep", "60"])
+    (process,) = pipeline.train(work, ["ebvla_cpu"], 100, 8, "cpu", 0, detach=True, until_s=1.0)
+    assert process.wait(timeout=30) == 124
+    assert not (work / "train" / "ebvla_cpu" / "DONE").exists()
+
+
 def saved_run(work: Path, step: int) -> Path:
     """A work folder with a checkpoint at `step` (LeRobot's layout) and one finished evaluation job."""
     from lerobot_policy_ebvla.monitoring.records import EnergyRecord, write_energy_records
