@@ -32,7 +32,7 @@ Rows (`--policies`):
     ebvla-no-gradient-penalty  the same with the joint energy's margin but without its gradient penalty
     ebvla-lazy-penalty-4   the penalty on one step in 4 at 4 times its weight (`joint_energy.gradient_penalty_every=4`)
     ebvla-ec-32px          E_c's own encoder at 32 px (`joint_energy.encoder_resize_shape=[32,32]`), the policy's at 64
-    ebvla-ec-32px-lazy-4   both
+    ebvla-ec-32px-lazy-4   both (these three rows equal `ebvla` since the preset took both levers, 2026-12-01)
     ebvla-32px             the policy's frames and E_c's at 32 px (`resnet.resize_shape=[32,32]`): smaller frames
     ebvla-32px-lazy-4-fewer-negatives  that, the penalty on one step in 4, and 7 mismatched chunks and 4 noisy copies
                            as contrastive candidates: every lever that keeps the preset's terms
@@ -82,8 +82,14 @@ EBVLA_ROWS: dict[str, dict] = {
     "ebvla-4-anchors": {"contrastive": {"anchors": 4}},
     "ebvla-ffn4": {"ffn_multiplier": 4},
     "ebvla-contrastive-fp32": {"contrastive": {"dtype": "float32"}},
+    # The preset's E_c frame size goes with E_c: a row without its own encoder clears it.
     "ebvla-no-joint-energy": {
-        "joint_energy": {"weight": 0.0, "target": "head", "gradient_penalty": 0.0},
+        "joint_energy": {
+            "weight": 0.0,
+            "target": "head",
+            "gradient_penalty": 0.0,
+            "encoder_resize_shape": None,
+        },
         "monitor": {"score": "final_energy"},
     },
     "ebvla-no-gradient-penalty": {"joint_energy": {"gradient_penalty": 0.0}},
@@ -97,7 +103,7 @@ EBVLA_ROWS: dict[str, dict] = {
         "contrastive": {"mismatched": 7, "negatives": 4},
     },
     "ebvla-ec-on-context": {
-        "joint_energy": {"target": "context", "gradient_penalty": 0.0},
+        "joint_energy": {"target": "context", "gradient_penalty": 0.0, "encoder_resize_shape": None},
         "monitor": {"score": "final_energy"},
     },
     "ebvla-compiled": {"train_compile_mode": "default"},
