@@ -605,6 +605,13 @@ def main(argv: list[str] | None = None) -> None:
         default="mean_std",
         help="the OOD threshold T: mu_v + 1 sigma_v, or the conformal quantile at alpha = 5 %%",
     )
+    parser.add_argument(
+        "--scores",
+        nargs="+",
+        default=None,
+        help="the scores to report, the one the targets judge first (default: the run's saved monitor score, then "
+        "the baselines beside it)",
+    )
     args = parser.parse_args(argv)
     run_dir = args.results / "eval" / args.run
     if not (run_dir / HELDOUT).is_dir():
@@ -612,7 +619,7 @@ def main(argv: list[str] | None = None) -> None:
             f"No held-out rollouts of {args.run} in {run_dir}: run `libero_pipeline.py eval` first."
         )
     monitor = monitor_score(args.results, args.run)
-    scores = [monitor, *(s for s in BESIDE if s != monitor)]
+    scores = args.scores or [monitor, *(s for s in BESIDE if s != monitor)]
     # A group none of whose tasks was evaluated (a partial queue, or the three-task runs) is left out, named.
     evaluated = [g for g, tasks in TASK_GROUPS.items() if task_folders(run_dir, HELDOUT, tasks)]
     for group in TASK_GROUPS.keys() - set(evaluated):

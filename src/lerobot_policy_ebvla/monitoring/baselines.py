@@ -215,13 +215,14 @@ def episode_readout(episode: Episode) -> EnergyReadout:
         np.array([r.chunk_index for r in episode]),
         None if features is None else np.stack(features),
         context_energy,
+        np.array([r.initial_energy for r in episode], dtype=np.float64),
     )
 
 
 def recorded_inputs(episodes: Sequence[Episode]) -> set[str]:
     """The `ChunkInputs` fields every chunk of `episodes` has: what the run-time scores can read from them."""
     optional = {"context_features": "context_feature", "context_energy": "context_energy"}
-    return {"final_energy", "chunk_index"} | {
+    return {"final_energy", "chunk_index", "initial_energy"} | {
         name for name, field in optional.items() if every_chunk_has(episodes, field)
     }
 

@@ -90,8 +90,15 @@ INPUT_SOURCES = {
         "with a joint energy (`joint_energy.target`) reports"
     ),
 }
+INPUT_SOURCES["initial_energy"] = (
+    "each chunk's E(a^(0), C) (`EnergyReadout.initial_energy`, (B,)), which the policy reports with every chunk; in "
+    "records, the `initial_energy` column"
+)
 # The head's energy is the final energy less E_c (`ChunkInputs.head_energy`): missing exactly where E_c is.
 INPUT_SOURCES["head_energy"] = INPUT_SOURCES["context_energy"]
+INPUT_SOURCES["start_head_energy"] = (
+    f"{INPUT_SOURCES['initial_energy']}; and {INPUT_SOURCES['context_energy']}"
+)
 
 
 @dataclass(frozen=True)
@@ -104,12 +111,15 @@ class ChunkInputs:
         context_features: Each chunk's pooled last-block context c, (B, D); None when not computed.
         context_energy: E_c(C) of each chunk's observation, the joint energy's context term, (B,); None for a
             policy without one.
+        initial_energy: E(a^(0), C) of each chunk, the energy of the MCMC's starting sample, (B,); None where a
+            readout did not keep it.
     """
 
     final_energy: np.ndarray
     chunk_index: np.ndarray
     context_features: np.ndarray | None = None
     context_energy: np.ndarray | None = None
+    initial_energy: np.ndarray | None = None
 
     @classmethod
     def of(cls, readout: EnergyReadout) -> "ChunkInputs":
@@ -126,16 +136,18 @@ class ChunkInputs:
         features = readout.context_features
         features = None if features is None else np.atleast_2d(float64(features))
         context = None if readout.context_energy is None else as_array(readout.context_energy)
+        initial = None if readout.initial_energy is None else as_array(readout.initial_energy)
         for name, rows in (
             ("chunk_index", index.size),
             ("context_features", None if features is None else features.shape[0]),
             ("context_energy", None if context is None else context.size),
+            ("initial_energy", None if initial is None else initial.size),
         ):
             if rows is not None and rows != n:
                 raise ValueError(
                     f"`{name}` has {rows} row(s) and `final_energy` {n} entries: give one per chunk."
                 )
-        return cls(energies, index, features, context)
+        return cls(energies, index, features, context, initial)
 
     def first(self, n: int) -> "ChunkInputs":
         """The first n chunks (all of them when there are fewer): a rollout's opening, in chunk order."""
@@ -143,14 +155,25 @@ class ChunkInputs:
         return ChunkInputs(
             self.final_energy[rows],
             self.chunk_index[rows],
-            None if self.context_features is None else self.context_features[rows],
-            None if self.context_energy is None else self.context_energy[rows],
+            *(
+                None if values is None else values[rows]
+                for values in (self.context_features, self.context_energy)
+            ),
+            None if self.initial_energy is None else self.initial_energy[rows],
         )
 
     @property
     def head_energy(self) -> np.ndarray | None:
         """E(a^(K_inf), C) - E_c(C), the head's part of a joint final energy, (B,); None without E_c."""
         return None if self.context_energy is None else self.final_energy - self.context_energy
+
+    @property
+    def start_head_energy(self) -> np.ndarray | None:
+        """E(a^(0), C) - E_c(C), the head's energy of the MCMC's starting sample, (B,); None without E_c or
+        without the initial energy."""
+        if self.context_energy is None or self.initial_energy is None:
+            return None
+        return self.initial_energy - self.context_energy
 
     def require(self, names: Sequence[str], score: str) -> None:
         """Checks that the inputs `names` (fields), which the score `score` reads, were given.
