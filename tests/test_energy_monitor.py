@@ -295,3 +295,36 @@ def test_the_failure_check_gives_each_caught_failures_lead_to_its_onset():
     assert "| 2/3 (66.7%) | 1/2 (50.0%) |" in text and text.split("\n")[-3].endswith("| 2/2, median +1 |")
     # Records without goal distances: no such column.
     assert "onset" not in format_failure_check(rows, {"all": labels}, 3, "head_energy_two_sided", cfg)
+
+
+def test_the_libero_score_flags_a_start_energy_below_vanillas_and_needs_the_initial_energy(tmp_path):
+    # `context_start_energy`: E_c at vanilla's level but the head's energy of the Gaussian start far below it.
+    rng = np.random.default_rng(0)
+    vanilla = VanillaRollouts(
+        [
+            EnergyReadout.of_arrays(
+                3.0 + rng.normal(0, 0.1, 4),
+                np.arange(4),
+                context_energy=1.0 + rng.normal(0, 0.1, 4),
+                initial_energy=20.0 + rng.normal(0, 0.5, 4),
+            )
+            for _ in range(10)
+        ]
+    )
+    calibration = OODCalibration.calibrate("context_start_energy", vanilla)
+    calibration.save(tmp_path)
+    monitor = EnergyMonitor(OODCalibration.load(tmp_path))
+    assert monitor.ood.score.name == "context_start_energy"
+    # At vanilla's chunk-0 levels of both terms, then with the start's energy 8 lower (16 of its sigmas).
+    context, start = monitor.ood.score.context.mean[0], monitor.ood.score.start.mean[0]
+    (typical,) = monitor.update(
+        EnergyReadout.of_arrays([3.0], 0, context_energy=[context], initial_energy=[context + start])
+    )
+    monitor.reset()
+    (low_start,) = monitor.update(
+        EnergyReadout.of_arrays([3.0], 0, context_energy=[context], initial_energy=[context + start - 8.0])
+    )
+    assert not typical.unfamiliar.is_ood and low_start.unfamiliar.is_ood
+    monitor.reset()
+    with pytest.raises(ValueError, match=r"needs each chunk's E\(a\^\(0\), C\)"):
+        monitor.update(EnergyReadout.of_arrays([3.0], 0, context_energy=[1.0]))

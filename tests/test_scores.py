@@ -1,4 +1,4 @@
-"""The package's scores: five, in one registry that research code extends through one hook."""
+"""The package's scores: six, in one registry that research code extends through one hook."""
 
 from dataclasses import dataclass
 
@@ -13,6 +13,7 @@ from lerobot_policy_ebvla.runtime.scores import (
     ChunkInputs,
     ChunkScore,
     ContextPhaseEnergy,
+    ContextStartEnergy,
     FinalEnergy,
     HeadEnergyTwoSided,
     JointPhaseEnergy,
@@ -25,12 +26,13 @@ from lerobot_policy_ebvla.runtime.statistics import PhaseStatistics
 PHASE = PhaseStatistics((0.0, -10.0), (1.0, 2.0))
 
 
-def test_the_package_ships_five_scores_and_the_config_names_each():
+def test_the_package_ships_six_scores_and_the_config_names_each():
     assert PACKAGE_SCORES == (
         "final_energy",
         "context_phase_energy",
         "head_energy_two_sided",
         "joint_phase_energy",
+        "context_start_energy",
         "context_knn",
     )
     assert MONITOR_SCORES == PACKAGE_SCORES
@@ -105,6 +107,35 @@ def test_the_joint_phase_energy_averages_the_two_terms_z_at_the_chunks_index():
         JointPhaseEnergy.from_json({**saved, "head_energy_phase_std": None})
     with pytest.raises(ValueError, match="joint_phase_energy score needs each chunk's context energy"):
         calibration.chunk_score(EnergyReadout.of_arrays([7.0], [0]))
+
+
+def test_the_context_start_energy_turns_the_start_terms_sign_and_averages_the_two_terms():
+    start = PhaseStatistics((10.0, 10.0), (2.0, 4.0))
+    score = ContextStartEnergy(PHASE, start)
+    calibration = OODCalibration(mu_v=0.0, sigma_v=1.0, score=score)
+    # E_c: z = -5 and 2.5; the head's energy of the start, E(a^(0)) - E_c = 11 and 1: z = 0.5 and -2.25, turned
+    # to -0.5 and 2.25: a start energy below vanilla's raises the score.
+    readout = EnergyReadout.of_arrays(
+        [7.0, 7.0], [0, 1], context_energy=[-5.0, -5.0], initial_energy=[6.0, -4.0]
+    )
+    np.testing.assert_allclose(calibration.chunk_score(readout), [-2.75, 2.375])
+    assert score_rollout(score, score.components(ChunkInputs.of(readout)), "mean") == pytest.approx(-0.1875)
+    assert ContextStartEnergy.from_json(score.to_json()) == score
+    with pytest.raises(
+        ValueError, match="context_start_energy score needs each chunk's E\\(a\\^\\(0\\), C\\)"
+    ):
+        calibration.chunk_score(EnergyReadout.of_arrays([7.0], [0], context_energy=[1.0]))
+
+
+def test_the_context_start_energy_is_fitted_on_the_vanilla_start_energies():
+    rollouts = [
+        EnergyReadout.of_arrays([1.0, 2.0], context_energy=[0.0, 1.0], initial_energy=[5.0, 6.0]),
+        EnergyReadout.of_arrays([3.0, 3.0], context_energy=[2.0, 3.0], initial_energy=[9.0, 7.0]),
+    ]
+    score = ContextStartEnergy.fit(VanillaRollouts(rollouts))
+    # The head's start energies, E(a^(0)) - E_c: 5 and 7 at index 0, 5 and 4 at index 1.
+    assert score.start.mean == pytest.approx((6.0, 4.5))
+    assert score.context == ContextPhaseEnergy.fit(VanillaRollouts(rollouts)).phase
 
 
 def test_calibrating_a_named_score_scores_each_rollout_against_the_others():

@@ -384,9 +384,15 @@ MONITOR_SCORES = (
     "context_phase_energy",
     "head_energy_two_sided",
     "joint_phase_energy",
+    "context_start_energy",
     "context_knn",
 )
-CONTEXT_ENERGY_SCORES = ("context_phase_energy", "head_energy_two_sided", "joint_phase_energy")
+CONTEXT_ENERGY_SCORES = (
+    "context_phase_energy",
+    "head_energy_two_sided",
+    "joint_phase_energy",
+    "context_start_energy",
+)
 # The failure check reads energies only (no features stored); "none" leaves it out.
 FAILURE_SCORES = (
     "none",
@@ -394,6 +400,7 @@ FAILURE_SCORES = (
     "context_phase_energy",
     "head_energy_two_sided",
     "joint_phase_energy",
+    "context_start_energy",
 )
 
 
@@ -408,9 +415,11 @@ class MonitorConfig:
             "context_phase_energy" (a joint energy's context term E_c against the vanilla E_c at each chunk
             index: the light preset's, which trains E_c on its own encoder and flat at the data),
             "head_energy_two_sided" (the failure score: |z| of E - E_c at each chunk index),
-            "joint_phase_energy" (z of E_c and of E - E_c at each chunk index, averaged) or "context_knn"
-            (the pooled context's distance to its nearest vanilla context, the feature baseline). The three E_c
-            scores need the joint energy on its own encoder (`joint_energy.target="observation"` with
+            "joint_phase_energy" (z of E_c and of E - E_c at each chunk index, averaged),
+            "context_start_energy" (z of E_c and minus z of the head's energy of the MCMC's starting sample at
+            each chunk index, averaged: the LIBERO checkpoints') or "context_knn" (the pooled context's distance
+            to its nearest vanilla context, the feature baseline). The four E_c scores need the joint energy on
+            its own encoder (`joint_energy.target="observation"` with
             `joint_energy.weight` > 0). None (the default) is decided by the training signal when the policy's
             config is made, and saved: "context_phase_energy" for a policy that trains E_c on its own encoder
             (an energy-only monitor, no features stored), "final_energy" otherwise.

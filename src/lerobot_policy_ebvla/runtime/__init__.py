@@ -7,8 +7,9 @@
 - `statistics`: what the chunk scores measure against, fitted on vanilla rollouts (`PhaseStatistics`,
   `ContextStatistics`, `ContextNeighbours`, `CombinedStatistics`), and `ChunkWindow`, the one score of a rollout's
   first N running scores that lets one T bound a run-time monitor's N decisions.
-- `scores`: `ChunkInputs` (a readout as the scores read it), the `ChunkScore` protocol, the package's five scores
-  (final energy, context phase energy, two-sided head energy, joint phase energy, context k-NN), and `SCORES`,
+- `scores`: `ChunkInputs` (a readout as the scores read it), the `ChunkScore` protocol, the package's six scores
+  (final energy, context phase energy, two-sided head energy, joint phase energy, context start energy, context
+  k-NN), and `SCORES`,
   the registry that names them, with `register_score`, its hook for research scores.
 - `calibration`: `OODCalibration`, the threshold statistics of one chunk score (`ood_calibration.json` beside
   the weights, the score's statistics in safetensors files beside it), and `FailureCalibration`, the failure

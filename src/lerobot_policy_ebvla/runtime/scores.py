@@ -7,7 +7,7 @@ aggregates (`score_rollout`). The threshold T = mu_v + k sigma_v (Eq. 5) or the 
 vanilla rollouts' scores (`OODCalibration`). A score is fitted on vanilla rollouts (`VanillaRollouts`) and saved
 in `ood_calibration.json` (its JSON fields) and in safetensors files beside it (its side files).
 
-The package ships five scores (`SCORES`); a checkpoint is monitored with the one its config names
+The package ships six scores (`SCORES`); a checkpoint is monitored with the one its config names
 (`EBVLAConfig.monitor.score`: "context_phase_energy" for a policy with E_c on its own encoder, "final_energy"
 otherwise, unless the config names another):
 
@@ -20,6 +20,9 @@ otherwise, unless the config names another):
   the vanilla E - E_c at the same chunk index: a failure score, not an OOD one.
 - "joint_phase_energy" (`JointPhaseEnergy`): both terms, E_c and E - E_c, each against its vanilla value at the
   same chunk index, averaged (one-sided): the failure check for a policy trained with the joint energy on LIBERO.
+- "context_start_energy" (`ContextStartEnergy`): E_c against its vanilla value at each chunk index, and the head's
+  energy of the MCMC's starting sample, E(a^(0), C) - E_c(C), below its vanilla value there, averaged: the OOD
+  score of the LIBERO checkpoints, which also knows a dimmed light and mild sensor noise.
 - "context_knn" (`ContextKNN`): the feature baseline, the Euclidean distance of the chunk's pooled context,
   standardized per dimension, to its k-th nearest standardized vanilla context (`ContextNeighbours`, every
   calibration context saved in `ood_calibration_neighbours.safetensors`).
@@ -153,13 +156,16 @@ class ChunkInputs:
         """The first n chunks (all of them when there are fewer): a rollout's opening, in chunk order."""
         rows = slice(0, n)
         return ChunkInputs(
-            self.final_energy[rows],
-            self.chunk_index[rows],
             *(
                 None if values is None else values[rows]
-                for values in (self.context_features, self.context_energy)
-            ),
-            None if self.initial_energy is None else self.initial_energy[rows],
+                for values in (
+                    self.final_energy,
+                    self.chunk_index,
+                    self.context_features,
+                    self.context_energy,
+                    self.initial_energy,
+                )
+            )
         )
 
     @property
@@ -480,6 +486,66 @@ class JointPhaseEnergy(ChunkScore):
 
 
 @dataclass(frozen=True)
+class ContextStartEnergy(ChunkScore):
+    """E_c against its vanilla value at each chunk index, and the head's energy of the MCMC's starting sample below
+    its vanilla value there, averaged: s_t = (z_c,t - z_s,t) / 2, with z_c,t = (E_c,t - mu_c[t]) / sigma_c[t] and
+    z_s,t likewise for E_head,t(a^(0)) = E(a^(0), C) - E_c(C); each term aggregated over the rollout before the two
+    are averaged. One-sided, energies only.
+
+    The OOD score of the LIBERO checkpoints: the head's energy of its Gaussian start falls under every shift of
+    LIBERO's Table III, dimmed light and mild sensor noise among them, where E_c alone barely moves (0.65-0.68);
+    on C's rollouts, never read when the score was chosen on D's, 0.972 over 17 shifts against E_c's 0.952, its
+    worst condition 0.78 against 0.63 (research/docs/libero_runs.md, "The starting sample's energy beside E_c").
+    On MetaWorld the start term adds nothing to E_c, and the light preset keeps `context_phase_energy`.
+    """
+
+    context: PhaseStatistics
+    start: PhaseStatistics
+
+    name = "context_start_energy"
+    reads = ("chunk_index", "context_energy", "initial_energy")
+    n_components = 2
+    json_fields = (
+        "context_energy_phase_mean",
+        "context_energy_phase_std",
+        "start_head_energy_phase_mean",
+        "start_head_energy_phase_std",
+    )
+
+    def __post_init__(self):
+        check_statistics(self.name, "context", self.context, PhaseStatistics)
+        check_statistics(self.name, "start", self.start, PhaseStatistics)
+
+    @classmethod
+    def fit(cls, vanilla: VanillaRollouts) -> "ContextStartEnergy":
+        return cls(
+            fit_phase(vanilla, "context_energy", cls.name), fit_phase(vanilla, "start_head_energy", cls.name)
+        )
+
+    def components(self, chunks: ChunkInputs) -> np.ndarray:
+        index = chunks.get("chunk_index", self.name)
+        context = self.context.z(chunks.get("context_energy", self.name), index)
+        # The start term's sign turned: a shift lowers the head's energy of the Gaussian start.
+        start = -self.start.z(chunks.get("start_head_energy", self.name), index)
+        return np.stack([context, start], axis=1)
+
+    def combine(self, aggregates: np.ndarray) -> np.ndarray:
+        return aggregates.mean(axis=1)
+
+    def to_json(self) -> dict[str, Any]:
+        values = (self.context.mean, self.context.std, self.start.mean, self.start.std)
+        return dict(zip(self.json_fields, values, strict=True))
+
+    @classmethod
+    def from_json(cls, fields: dict[str, Any]) -> "ContextStartEnergy":
+        names = cls.json_fields
+        return cls(
+            PhaseStatistics(*statistics_pair(fields, *names[:2], cls.name, PhaseStatistics)),
+            PhaseStatistics(*statistics_pair(fields, *names[2:], cls.name, PhaseStatistics)),
+        )
+
+
+@dataclass(frozen=True)
 class ContextKNN(ChunkScore):
     """The distance of the chunk's standardized pooled context to its k-th nearest vanilla one."""
 
@@ -508,10 +574,17 @@ class ContextKNN(ChunkScore):
         return cls(fields.get(NEIGHBOURS_FILE.field))
 
 
-# The registry: each score by its name. The package's five; research code adds its own (`register_score`).
+# The registry: each score by its name. The package's six; research code adds its own (`register_score`).
 SCORES: dict[str, type[ChunkScore]] = {
     score.name: score
-    for score in (FinalEnergy, ContextPhaseEnergy, HeadEnergyTwoSided, JointPhaseEnergy, ContextKNN)
+    for score in (
+        FinalEnergy,
+        ContextPhaseEnergy,
+        HeadEnergyTwoSided,
+        JointPhaseEnergy,
+        ContextStartEnergy,
+        ContextKNN,
+    )
 }
 PACKAGE_SCORES = tuple(SCORES)
 
