@@ -997,6 +997,23 @@ def success_table(work: Path) -> dict:
     return table
 
 
+# The LIBERO checkpoints' OOD score where the light preset's would be `context_phase_energy`: E_c with the head's
+# energy of the MCMC's start, chosen on D's rollouts and confirmed on C's (research/docs/libero_runs.md, "The
+# starting sample's energy beside E_c"). The runs' training flags keep the score they were trained with.
+LIBERO_MONITOR_SCORE = "context_start_energy"
+
+
+def libero_monitor_score(checkpoint: Path) -> list[str]:
+    """`--score=LIBERO_MONITOR_SCORE` for a checkpoint its config would monitor with `context_phase_energy`."""
+    from lerobot_policy_ebvla.monitoring.ood_report import checkpoint_monitor_score
+
+    return (
+        [f"--score={LIBERO_MONITOR_SCORE}"]
+        if checkpoint_monitor_score(checkpoint) == "context_phase_energy"
+        else []
+    )
+
+
 def report(
     work: Path,
     runs: list[str],
@@ -1050,7 +1067,13 @@ def report(
         # would: the report's "monitor" rows are then what ships with it.
         checkpoint = work / "train" / run / "checkpoints" / "last" / "pretrained_model"
         monitor = (
-            [f"--calibrate_to={checkpoint}", "--overwrite_calibration=true"] if checkpoint.is_dir() else []
+            [
+                f"--calibrate_to={checkpoint}",
+                "--overwrite_calibration=true",
+                *libero_monitor_score(checkpoint),
+            ]
+            if checkpoint.is_dir()
+            else []
         )
         if perturbed:
             subprocess.run(

@@ -335,6 +335,7 @@ TABLE_ORDER = (
     "context_energy_two_sided",
     "head_energy_two_sided",
     "joint_phase_energy",
+    "context_start_energy",
 )
 for _score in RESEARCH_SCORES:
     register_score(_score)

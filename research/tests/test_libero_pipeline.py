@@ -235,6 +235,21 @@ def test_the_chosen_failure_check_reaches_the_monitor_and_fresh_placements_are_h
     assert "--threshold_rule=mean_std" in ood
 
 
+def test_a_checkpoint_monitored_by_e_c_is_calibrated_with_libero_s_score(tmp_path, monkeypatch):
+    # LIBERO's rule (research/docs/libero_runs.md, "The starting sample's energy beside E_c"): where the checkpoint's
+    # config would calibrate `context_phase_energy`, its report calibrates `context_start_energy`.
+    from lerobot_policy_ebvla.presets import light_policy_config
+
+    for condition in ("vanilla_calib", "vanilla_heldout", "pose5"):
+        write_json(tmp_path / f"eval/ebvla_cpu/{condition}/task2/eval_info.json", eval_info([True, False]))
+    light_policy_config().save_pretrained(fake_checkpoint(tmp_path, "ebvla_cpu"))
+    commands = []
+    monkeypatch.setattr(pipeline.subprocess, "run", lambda command, check: commands.append(command))
+    pipeline.report(tmp_path, ["ebvla_cpu"])
+    ood = next(c for c in commands if c[0].endswith("ebvla-ood-report"))
+    assert "--score=context_start_energy" in ood and any(a.startswith("--calibrate_to=") for a in ood)
+
+
 def test_pack_keeps_records_logs_and_ebvla_checkpoints_and_leaves_out_data_frames(work):
     kept = [
         "recording_summary.json",
