@@ -18,7 +18,7 @@ and the default monitor, the feature k-NN and the paper's energy beside it:
         --output_dir=research/results/libero_object10_more/reports/ebvla_joint_fast_cpu_more/start_energy
 """
 
-import argparse
+import sys
 from pathlib import Path
 
 import libero_ten_task_report
@@ -28,33 +28,18 @@ SCORE = "context_start_energy"
 BESIDE = ("context_phase_energy", "context_knn", "final_energy")
 
 
+def report_args(argv: list[str]) -> list[str]:
+    """`libero_ten_task_report.py`'s arguments (`--results`, `--run`, `--output_dir`) for this report: the conformal
+    T, `context_start_energy` first and `BESIDE` after it."""
+    return [*argv, "--threshold_rule=conformal", "--scores", SCORE, *BESIDE]
+
+
 def report(results: Path, run: str, output_dir: Path) -> None:
-    """The ten-task Table III of `run` at the conformal T, `context_start_energy` first, `BESIDE` after it."""
+    """The ten-task Table III of `run` (`report_args`)."""
     libero_ten_task_report.main(
-        [
-            f"--results={results}",
-            f"--run={run}",
-            f"--output_dir={output_dir}",
-            "--threshold_rule=conformal",
-            "--scores",
-            SCORE,
-            *BESIDE,
-        ]
+        report_args([f"--results={results}", f"--run={run}", f"--output_dir={output_dir}"])
     )
-
-
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument(
-        "--results", type=Path, required=True, help="a work folder or saved results of the run"
-    )
-    parser.add_argument("--run", required=True)
-    parser.add_argument("--output_dir", type=Path, required=True)
-    args = parser.parse_args(argv)
-    report(args.results, args.run, args.output_dir)
 
 
 if __name__ == "__main__":
-    main()
+    libero_ten_task_report.main(report_args(sys.argv[1:]))

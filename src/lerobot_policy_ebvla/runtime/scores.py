@@ -32,7 +32,7 @@ The scores the research compared them with live beside the research code and joi
 """
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar, Protocol, Self
 
 import numpy as np
@@ -424,8 +424,56 @@ class HeadEnergyTwoSided(AbsoluteOfAggregate, PhaseZScore):
     json_fields = ("head_energy_phase_mean", "head_energy_phase_std")
 
 
+class TwoPhaseTerms(ChunkScore):
+    """The base of the scores that read two per-chunk inputs (`inputs`, `ChunkInputs` fields), each against the
+    vanilla rollouts' at the same chunk index (`PhaseStatistics`, one dataclass field each, in `inputs`' order), each
+    z turned by its sign (`signs`), each aggregated over the rollout before the two are averaged. A subclass names
+    its inputs, its signs, its JSON fields (mean and std of each term) and itself.
+    """
+
+    inputs: ClassVar[tuple[str, str]]
+    signs: ClassVar[tuple[float, float]] = (1.0, 1.0)
+    n_components = 2
+
+    @property
+    def phases(self) -> tuple[PhaseStatistics, ...]:
+        return tuple(getattr(self, f.name) for f in fields(self))
+
+    def __post_init__(self):
+        for f in fields(self):
+            check_statistics(self.name, f.name, getattr(self, f.name), PhaseStatistics)
+
+    @classmethod
+    def fit(cls, vanilla: VanillaRollouts) -> Self:
+        return cls(*(fit_phase(vanilla, name, cls.name) for name in cls.inputs))
+
+    def components(self, chunks: ChunkInputs) -> np.ndarray:
+        index = chunks.get("chunk_index", self.name)
+        terms = zip(self.phases, self.inputs, self.signs, strict=True)
+        return np.stack(
+            [sign * phase.z(chunks.get(name, self.name), index) for phase, name, sign in terms], axis=1
+        )
+
+    def combine(self, aggregates: np.ndarray) -> np.ndarray:
+        return aggregates.mean(axis=1)
+
+    def to_json(self) -> dict[str, Any]:
+        values = [v for phase in self.phases for v in (phase.mean, phase.std)]
+        return dict(zip(self.json_fields, values, strict=True))
+
+    @classmethod
+    def from_json(cls, fields: dict[str, Any]) -> Self:
+        names = cls.json_fields
+        return cls(
+            *(
+                PhaseStatistics(*statistics_pair(fields, *names[i : i + 2], cls.name, PhaseStatistics))
+                for i in (0, 2)
+            )
+        )
+
+
 @dataclass(frozen=True)
-class JointPhaseEnergy(ChunkScore):
+class JointPhaseEnergy(TwoPhaseTerms):
     """Both terms of the joint energy against their vanilla values at the same chunk index, averaged:
     s_t = (z_c,t + z_h,t) / 2, with z_c,t = (E_c,t - mu_c[t]) / sigma_c[t] for the context term and z_h,t likewise
     for the head's part E_t - E_c,t; one-sided, each term aggregated over the rollout before the two are averaged.
@@ -441,7 +489,7 @@ class JointPhaseEnergy(ChunkScore):
 
     name = "joint_phase_energy"
     reads = ("chunk_index", "context_energy")
-    n_components = 2
+    inputs = ("context_energy", "head_energy")
     json_fields = (
         "context_energy_phase_mean",
         "context_energy_phase_std",
@@ -449,44 +497,9 @@ class JointPhaseEnergy(ChunkScore):
         "head_energy_phase_std",
     )
 
-    def __post_init__(self):
-        check_statistics(self.name, "context", self.context, PhaseStatistics)
-        check_statistics(self.name, "head", self.head, PhaseStatistics)
-
-    @classmethod
-    def fit(cls, vanilla: VanillaRollouts) -> "JointPhaseEnergy":
-        return cls(
-            fit_phase(vanilla, "context_energy", cls.name), fit_phase(vanilla, "head_energy", cls.name)
-        )
-
-    def components(self, chunks: ChunkInputs) -> np.ndarray:
-        index = chunks.get("chunk_index", self.name)
-        context = self.context.z(chunks.get("context_energy", self.name), index)
-        return np.stack([context, self.head.z(chunks.get("head_energy", self.name), index)], axis=1)
-
-    def combine(self, aggregates: np.ndarray) -> np.ndarray:
-        return aggregates.mean(axis=1)
-
-    def to_json(self) -> dict[str, Any]:
-        return dict(
-            zip(
-                self.json_fields,
-                (self.context.mean, self.context.std, self.head.mean, self.head.std),
-                strict=True,
-            )
-        )
-
-    @classmethod
-    def from_json(cls, fields: dict[str, Any]) -> "JointPhaseEnergy":
-        names = cls.json_fields
-        return cls(
-            PhaseStatistics(*statistics_pair(fields, *names[:2], cls.name, PhaseStatistics)),
-            PhaseStatistics(*statistics_pair(fields, *names[2:], cls.name, PhaseStatistics)),
-        )
-
 
 @dataclass(frozen=True)
-class ContextStartEnergy(ChunkScore):
+class ContextStartEnergy(TwoPhaseTerms):
     """E_c against its vanilla value at each chunk index, and the head's energy of the MCMC's starting sample below
     its vanilla value there, averaged: s_t = (z_c,t - z_s,t) / 2, with z_c,t = (E_c,t - mu_c[t]) / sigma_c[t] and
     z_s,t likewise for E_head,t(a^(0)) = E(a^(0), C) - E_c(C); each term aggregated over the rollout before the two
@@ -504,45 +517,15 @@ class ContextStartEnergy(ChunkScore):
 
     name = "context_start_energy"
     reads = ("chunk_index", "context_energy", "initial_energy")
-    n_components = 2
+    inputs = ("context_energy", "start_head_energy")
+    # The start term's sign turned: a shift lowers the head's energy of the Gaussian start.
+    signs = (1.0, -1.0)
     json_fields = (
         "context_energy_phase_mean",
         "context_energy_phase_std",
         "start_head_energy_phase_mean",
         "start_head_energy_phase_std",
     )
-
-    def __post_init__(self):
-        check_statistics(self.name, "context", self.context, PhaseStatistics)
-        check_statistics(self.name, "start", self.start, PhaseStatistics)
-
-    @classmethod
-    def fit(cls, vanilla: VanillaRollouts) -> "ContextStartEnergy":
-        return cls(
-            fit_phase(vanilla, "context_energy", cls.name), fit_phase(vanilla, "start_head_energy", cls.name)
-        )
-
-    def components(self, chunks: ChunkInputs) -> np.ndarray:
-        index = chunks.get("chunk_index", self.name)
-        context = self.context.z(chunks.get("context_energy", self.name), index)
-        # The start term's sign turned: a shift lowers the head's energy of the Gaussian start.
-        start = -self.start.z(chunks.get("start_head_energy", self.name), index)
-        return np.stack([context, start], axis=1)
-
-    def combine(self, aggregates: np.ndarray) -> np.ndarray:
-        return aggregates.mean(axis=1)
-
-    def to_json(self) -> dict[str, Any]:
-        values = (self.context.mean, self.context.std, self.start.mean, self.start.std)
-        return dict(zip(self.json_fields, values, strict=True))
-
-    @classmethod
-    def from_json(cls, fields: dict[str, Any]) -> "ContextStartEnergy":
-        names = cls.json_fields
-        return cls(
-            PhaseStatistics(*statistics_pair(fields, *names[:2], cls.name, PhaseStatistics)),
-            PhaseStatistics(*statistics_pair(fields, *names[2:], cls.name, PhaseStatistics)),
-        )
 
 
 @dataclass(frozen=True)
