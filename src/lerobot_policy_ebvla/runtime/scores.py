@@ -509,7 +509,7 @@ class ContextStartEnergy(TwoPhaseTerms):
     LIBERO's Table III, dimmed light and mild sensor noise among them, where E_c alone barely moves (0.65-0.68);
     on C's rollouts, never read when the score was chosen on D's, 0.972 over 17 shifts against E_c's 0.952, its
     worst condition 0.78 against 0.63 (research/docs/libero_runs.md, "The starting sample's energy beside E_c").
-    On MetaWorld the start term adds nothing to E_c, and the light preset keeps `context_phase_energy`.
+    On MetaWorld it was only looked at, and added nothing there: the light preset keeps `context_phase_energy`.
     """
 
     context: PhaseStatistics
