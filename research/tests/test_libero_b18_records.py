@@ -1,5 +1,6 @@
 """research/docs/libero_runs.md, "K: C's recipe from scratch with the raised starting energy": the first slice's
-reading recomputed from K's committed training curve against C's logged L1, and K's checkpoint resumable."""
+reading recomputed from K's committed training curve against C's logged L1, the second slice's curve, and K's
+checkpoint resumable."""
 
 import json
 
@@ -20,9 +21,17 @@ def test_k_learns_faster_than_c_by_the_fixed_reading():
     assert all(ratio <= 0.8 for ratio in ratios.values())
 
 
-def test_ks_last_checkpoint_keeps_its_optimizer_state_to_resume_at_step_11000():
+def test_the_second_slice_resumed_at_11000_and_its_l1_stays_at_the_first_slices_level():
+    """Steps 11,100-12,200 (2026-12-02, cut at 12,2xx; its checkpoint 12,000): L1 0.071-0.087, as the first slice's
+    last steps (0.078-0.096 from step 10,000)."""
+    second = json.loads((K / "training_curve.json").read_text())["second_slice"]["log_every"]
+    assert [row["step"] for row in second] == list(range(11100, 12300, 100))
+    assert (min(r["l1_loss"] for r in second), max(r["l1_loss"] for r in second)) == (0.071, 0.087)
+
+
+def test_ks_last_checkpoint_keeps_its_optimizer_state_to_resume_at_step_12000():
     last = K / "train" / "ebvla_joint_fast_cpu_b18" / "last"
-    assert json.loads((last / "training_state" / "training_step.json").read_text())["step"] == 11000
+    assert json.loads((last / "training_state" / "training_step.json").read_text())["step"] == 12000
     assert (last / "training_state" / "optimizer_state.safetensors").exists()
     config = json.loads((last / "pretrained_model" / "config.json").read_text())
     assert config["energy_bias_init"] == 18.0
