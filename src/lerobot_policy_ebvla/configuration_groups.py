@@ -387,21 +387,9 @@ MONITOR_SCORES = (
     "context_start_energy",
     "context_knn",
 )
-CONTEXT_ENERGY_SCORES = (
-    "context_phase_energy",
-    "head_energy_two_sided",
-    "joint_phase_energy",
-    "context_start_energy",
-)
+CONTEXT_ENERGY_SCORES = tuple(s for s in MONITOR_SCORES if s not in ("final_energy", "context_knn"))
 # The failure check reads energies only (no features stored); "none" leaves it out.
-FAILURE_SCORES = (
-    "none",
-    "final_energy",
-    "context_phase_energy",
-    "head_energy_two_sided",
-    "joint_phase_energy",
-    "context_start_energy",
-)
+FAILURE_SCORES = ("none", *(s for s in MONITOR_SCORES if s != "context_knn"))
 
 
 @dataclass

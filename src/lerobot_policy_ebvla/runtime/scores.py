@@ -154,19 +154,8 @@ class ChunkInputs:
 
     def first(self, n: int) -> "ChunkInputs":
         """The first n chunks (all of them when there are fewer): a rollout's opening, in chunk order."""
-        rows = slice(0, n)
-        return ChunkInputs(
-            *(
-                None if values is None else values[rows]
-                for values in (
-                    self.final_energy,
-                    self.chunk_index,
-                    self.context_features,
-                    self.context_energy,
-                    self.initial_energy,
-                )
-            )
-        )
+        columns = (getattr(self, f.name) for f in fields(self))
+        return ChunkInputs(*(None if values is None else values[:n] for values in columns))
 
     @property
     def head_energy(self) -> np.ndarray | None:
@@ -505,11 +494,8 @@ class ContextStartEnergy(TwoPhaseTerms):
     z_s,t likewise for E_head,t(a^(0)) = E(a^(0), C) - E_c(C); each term aggregated over the rollout before the two
     are averaged. One-sided, energies only.
 
-    The OOD score of the LIBERO checkpoints: the head's energy of its Gaussian start falls under every shift of
-    LIBERO's Table III, dimmed light and mild sensor noise among them, where E_c alone barely moves (0.65-0.68);
-    on C's rollouts, never read when the score was chosen on D's, 0.972 over 17 shifts against E_c's 0.952, its
-    worst condition 0.78 against 0.63 (research/docs/libero_runs.md, "The starting sample's energy beside E_c").
-    On MetaWorld it was only looked at, and added nothing there: the light preset keeps `context_phase_energy`.
+    The LIBERO checkpoints' OOD score: the start's energy falls under every LIBERO shift, dim light and mild noise
+    among them, where E_c barely moves (research/docs/libero_runs.md, "The starting sample's energy beside E_c").
     """
 
     context: PhaseStatistics
