@@ -151,21 +151,26 @@ def test_the_committed_run_time_alarm_rates_are_what_the_shipped_monitor_gives_o
 def test_ds_committed_run_time_alarm_rates_are_what_its_shipped_monitor_gives_on_the_records(tmp_path):
     """D's `runtime_alarms.json` (BENCHMARKS.md: its shipped monitor, the conformal T on the window score of the
     first 3 chunks and the joint failure check, replayed chunk by chunk) recomputed, and
-    `runtime_alarms_mean3.json`, the same monitor with D's T before the window (the 3-chunk mean's)."""
+    `runtime_alarms_mean3.json`, the same monitor with its T refitted on the 3-chunk mean (no window)."""
     committed = RESULTS / "libero_object10_more/reports/ebvla_joint_fast_cpu_more/runtime_alarms.json"
     got = replayed_alarms("libero_object10_more", "ebvla_joint_fast_cpu_more", tmp_path / "alarms.json")
     assert got == json.loads(committed.read_text())
-    # Since 2026-11-30 the failure check is `joint_phase_energy` (confirmed on E: libero_runs.md, "A failure check on
-    # both terms of the joint energy"); the OOD check's decisions below are unchanged.
+    # Since 2026-12-07 D's OOD check is LIBERO's score, `context_start_energy` (libero_runs.md, "The starting
+    # sample's energy beside E_c"; `context_phase_energy` before: 11, 13 and 0 alarmed below, 91.1 % and 90.6 %);
+    # since 2026-11-30 the failure check is `joint_phase_energy` (libero_runs.md, "A failure check on both terms
+    # of the joint energy").
+    assert got["ood_score"] == "context_start_energy"
     assert got["failure_check"] == {"score": "joint_phase_energy", "chunks": 16}
     keys = ("at_chunk_3", "by_chunk_3", "ever")
     conditions = got["conditions"]
     # The decision after chunk 3 stands: a rollout alarmed at all is alarmed by chunk 3.
     assert [conditions["vanilla_heldout"][key]["alarmed"] for key in keys] == [11, 11, 11]
-    assert [conditions["vanilla_confirm"][key]["alarmed"] for key in keys] == [13, 13, 13]
+    assert [conditions["vanilla_confirm"][key]["alarmed"] for key in keys] == [10, 10, 10]
     assert [conditions["vanilla_fresh"][key]["alarmed"] for key in keys] == [0, 0, 0]
+    # Where success barely falls, the start term catches more than E_c did (light_dim 5: 2 of 20 before).
+    assert [conditions[name]["by_chunk_3"]["alarmed"] for name in ("light_dim5", "noise3", "blur3")] == [7, 3, 11]
     accuracy = got["balanced_accuracy_by_chunk_3"]
-    assert accuracy["vanilla_confirm"] == pytest.approx(0.9057, abs=5e-5)
+    assert accuracy["vanilla_confirm"] == pytest.approx(0.9132, abs=5e-5)
     assert accuracy["vanilla_heldout"] == pytest.approx(0.9107, abs=5e-5)
 
     before = replayed_alarms(
@@ -173,10 +178,11 @@ def test_ds_committed_run_time_alarm_rates_are_what_its_shipped_monitor_gives_on
     )
     assert before == json.loads(committed.with_name("runtime_alarms_mean3.json").read_text())
     conditions = before["conditions"]
-    assert before["ood_threshold"] == pytest.approx(0.5474, abs=5e-5)
-    assert [conditions["vanilla_heldout"][key]["alarmed"] for key in keys] == [11, 52, 70]
-    assert [conditions["vanilla_confirm"][key]["alarmed"] for key in keys] == [15, 54, 82]
-    assert [conditions["vanilla_fresh"][key]["alarmed"] for key in keys] == [0, 0, 3]
+    assert before["ood_threshold"] == pytest.approx(0.8076, abs=5e-5)
+    # Without the window, T bounds the decision at chunk 3 alone: chunks 1-2 alarm far more.
+    assert [conditions["vanilla_heldout"][key]["alarmed"] for key in keys] == [12, 46, 57]
+    assert [conditions["vanilla_confirm"][key]["alarmed"] for key in keys] == [11, 42, 50]
+    assert [conditions["vanilla_fresh"][key]["alarmed"] for key in keys] == [0, 0, 2]
 
 
 def test_ds_second_failure_check_is_recomputed_from_the_rollouts_it_was_chosen_on():
