@@ -1,6 +1,6 @@
 """research/docs/libero_runs.md, "K: C's recipe from scratch with the raised starting energy": the first slice's
 reading recomputed from K's committed training curve against C's logged L1, the second slice's curve, and K's
-checkpoint resumable."""
+checkpoint at the end of its 20,000 steps."""
 
 import json
 
@@ -29,9 +29,16 @@ def test_the_second_slice_resumed_at_11000_and_its_l1_stays_at_the_first_slices_
     assert (min(r["l1_loss"] for r in second), max(r["l1_loss"] for r in second)) == (0.071, 0.087)
 
 
-def test_ks_last_checkpoint_keeps_its_optimizer_state_to_resume_at_step_12000():
+def test_the_third_slice_reached_the_end_of_ks_schedule_at_the_same_l1_level():
+    """Steps 12,100-20,000 (2026-12-07, the Intel Xeon): L1 0.052-0.080; K's 20,000 steps are done."""
+    third = json.loads((K / "training_curve.json").read_text())["third_slice"]["log_every"]
+    assert [row["step"] for row in third] == list(range(12100, 20100, 100))
+    assert (min(r["l1_loss"] for r in third), max(r["l1_loss"] for r in third)) == (0.052, 0.08)
+
+
+def test_ks_last_checkpoint_is_the_end_of_its_20000_steps():
     last = K / "train" / "ebvla_joint_fast_cpu_b18" / "last"
-    assert json.loads((last / "training_state" / "training_step.json").read_text())["step"] == 12000
-    assert (last / "training_state" / "optimizer_state.safetensors").exists()
+    assert json.loads((last / "pretrained_model" / "train_config.json").read_text())["steps"] == 20000
+    assert (K / "train" / "ebvla_joint_fast_cpu_b18" / "DONE").exists()
     config = json.loads((last / "pretrained_model" / "config.json").read_text())
     assert config["energy_bias_init"] == 18.0
