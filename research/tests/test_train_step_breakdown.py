@@ -45,8 +45,8 @@ def test_the_preset_step_on_the_avx2_only_cpu_by_its_parts():
 
 def test_the_preset_step_on_the_intel_xeon_by_its_parts():
     """On the 2-core Intel Xeon with AVX512-BF16 (family 6 model 207), 248.4 ms a step: the contrastive term, in bf16
-    there, is still the largest part (0.40), and no single lever brings the step to the 0.74 of it that the main job's
-    five minutes would need there (fewer contrastive candidates 0.87, 32 px frames 0.94)."""
+    there, is still the largest part (0.40), and no lever that keeps it brings the step to the 0.74 of it that the main
+    job's five minutes would need there (fewer contrastive candidates 0.87, 32 px frames 0.94)."""
     record = json.loads((RESULTS / "train_step_breakdown_cpu_64px_intel_preset.json").read_text())
     assert "avx512_bf16" in record["machine"]["cpu_vector_flags"]
     mean = {row: result["mean_step_ms"] for row, result in record["results"].items()}
