@@ -4,7 +4,9 @@ checkpoint at the end of its 20,000 steps."""
 
 import json
 
-from research.tests.conftest import RESULTS
+import pytest
+
+from research.tests.conftest import RESULTS, load_benchmark
 
 K = RESULTS / "libero_object10_b18"
 # C's logged L1 at steps 2000, 4000, 6000 and 8000 (libero_runs.md, "The ten-task check").
@@ -42,3 +44,94 @@ def test_ks_last_checkpoint_is_the_end_of_its_20000_steps():
     assert (K / "train" / "ebvla_joint_fast_cpu_b18" / "DONE").exists()
     config = json.loads((last / "pretrained_model" / "config.json").read_text())
     assert config["energy_bias_init"] == 18.0
+
+
+# K's evaluation (libero_runs.md, "K's evaluation, first stage"), recomputed from the committed records.
+K_EVAL = K / "eval" / "ebvla_joint_fast_cpu_b18"
+G_EVAL = RESULTS / "libero_object10_arm_more" / "eval" / "ebvla_joint_fast_cpu_arm_more_longer"
+SHIPPED_CHOICE = (
+    RESULTS
+    / "libero_object10_more"
+    / "reports"
+    / "ebvla_joint_fast_cpu_more"
+    / "failure_check_choice_joint.json"
+)
+
+
+def successes(condition: str) -> list[int]:
+    """Successes of K's job of each task 0-9 under one condition."""
+    counts = []
+    for task in range(10):
+        overall = json.loads((K_EVAL / condition / f"task{task}" / "eval_info.json").read_text())["overall"]
+        counts.append(round(overall["pc_success"] * overall["n_episodes"] / 100))
+    return counts
+
+
+def test_ks_success_is_the_docs_and_meets_the_fixed_states_target():
+    """369 of the 400 fixed states 10-49 (the rule: at least 360; G 358), 99 of 100 fresh placements (>= 80 %)."""
+    assert successes("vanilla_confirm") == [15, 17, 20, 20, 18, 16, 19, 19, 19, 20]  # states 30-49: 183
+    assert successes("vanilla_heldout") == [14, 19, 19, 20, 19, 19, 20, 18, 20, 18]  # states 10-29: 186
+    assert sum(successes("vanilla_confirm")) + sum(successes("vanilla_heldout")) == 369 >= 360
+    assert sum(successes("vanilla_fresh")) == 99
+    assert sum(successes("vanilla_calib")) == 95
+    camera = json.loads((K_EVAL / "camera_check.json").read_text())
+    assert round(100 * camera["chunk_change"], 1) == 98.7
+
+
+@pytest.mark.parametrize(
+    ("condition", "g", "k", "won", "lost"),
+    [
+        ("vanilla_confirm", 178, 183, 16, 11),
+        ("vanilla_heldout", 180, 186, 17, 11),
+    ],
+)
+def test_k_paired_with_g_episode_by_episode_recomputes(tmp_path, condition, g, k, won, lost):
+    """The two runs started from the same states (first goal distances equal to 1e-9 m: K ran on an Intel Xeon,
+    G on AMD EPYCs, whose MuJoCo rounds a distance differently in its last bit)."""
+    output = tmp_path / "paired.json"
+    load_benchmark("paired_success").main(
+        [f"--first={G_EVAL / condition}", f"--second={K_EVAL / condition}", f"--output={output}"]
+    )
+    found = json.loads(output.read_text())
+    assert found == json.loads((K / "reports" / f"paired_g_k_{condition}.json").read_text())
+    assert (found["total"]["first"], found["total"]["second"]) == (g, k)
+    assert (found["total"]["won"], found["total"]["lost"]) == (won, lost)
+
+
+def test_same_state_tolerates_the_last_bit_but_not_the_closest_two_fixed_states():
+    same_state = load_benchmark("paired_success").same_state
+    assert same_state(0.5232518979707984, 0.5232518979707985)
+    assert not same_state(0.5, 0.5 + 3.6e-6)
+
+
+def test_ks_failure_check_meets_80_percent_but_not_the_feature_baseline(tmp_path):
+    """Table IV on K's 400 held-out rollouts, never read by a failure score before: the shipped
+    `joint_phase_energy` (16 chunks, T = mu + 1 sigma of the 95 successful calibration rollouts) 81.3 %, AUROC 0.928;
+    `chunk_context_nn` 96.9 %, 0.995; paired, the energy is below it beyond resampling noise (G's reached 0)."""
+    output = tmp_path / "test.json"
+    load_benchmark("failure_check_test").main(
+        [
+            f"--choice={SHIPPED_CHOICE}",
+            f"--calibration={K_EVAL / 'vanilla_calib' / 'task*'}",
+            "--held_out",
+            str(K_EVAL / "vanilla_heldout" / "task*"),
+            str(K_EVAL / "vanilla_confirm" / "task*"),
+            f"--output={output}",
+        ]
+    )
+    reports = K / "reports" / "ebvla_joint_fast_cpu_b18"
+    found = json.loads(output.read_text())
+    assert found == json.loads((reports / "failure_check_test.json").read_text())
+    rows = {r["score"]: r for r in found["sets"]["all held out"]["rows"]}
+    shipped, baseline = rows["joint_phase_energy"], rows["chunk_context_nn"]
+    assert (shipped["failed_alarmed"], shipped["failed"], shipped["successful_alarmed"]) == (23, 31, 43)
+    assert shipped["balanced_accuracy"] >= 0.80
+    assert (baseline["failed_alarmed"], baseline["successful_alarmed"]) == (31, 23)
+    paired = {
+        r["score"]: r
+        for r in json.loads((reports / "task_phase_failure_check.json").read_text())["sets"]["all held out"][
+            "rows"
+        ]
+    }
+    assert paired["joint_phase_energy"]["auroc"] == shipped["auroc"]
+    assert paired["joint_phase_energy"]["auroc_minus_baseline_interval"][1] < 0
