@@ -135,3 +135,41 @@ def test_ks_failure_check_meets_80_percent_but_not_the_feature_baseline(tmp_path
     }
     assert paired["joint_phase_energy"]["auroc"] == shipped["auroc"]
     assert paired["joint_phase_energy"]["auroc_minus_baseline_interval"][1] < 0
+
+
+def test_ks_table_iii_is_recomputed_and_meets_every_target(tmp_path):
+    """K's Table III (17 shifts, 20 rollouts each; the rule fixed before any shifted rollout of K): the shipped
+    monitor `context_start_energy`, first 3 chunks, conformal T of K's calibration rollouts, meets every target on
+    both held-out vanilla sets; pooled 0.977 against `context_knn`'s 0.900. On the seven untouched tasks one is
+    missed: dim light cuts their success 20.7 points (10/14 against 129/140) and scores 0.791, under the 0.85."""
+    load_benchmark("start_energy").report(K, "ebvla_joint_fast_cpu_b18", tmp_path)
+    recomputed = json.loads((tmp_path / "ten_task_report.json").read_text())
+    reports = K / "reports" / "ebvla_joint_fast_cpu_b18"
+    assert recomputed == json.loads((reports / "start_energy" / "ten_task_report.json").read_text())
+    groups = {group["group"]: group for group in recomputed}
+    assert all(ok for _, _, ok in groups["all ten"]["targets"])
+    missed = [(name, figure) for name, figure, ok in groups["seven untouched"]["targets"] if not ok]
+    assert missed == [("AUROC >= 0.85 where success falls 20+ points", "lowest 0.791 (light_dim 5) of 17")]
+    rows = {row["score"]: row for row in groups["all ten"]["rows"]}
+    monitor = rows["context_start_energy"]
+    assert round(monitor["pooled_auroc"], 3) == 0.977 and round(rows["context_knn"]["pooled_auroc"], 3) == 0.9
+    assert min(monitor["auroc_per_condition"].values()) == monitor["auroc_per_condition"]["light_dim 5"]
+    assert round(monitor["balanced_accuracy"], 3) == 0.938
+
+
+def test_ks_shipped_monitor_replayed_chunk_by_chunk_alarms_on_at_most_10_percent_of_vanilla():
+    """What a user of K's monitor meets (`runtime_alarm_rates.py`): 18/200 held-out, 17/200 confirmation, 0/100
+    fresh vanilla rollouts alarmed; balanced accuracy by chunk 3 above 90 % on both held-out sets."""
+    replay = json.loads((K / "reports" / "ebvla_joint_fast_cpu_b18" / "runtime_alarms.json").read_text())
+    assert replay["ood_score"] == "context_start_energy"
+    alarmed = {name: c["ever"]["alarmed"] for name, c in replay["conditions"].items()}
+    assert (alarmed["vanilla_heldout"], alarmed["vanilla_confirm"], alarmed["vanilla_fresh"]) == (18, 17, 0)
+    assert (alarmed["light_dim5"], alarmed["noise3"], alarmed["blur3"]) == (10, 6, 15)
+    accuracy = replay["balanced_accuracy_by_chunk_3"]
+    assert min(accuracy["vanilla_heldout"], accuracy["vanilla_confirm"]) > 0.90
+    calibration = json.loads(
+        (
+            K / "train" / "ebvla_joint_fast_cpu_b18" / "last" / "pretrained_model" / "ood_calibration.json"
+        ).read_text()
+    )
+    assert calibration["score"] == "context_start_energy"
