@@ -1,6 +1,7 @@
 """research/docs/libero_runs.md, "K: C's recipe from scratch with the raised starting energy": the first slice's
-reading recomputed from K's committed training curve against C's logged L1, the second slice's curve, and K's
-checkpoint at the end of its 20,000 steps."""
+reading recomputed from K's committed training curve against C's logged L1, the second slice's curve, K's
+checkpoint at the end of its 20,000 steps, and its evaluation (success paired with G's, Tables III and IV) from its
+committed records."""
 
 import json
 
