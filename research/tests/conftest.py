@@ -2,6 +2,7 @@
 committed records' folder. The package's tiny policies and batches come from `tests/conftest.py`."""
 
 import importlib.util
+import json
 import os
 import sys
 from pathlib import Path
@@ -40,3 +41,17 @@ def load_benchmark(name: str):
     finally:
         sys.path.remove(str(BENCHMARKS))
     return module
+
+
+def task_successes(folder: Path) -> list[int | None]:
+    """Successes of each LIBERO task's evaluation job under one condition folder (`eval/<run>/<condition>`), tasks
+    0-9; None where the job did not finish."""
+    counts = []
+    for task in range(10):
+        info = folder / f"task{task}" / "eval_info.json"
+        if not info.exists():
+            counts.append(None)
+            continue
+        overall = json.loads(info.read_text())["overall"]
+        counts.append(round(overall["pc_success"] * overall["n_episodes"] / 100))
+    return counts

@@ -9,24 +9,12 @@ import pytest
 import torch
 
 from .conftest import RESULTS, load_benchmark
+from .conftest import task_successes as successes
 
 GPU = RESULTS / "libero_object10_arm_gpu" / "eval" / "ebvla_joint_fast_cpu_arm"
 CPU = RESULTS / "libero_object10_arm" / "eval" / "ebvla_joint_fast_cpu_arm"
 # E on the fixed states 30-49 here: 174/200, "partial" by the rule written before it ran (D: 170/200).
 CPU_CONFIRM = [17, 15, 20, 20, 19, 10, 19, 17, 20, 17]
-
-
-def successes(folder: Path) -> list[int | None]:
-    """Successes of each task's job (None where the job did not finish), tasks 0-9."""
-    counts = []
-    for task in range(10):
-        info = folder / f"task{task}" / "eval_info.json"
-        if not info.exists():
-            counts.append(None)
-            continue
-        overall = json.loads(info.read_text())["overall"]
-        counts.append(round(overall["pc_success"] * overall["n_episodes"] / 100))
-    return counts
 
 
 def recomputed_paired(tmp_path: Path, first: Path, second: Path, committed: Path) -> dict:

@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from research.tests.conftest import RESULTS, load_benchmark
+from research.tests.conftest import RESULTS, load_benchmark, task_successes
 
 K = RESULTS / "libero_object10_b18"
 # C's logged L1 at steps 2000, 4000, 6000 and 8000 (libero_runs.md, "The ten-task check").
@@ -59,22 +59,14 @@ SHIPPED_CHOICE = (
 )
 
 
-def successes(condition: str) -> list[int]:
-    """Successes of K's job of each task 0-9 under one condition."""
-    counts = []
-    for task in range(10):
-        overall = json.loads((K_EVAL / condition / f"task{task}" / "eval_info.json").read_text())["overall"]
-        counts.append(round(overall["pc_success"] * overall["n_episodes"] / 100))
-    return counts
-
-
 def test_ks_success_is_the_docs_and_meets_the_fixed_states_target():
     """369 of the 400 fixed states 10-49 (the rule: at least 360; G 358), 99 of 100 fresh placements (>= 80 %)."""
-    assert successes("vanilla_confirm") == [15, 17, 20, 20, 18, 16, 19, 19, 19, 20]  # states 30-49: 183
-    assert successes("vanilla_heldout") == [14, 19, 19, 20, 19, 19, 20, 18, 20, 18]  # states 10-29: 186
-    assert sum(successes("vanilla_confirm")) + sum(successes("vanilla_heldout")) == 369 >= 360
-    assert sum(successes("vanilla_fresh")) == 99
-    assert sum(successes("vanilla_calib")) == 95
+    confirm, heldout = (task_successes(K_EVAL / name) for name in ("vanilla_confirm", "vanilla_heldout"))
+    assert confirm == [15, 17, 20, 20, 18, 16, 19, 19, 19, 20]  # states 30-49: 183
+    assert heldout == [14, 19, 19, 20, 19, 19, 20, 18, 20, 18]  # states 10-29: 186
+    assert sum(confirm) + sum(heldout) == 369 >= 360
+    assert sum(task_successes(K_EVAL / "vanilla_fresh")) == 99
+    assert sum(task_successes(K_EVAL / "vanilla_calib")) == 95
     camera = json.loads((K_EVAL / "camera_check.json").read_text())
     assert round(100 * camera["chunk_change"], 1) == 98.7
 
