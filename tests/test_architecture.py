@@ -30,6 +30,7 @@ CORE = {
     "rtc_ebvla",
     "inputs_ebvla",
     "training_signal",
+    "phase_energy",
     "configuration_groups",
 }
 # What each part may import from the package (besides itself). The package's own __init__ is the facade.

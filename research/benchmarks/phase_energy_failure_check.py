@@ -27,16 +27,28 @@ scored against statistics fitted without it; T = mu + 1 sigma of the successful 
 """
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 import torch
-from failure_check_test import BASELINE, MIN_BALANCED_ACCURACY, leads, report_markdown, scores_at, write_report
+from failure_check_test import (
+    BASELINE,
+    MIN_BALANCED_ACCURACY,
+    leads,
+    report_markdown,
+    row,
+    scores_at,
+    write_report,
+)
 from failure_score_variants import difference_lines, rows_against_baseline
 from safetensors.torch import load_file, save_file
-from torch import nn
 
+from lerobot_policy_ebvla.monitoring.baselines import episode_readout, vanilla_rollouts
 from lerobot_policy_ebvla.monitoring.records import Episode, load_episodes
+from lerobot_policy_ebvla.phase_energy import PhaseEnergy, fit_phase_energy
+from lerobot_policy_ebvla.pipelines.phase_energy import demonstration_contexts as package_contexts
+from lerobot_policy_ebvla.runtime.calibration import FailureCalibration
 from lerobot_policy_ebvla.runtime.statistics import PhaseStatistics, energies_by_index
 
 CHOSEN = "joint_phase_time_energy"
@@ -45,15 +57,12 @@ CHUNKS = 16
 K = 1.0
 # Chunk bins of p(t | C): the demonstrations end within 40 chunks (320 steps); later chunks share the last bin.
 PHASE_BINS = 40
-FRAME_STRIDE = 8
 HIDDEN = 256
-MAX_EPOCHS = 40
-VALIDATION_FRACTION = 0.1
 
 
 def demonstration_contexts(checkpoint: str, dataset_root: str, batch_size: int = 64) -> dict[str, np.ndarray]:
-    """The pooled context of every demonstration frame at a multiple of `FRAME_STRIDE`, with its chunk index,
-    episode and task, computed as the policy computes it in a rollout (its preprocessor, then `context_features`)."""
+    """The pooled context of every demonstration frame at a multiple of the policy's `n_action_steps`, with its chunk
+    index and episode, as `ebvla-fit-phase-energy` reads them."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from lerobot.policies.factory import make_pre_post_processors
 
@@ -62,86 +71,31 @@ def demonstration_contexts(checkpoint: str, dataset_root: str, batch_size: int =
     policy = EBVLAPolicy.from_pretrained(checkpoint).eval()
     preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=checkpoint)
     dataset = LeRobotDataset("local/demonstrations", root=dataset_root)
-    frame = np.asarray(dataset.hf_dataset["frame_index"])
-    rows = np.nonzero(frame % FRAME_STRIDE == 0)[0]
-    keys = list(policy.config.input_features)
-    features = []
-    for start in range(0, len(rows), batch_size):
-        items = [dataset[int(i)] for i in rows[start : start + batch_size]]
-        batch = {key: torch.stack([item[key] for item in items]) for key in keys}
-        batch["task"] = [item["task"] for item in items]
-        with torch.no_grad():
-            features.append(policy.context_features(preprocessor(batch)).float().numpy())
-    return {
-        "features": np.concatenate(features),
-        "chunk": frame[rows] // FRAME_STRIDE,
-        "episode": np.asarray(dataset.hf_dataset["episode_index"])[rows],
-        "task": np.asarray(dataset.hf_dataset["task_index"])[rows],
-    }
-
-
-class PhaseEnergy(nn.Module):
-    """E_tau(C, t) = -log softmax_t(-f(C)): how unlikely chunk index t is for a demonstration with pooled context C."""
-
-    def __init__(self, dim: int, mean: np.ndarray, std: np.ndarray):
-        super().__init__()
-        self.register_buffer("mean", torch.as_tensor(mean, dtype=torch.float32))
-        self.register_buffer("std", torch.as_tensor(std, dtype=torch.float32))
-        self.f = nn.Sequential(
-            nn.Linear(dim, HIDDEN), nn.GELU(), nn.Linear(HIDDEN, HIDDEN), nn.GELU(), nn.Linear(HIDDEN, PHASE_BINS)
-        )
-
-    def logits(self, features: torch.Tensor) -> torch.Tensor:
-        return -self.f((features - self.mean) / self.std)
-
-    def forward(self, features: np.ndarray, chunks: np.ndarray) -> np.ndarray:
-        with torch.no_grad():
-            log_p = torch.log_softmax(self.logits(torch.as_tensor(features, dtype=torch.float32)), -1).numpy()
-        return -log_p[np.arange(len(chunks)), np.minimum(chunks, PHASE_BINS - 1)]
-
-
-def _fit(contexts: dict, rows: np.ndarray, epochs: int, held: np.ndarray | None) -> tuple[PhaseEnergy, list]:
-    torch.manual_seed(0)
-    x = contexts["features"]
-    model = PhaseEnergy(x.shape[1], x.mean(0), x.std(0) + 1e-6)
-    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-2)
-    labels = torch.as_tensor(np.minimum(contexts["chunk"], PHASE_BINS - 1))
-    inputs = torch.as_tensor(x, dtype=torch.float32)
-    train = torch.as_tensor(rows)
-    validation_nll = []
-    for _ in range(epochs):
-        for batch in train[torch.randperm(len(train))].split(256):
-            loss = nn.functional.cross_entropy(model.logits(inputs[batch]), labels[batch])
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
-        if held is not None:
-            with torch.no_grad():
-                validation_nll.append(
-                    nn.functional.cross_entropy(model.logits(inputs[held]), labels[held]).item()
-                )
-    return model, validation_nll
+    return package_contexts(policy, preprocessor, dataset, batch_size)
 
 
 def train_phase_energy(contexts: dict) -> tuple[PhaseEnergy, dict]:
-    """E_tau trained on all demonstrations for the number of epochs at which a held-out tenth of the
-    demonstrations (whole episodes) had its lowest negative log-likelihood."""
-    episodes = np.unique(contexts["episode"])
-    rng = np.random.default_rng(0)
-    validation = rng.choice(episodes, max(1, int(len(episodes) * VALIDATION_FRACTION)), replace=False)
-    held = np.isin(contexts["episode"], validation)
-    _, curve = _fit(contexts, np.nonzero(~held)[0], MAX_EPOCHS, np.nonzero(held)[0])
-    epochs = int(np.argmin(curve)) + 1
-    model, _ = _fit(contexts, np.arange(len(held)), epochs, None)
-    return model.eval(), {"validation_nll": curve, "epochs": epochs, "frames": int(len(held))}
+    """E_tau fitted on the demonstrations' contexts as the package fits it (`fit_phase_energy`)."""
+    model = PhaseEnergy(contexts["features"].shape[1], PHASE_BINS, HIDDEN)
+    fit = fit_phase_energy(model, contexts["features"], contexts["chunk_index"], contexts["episode"])
+    return model.eval(), {
+        "validation_nll": list(fit.validation_nll),
+        "epochs": fit.epochs,
+        "frames": fit.frames,
+    }
 
 
 def phase_series(episode: Episode, model: PhaseEnergy) -> np.ndarray:
     """The episode's E_tau, indexed by chunk index."""
     index = np.array([record.chunk_index for record in episode])
     if any(record.context_feature is None for record in episode):
-        raise ValueError("The phase energy reads each chunk's pooled context (`--record_context_features=true`).")
-    return energies_by_index(model(np.stack([r.context_feature for r in episode]), index), index)
+        raise ValueError(
+            "The phase energy reads each chunk's pooled context (`--record_context_features=true`)."
+        )
+    features = torch.as_tensor(np.stack([r.context_feature for r in episode]), dtype=torch.float32)
+    with torch.no_grad():
+        values = model(features, torch.as_tensor(index)).numpy()
+    return energies_by_index(values, index)
 
 
 def term_series(episode: Episode, model: PhaseEnergy) -> list[np.ndarray]:
@@ -187,6 +141,43 @@ def joint_phase_time_scores(calibration: dict, episodes: dict, model: PhaseEnerg
     return calibration_scores, np.array([s for s, _ in held]), np.array([p for _, p in held])
 
 
+def with_phase_energy(episodes: dict, model: PhaseEnergy) -> dict:
+    """The episodes' records with E_tau filled in from their pooled contexts, as a checkpoint with this phase energy
+    reports it with each chunk."""
+    filled = {}
+    for key, episode in episodes.items():
+        phase = phase_series(episode, model)
+        filled[key] = [dataclasses.replace(r, phase_energy=float(phase[r.chunk_index])) for r in episode]
+    return filled
+
+
+def package_check(calibration: dict, held_out: dict, model: PhaseEnergy, n: int, reading: tuple) -> dict:
+    """The package's failure check on the same rollouts: `FailureCalibration.calibrate` of `joint_phase_time_energy`
+    on the successful calibration rollouts' first n chunks (E_tau filled in), each held-out rollout's first n chunks
+    scored by it; against the reading's (T, held-out scores), how far its threshold and scores are."""
+    successful = {key: e for key, e in with_phase_energy(calibration, model).items() if e[0].success}
+    failure_check = FailureCalibration.calibrate(CHOSEN, vanilla_rollouts(successful), chunks=n)
+    scores = []
+    for episode in with_phase_energy(held_out, model).values():
+        readout = episode_readout([r for r in episode if r.chunk_index < n] or episode[:1])
+        scores.append(failure_check.score_rollout(failure_check.chunk_components(readout)))
+    threshold, held_scores = reading
+    failed = np.array([not episode[0].success for episode in held_out.values()])
+    recorded = [
+        abs(r.phase_energy - f.phase_energy)
+        for e, filled in zip(held_out.values(), with_phase_energy(held_out, model).values(), strict=True)
+        for r, f in zip(e, filled, strict=True)
+        if r.phase_energy is not None
+    ]
+    return {
+        "recorded_phase_energy_difference": max(recorded) if recorded else None,
+        "threshold": failure_check.threshold,
+        "threshold_difference": abs(failure_check.threshold - threshold),
+        "max_score_difference": float(np.max(np.abs(np.array(scores) - held_scores))),
+        "row": row(CHOSEN, np.array(scores), failure_check.threshold, failed),
+    }
+
+
 def test(calibration: dict, held_out_sets: dict, model: PhaseEnergy, n: int = CHUNKS, k: float = K) -> dict:
     """Every row of every held-out set and of all of them together, at T of the successful calibration rollouts."""
     successful = np.array([episode[0].success for episode in calibration.values()])
@@ -210,6 +201,9 @@ def test(calibration: dict, held_out_sets: dict, model: PhaseEnergy, n: int = CH
             "rows": rows,
             "leads": leads(list(held_out.values()), held_scores, chosen["threshold"], n),
         }
+    result["package"] = package_check(
+        calibration, sets["all held out"], model, n, (chosen["threshold"], held_scores)
+    )
     return result
 
 
@@ -240,28 +234,59 @@ def targets(result: dict) -> list[tuple[str, bool, str]]:
 def markdown(result: dict) -> str:
     training = result["phase_energy"]
     head = (
-        f"E_tau trained {training['epochs']} epochs on {training['frames']} demonstration frames "
+        "E_tau loaded as trained.\n\n"
+        if training is None
+        else f"E_tau trained {training['epochs']} epochs on {training['frames']} demonstration frames "
         f"(held-out demonstrations' lowest NLL {min(training['validation_nll']):.4f}).\n\n"
     )
-    return head + report_markdown(
-        CHOSEN,
-        result["chunks"],
-        result["k"],
-        result,
-        targets(result),
-        lambda found: difference_lines(found["rows"], lambda name: f"`{name}`"),
+    package = result["package"]
+    shipped = package["row"]
+    difference = package["recorded_phase_energy_difference"]
+    recorded = (
+        ""
+        if difference is None
+        else f" The held-out records' own `phase_energy` (the policy's, as it ran) is E_tau of their contexts within "
+        f"{difference:.1e}."
+    )
+    tail = (
+        f"\nThe package's `FailureCalibration` of `{CHOSEN}` on the same rollouts (its statistics fitted on the first "
+        f"{result['chunks']} chunks only, so its sigma floor differs): T = {package['threshold']:.4f} (the reading's "
+        f"within {package['threshold_difference']:.1e}), held-out scores within "
+        f"{package['max_score_difference']:.1e}; {shipped['failed_alarmed']}/{shipped['failed']} failed and "
+        f"{shipped['successful_alarmed']}/{shipped['successful']} successful alarmed, balanced accuracy "
+        f"{shipped['balanced_accuracy']:.1%}, AUROC {shipped['auroc']:.3f}.{recorded}\n"
+    )
+    return (
+        head
+        + report_markdown(
+            CHOSEN,
+            result["chunks"],
+            result["k"],
+            result,
+            targets(result),
+            lambda found: difference_lines(found["rows"], lambda name: f"`{name}`"),
+        )
+        + tail
     )
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     commands = parser.add_subparsers(dest="command", required=True)
     contexts = commands.add_parser("contexts", help="the demonstrations' pooled contexts under a checkpoint")
     contexts.add_argument("--checkpoint", required=True)
     contexts.add_argument("--dataset", required=True, help="the LeRobot dataset's root folder")
     contexts.add_argument("--output", type=Path, required=True)
     check = commands.add_parser("check", help="train E_tau on the contexts and test the reading")
-    check.add_argument("--contexts", type=Path, required=True)
+    check.add_argument("--contexts", type=Path, default=None, help="demonstration contexts to train E_tau on")
+    check.add_argument(
+        "--phase_energy",
+        type=Path,
+        default=None,
+        help="a trained E_tau: check.safetensors or a checkpoint's weights",
+    )
     check.add_argument("--calibration", required=True, help="the checkpoint's calibration records (a glob)")
     check.add_argument("--held_out", nargs="+", required=True, help="held-out records, one glob per set")
     check.add_argument("--chunks", type=int, default=CHUNKS)
@@ -272,7 +297,15 @@ def main(argv=None) -> None:
         args.output.parent.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(args.output, **demonstration_contexts(args.checkpoint, args.dataset))
         return
-    model, training = train_phase_energy(dict(np.load(args.contexts)))
+    if (args.contexts is None) == (args.phase_energy is None):
+        parser.error("give --contexts (to train E_tau) or --phase_energy (a trained one), not both")
+    if args.phase_energy is not None:
+        model, training = load_phase_energy(args.phase_energy), None
+    else:
+        contexts = dict(np.load(args.contexts))
+        # Contexts saved before the package's fit named the chunk index `chunk`.
+        contexts.setdefault("chunk_index", contexts.get("chunk"))
+        model, training = train_phase_energy(contexts)
     calibration = load_episodes([args.calibration])
     held_out_sets = {Path(pattern).parent.name: load_episodes([pattern]) for pattern in args.held_out}
     result = test(calibration, held_out_sets, model, args.chunks)
@@ -283,9 +316,17 @@ def main(argv=None) -> None:
 
 
 def load_phase_energy(path: Path) -> PhaseEnergy:
-    """E_tau as `check` saved it beside its report."""
+    """E_tau as `check` saved it beside its report, or a fitted checkpoint's (its `model.safetensors`)."""
     state = load_file(path)
-    model = PhaseEnergy(state["mean"].numel(), state["mean"].numpy(), state["std"].numpy())
+    prefix = "model.phase_energy."
+    if any(key.startswith(prefix) for key in state):
+        # The checkpoint stores in bf16 every weight bf16 holds exactly: fp32 again, at no loss.
+        state = {
+            key.removeprefix(prefix): value.float() if value.is_floating_point() else value
+            for key, value in state.items()
+            if key.startswith(prefix)
+        }
+    model = PhaseEnergy(state["feature_mean"].numel(), PHASE_BINS, HIDDEN)
     model.load_state_dict(state)
     return model.eval()
 

@@ -336,6 +336,7 @@ TABLE_ORDER = (
     "head_energy_two_sided",
     "joint_phase_energy",
     "context_start_energy",
+    "joint_phase_time_energy",
 )
 for _score in RESEARCH_SCORES:
     register_score(_score)

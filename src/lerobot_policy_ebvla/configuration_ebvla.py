@@ -23,9 +23,11 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 
 from .configuration_groups import (
     CONTEXT_ENERGY_SCORES,
+    PHASE_ENERGY_SCORES,
     ContrastiveConfig,
     JointEnergyConfig,
     MonitorConfig,
+    PhaseEnergyConfig,
     ResNetBackboneConfig,
     VLMBackboneConfig,
     check_at_least,
@@ -134,6 +136,8 @@ class EBVLAConfig(PreTrainedConfig):
             towards it with LeRobot's `prefix_attention_schedule` weights w_t and guidance weight
             lambda = `max_guidance_weight` (each MCMC step closes a fraction min(1, alpha lambda w_t) of the
             gap). None (the default) or `enabled=False` refines every chunk from scratch.
+        phase_energy: The phase energy E_tau(C, t) beyond the paper (`PhaseEnergyConfig`; off by default, set by
+            `ebvla-fit-phase-energy` on a trained checkpoint).
         monitor: How the checkpoint is monitored at run time (`MonitorConfig`): the score `ebvla-ood-report
             --calibrate_to` calibrates (unset: E_c's per-index score with E_c on its own encoder, else the
             paper's final energy), and the policy's response to a
@@ -210,6 +214,7 @@ class EBVLAConfig(PreTrainedConfig):
     rtc_config: RTCConfig | None = None
 
     # Deployment.
+    phase_energy: PhaseEnergyConfig = field(default_factory=PhaseEnergyConfig)
     monitor: MonitorConfig = field(default_factory=MonitorConfig)
     action_feature_names: list[str] | None = None
     state_feature_names: list[str] | None = None
@@ -314,12 +319,21 @@ class EBVLAConfig(PreTrainedConfig):
             self.monitor.score = (
                 "context_phase_energy" if self.context_energy_on_own_encoder else "final_energy"
             )
+        if isinstance(self.phase_energy, dict):
+            self.phase_energy = PhaseEnergyConfig(**self.phase_energy)
         if self.monitor.failure_score is None:
             self.monitor.failure_score = (
-                "head_energy_two_sided" if self.context_energy_on_own_encoder else "none"
+                ("joint_phase_time_energy" if self.phase_energy.bins else "head_energy_two_sided")
+                if self.context_energy_on_own_encoder
+                else "none"
             )
         for option in ("score", "failure_score"):
             score = getattr(self.monitor, option)
+            if score in PHASE_ENERGY_SCORES and not self.phase_energy.bins:
+                raise ValueError(
+                    f"`monitor.{option}={score!r}` reads the phase energy E_tau, which this policy does not have: "
+                    "fit one with `ebvla-fit-phase-energy` (it sets `phase_energy.bins`)."
+                )
             if score in CONTEXT_ENERGY_SCORES and not self.context_energy_on_own_encoder:
                 raise ValueError(
                     f"`monitor.{option}={score!r}` reads the joint energy's context term E_c on its own "

@@ -347,6 +347,36 @@ class JointEnergyConfig:
         return self.weight > 0 and self.target == "observation"
 
 
+@dataclass
+class PhaseEnergyConfig:
+    """The phase energy E_tau(C, t) = -log p(t | C), beyond the paper: how unlikely it is that a demonstration shows
+    the pooled context C at chunk index t (`phase_energy.PhaseEnergy`). A per-chunk scalar of E_c or E - E_c cannot
+    tell a rollout that never grasps from one that grasps on time; E_tau can, since the stalled rollout's context at
+    chunk t is one the demonstrations show at an earlier t. It reads the backbone's pooled context and refines
+    nothing: the actions and the other energies are unchanged.
+
+    It is fitted after training, on the frozen backbone's contexts of the training demonstrations
+    (`ebvla-fit-phase-energy`), so it reads the backbone the policy ships with rather than one that moved while it
+    learned; that tool sets these fields in the checkpoint it writes.
+
+    Args:
+        bins: Chunk indices 0 .. bins - 1 that p(t | C) tells apart (later chunks share the last). 0 (the default):
+            no phase energy.
+        hidden: Width of the MLP f whose outputs are the energies of the bins, p(t | C) = softmax_t(-f(C))_t.
+    """
+
+    bins: int = 0
+    hidden: int = 256
+
+    def __post_init__(self):
+        check_at_least(self, "phase_energy", 0, "bins")
+        check_at_least(self, "phase_energy", 1, "hidden")
+        if self.bins == 1:
+            raise ValueError(
+                "`phase_energy.bins` must be 0 (off) or >= 2: one bin tells no chunk from another."
+            )
+
+
 def check_at_least(config, group: str, minimum: int, *names: str) -> None:
     for name in names:
         if getattr(config, name) < minimum:
@@ -385,9 +415,12 @@ MONITOR_SCORES = (
     "head_energy_two_sided",
     "joint_phase_energy",
     "context_start_energy",
+    "joint_phase_time_energy",
     "context_knn",
 )
 CONTEXT_ENERGY_SCORES = tuple(s for s in MONITOR_SCORES if s not in ("final_energy", "context_knn"))
+# The scores that also read the phase energy E_tau (`phase_energy.bins` > 0).
+PHASE_ENERGY_SCORES = ("joint_phase_time_energy",)
 # The failure check reads energies only (no features stored); "none" leaves it out.
 FAILURE_SCORES = ("none", *(s for s in MONITOR_SCORES if s != "context_knn"))
 
@@ -404,7 +437,8 @@ class MonitorConfig:
             index: the light preset's, which trains E_c on its own encoder and flat at the data),
             "head_energy_two_sided" (the failure score: |z| of E - E_c at each chunk index),
             "joint_phase_energy" (z of E_c and of E - E_c at each chunk index, averaged),
-            "context_start_energy" (z of E_c and minus z of the head's energy of the MCMC's starting sample at
+            "joint_phase_time_energy" (those two and the z of the phase energy E_tau, averaged; needs
+            `phase_energy.bins` > 0), "context_start_energy" (z of E_c and minus z of the head's energy of the MCMC's starting sample at
             each chunk index, averaged: the LIBERO checkpoints') or "context_knn" (the pooled context's distance
             to its nearest vanilla context, the feature baseline). The four E_c scores need the joint energy on
             its own encoder (`joint_energy.target="observation"` with
@@ -424,8 +458,8 @@ class MonitorConfig:
             `ebvla-ood-report --calibrate_to` fits on the same vanilla rollouts and saves as
             `failure_calibration.json`: "head_energy_two_sided" (the head's part of the joint energy, E - E_c,
             against vanilla at each chunk index, on either side), another energy score, or "none". None (the
-            default) is decided with `score`: "head_energy_two_sided" where the policy trains E_c on its own
-            encoder, "none" otherwise (without E_c no energy score told failures apart).
+            default) is decided with `score`: "joint_phase_time_energy" where the policy trains E_c on its own
+            encoder and has a phase energy, "head_energy_two_sided" where it has E_c alone, "none" otherwise (without E_c no energy score told failures apart).
         failure_chunks: N, the first chunks the failure check scores; it decides at the end of chunk N.
     """
 

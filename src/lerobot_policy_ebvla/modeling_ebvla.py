@@ -42,6 +42,7 @@ from .mcmc import (
     refine_actions,
     sample_initial_actions,
 )
+from .phase_energy import PhaseEnergy
 from .rtc_ebvla import rtc_prefix
 from .runtime.readout import EnergyReadout
 from .runtime.response import EnergyOODResponse, respond_to_energy
@@ -193,7 +194,8 @@ class EBVLAPolicy(PreTrainedPolicy):
             execution_horizon: Overrides `rtc_config.execution_horizon`, the end of the guided overlap.
         """
         validate_observation(batch, self.config)
-        needs_features = self.ood_response is not None and self.ood_response.needs_context_features
+        monitor_reads_features = self.ood_response is not None and self.ood_response.needs_context_features
+        needs_features = monitor_reads_features or self.model.needs_context_features
         # lerobot-eval runs under inference_mode, but refinement differentiates the energy w.r.t. a.
         with torch.inference_mode(False):
             prefix = rtc_prefix(
@@ -204,7 +206,12 @@ class EBVLAPolicy(PreTrainedPolicy):
                 refine_batch, generator=generator, prefix=prefix, return_context_features=needs_features
             )
         actions, readout, features = generated if needs_features else (*generated, None)
-        readout = dataclasses.replace(readout, chunk_index=self.chunk_index, context_features=features)
+        readout = dataclasses.replace(
+            readout,
+            chunk_index=self.chunk_index,
+            context_features=features if monitor_reads_features else None,
+            phase_energy=self.model.phase_energy_of(features, self.chunk_index),
+        )
         self.last_energy = readout
         self.chunk_index += 1
         actions, self.last_ood_decision = respond_to_energy(
@@ -333,6 +340,15 @@ class EBVLA(nn.Module):
             self.context_energy = EBVLAContextEnergy(self.backbone.context_dim)
         if config.context_energy_on_own_encoder:
             self.observation_encoder = make_backbone(observation_encoder_config(config))
+        # Fitted after training (`ebvla-fit-phase-energy`); until then it gives no energy. Built under its own
+        # random state, so that a checkpoint with one draws the same a^(0) and Langevin noise as its source: a seeded
+        # rollout of it is the source's, chunk for chunk.
+        self.phase_energy = None
+        if config.phase_energy.bins:
+            with torch.random.fork_rng(devices=[]):
+                self.phase_energy = PhaseEnergy(
+                    self.backbone.context_dim, config.phase_energy.bins, config.phase_energy.hidden
+                )
 
     def encode_context(
         self, batch: dict[str, Tensor], return_features: bool = False
@@ -394,6 +410,18 @@ class EBVLA(nn.Module):
         if self.observation_encoder is not None:
             features = pooled_context(self.observation_encoder(batch))
         return self.context_energy(features)
+
+    def phase_energy_of(self, features: Tensor | None, chunk_index: int) -> Tensor | None:
+        """(B,) E_tau(C, t) of the pooled contexts `features` at chunk index t (`phase_energy.py`); None without a
+        fitted phase energy."""
+        if self.phase_energy is None or not self.phase_energy.fitted:
+            return None
+        return self.phase_energy(features, chunk_index)
+
+    @property
+    def needs_context_features(self) -> bool:
+        """Whether every chunk's pooled context is read beside its refinement (a fitted phase energy reads it)."""
+        return self.phase_energy is not None and self.phase_energy.fitted
 
     def _inference_context(
         self, batch: dict[str, Tensor], return_features: bool = False

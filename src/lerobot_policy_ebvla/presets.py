@@ -14,6 +14,7 @@ from .configuration_groups import (
     ContrastiveConfig,
     JointEnergyConfig,
     MonitorConfig,
+    PhaseEnergyConfig,
     ResNetBackboneConfig,
     VLMBackboneConfig,
 )
@@ -24,6 +25,7 @@ GROUPS: dict[str, type] = {
     "vlm": VLMBackboneConfig,
     "contrastive": ContrastiveConfig,
     "joint_energy": JointEnergyConfig,
+    "phase_energy": PhaseEnergyConfig,
     "monitor": MonitorConfig,
 }
 

@@ -206,9 +206,9 @@ def every_chunk_has(episodes: Sequence[Episode], field: str) -> bool:
 
 def episode_readout(episode: Episode) -> EnergyReadout:
     """An episode's chunks as the policy's readout of them: each optional input when every chunk recorded it."""
-    features, context_energy = (
+    features, context_energy, phase_energy = (
         [getattr(r, field) for r in episode] if every_chunk_has([episode], field) else None
-        for field in ("context_feature", "context_energy")
+        for field in ("context_feature", "context_energy", "phase_energy")
     )
     return EnergyReadout.of_arrays(
         np.array([r.final_energy for r in episode], dtype=np.float64),
@@ -216,12 +216,17 @@ def episode_readout(episode: Episode) -> EnergyReadout:
         None if features is None else np.stack(features),
         context_energy,
         np.array([r.initial_energy for r in episode], dtype=np.float64),
+        phase_energy,
     )
 
 
 def recorded_inputs(episodes: Sequence[Episode]) -> set[str]:
     """The `ChunkInputs` fields every chunk of `episodes` has: what the run-time scores can read from them."""
-    optional = {"context_features": "context_feature", "context_energy": "context_energy"}
+    optional = {
+        "context_features": "context_feature",
+        "context_energy": "context_energy",
+        "phase_energy": "phase_energy",
+    }
     return {"final_energy", "chunk_index", "initial_energy"} | {
         name for name, field in optional.items() if every_chunk_has(episodes, field)
     }

@@ -57,6 +57,7 @@ class _Chunk:
     context_energy: float | None = None
     context_feature: np.ndarray | None = None
     goal_distance: float | None = None
+    phase_energy: float | None = None
 
 
 class WatchedVecEnv:
@@ -246,6 +247,7 @@ class EnergyRecorder:
         chains = getattr(readout, "chains", None)
         chains = None if chains is None else chains.reshape(-1).tolist()
         context_energy = _per_env(getattr(readout, "context_energy", None))
+        phase_energy = _per_env(getattr(readout, "phase_energy", None))
         for i in np.flatnonzero(~env.done):
             self.chunks.append(
                 _Chunk(
@@ -265,6 +267,7 @@ class EnergyRecorder:
                     context_energy=None if context_energy is None else context_energy[i],
                     context_feature=None if features is None else features[i],
                     goal_distance=env.goal_distances[i],
+                    phase_energy=None if phase_energy is None else phase_energy[i],
                 )
             )
             env.chunk_counts[i] += 1
@@ -320,6 +323,7 @@ class EnergyRecorder:
                 context_energy=chunk.context_energy,
                 context_feature=chunk.context_feature,
                 goal_distance=chunk.goal_distance,
+                phase_energy=chunk.phase_energy,
             )
             for chunk in chunks
             if chunk.episode_index < n_episodes

@@ -95,6 +95,8 @@ class EnergyRecord:
         goal_distance: How far the task's object was from its goal, in metres, in the observation the chunk
             was predicted from (the env's `info["goal_distance"]`: LIBERO's `In` goals); None where the env
             reports none. It dates a failure's onset: the last chunk at which the object still came closer.
+        phase_energy: E_tau(C, t), the phase energy of the chunk's context at its index (`phase_energy.py`); None
+            for a policy without a fitted one.
     """
 
     episode_index: int
@@ -114,6 +116,7 @@ class EnergyRecord:
     context_energy: float | None = None
     context_feature: np.ndarray | None = field(default=None, compare=False, repr=False)
     goal_distance: float | None = None
+    phase_energy: float | None = None
 
     @property
     def is_vanilla(self) -> bool:
@@ -160,6 +163,8 @@ def record_to_json(record: EnergyRecord) -> str:
         row["context_energy"] = _energy_to_json(record.context_energy)
     if record.goal_distance is not None:
         row["goal_distance"] = _energy_to_json(record.goal_distance)
+    if record.phase_energy is not None:
+        row["phase_energy"] = _energy_to_json(record.phase_energy)
     return json.dumps(row, allow_nan=False)
 
 
@@ -312,6 +317,7 @@ def record_from_json(row: dict[str, Any], where: str = "record") -> EnergyRecord
         else _parse_int(row["mcmc_chains"], "mcmc_chains", where),
         context_energy=_parse_optional_float(row, "context_energy", where),
         goal_distance=_parse_optional_float(row, "goal_distance", where),
+        phase_energy=_parse_optional_float(row, "phase_energy", where),
     )
 
 

@@ -7,7 +7,7 @@
 - `statistics`: what the chunk scores measure against, fitted on vanilla rollouts (`PhaseStatistics`,
   `ContextStatistics`, `ContextNeighbours`, `CombinedStatistics`), and `ChunkWindow`, the one score of a rollout's
   first N running scores that lets one T bound a run-time monitor's N decisions.
-- `scores`: `ChunkInputs` (a readout as the scores read it), the `ChunkScore` protocol, the package's six scores
+- `scores`: `ChunkInputs` (a readout as the scores read it), the `ChunkScore` protocol, the package's seven scores
   (final energy, context phase energy, two-sided head energy, joint phase energy, context start energy, context
   k-NN), and `SCORES`,
   the registry that names them, with `register_score`, its hook for research scores.

@@ -38,6 +38,8 @@ class EnergyReadout:
             (`of_arrays`), one index per row, (B,).
         context_features: (B, D) the pooled last-block context of each observation (`EBVLAPolicy.context_features`),
             filled by the policy when its calibration's score reads it; None otherwise.
+        phase_energy: E_tau(C, t), (B,), the phase energy of each context at the chunk's index (`phase_energy.py`);
+            None for a policy without a fitted one.
     """
 
     initial_energy: Tensor | None
@@ -46,6 +48,7 @@ class EnergyReadout:
     context_energy: Tensor | None = None
     chunk_index: int | Tensor = 0
     context_features: Tensor | None = None
+    phase_energy: Tensor | None = None
 
     @classmethod
     def of_arrays(
@@ -55,6 +58,7 @@ class EnergyReadout:
         context_features=None,
         context_energy=None,
         initial_energy=None,
+        phase_energy=None,
     ) -> "EnergyReadout":
         """A readout of recorded chunks, one per row: what the policy's readouts of those chunks held.
 
@@ -65,6 +69,7 @@ class EnergyReadout:
             context_features: Each chunk's pooled context, (N, D), or (D,) for one chunk.
             context_energy: Each chunk's E_c(C), (N,).
             initial_energy: Each chunk's E(a^(0), C), (N,).
+            phase_energy: Each chunk's E_tau(C, t), (N,).
 
         Raises:
             ValueError: An input has not one row per final energy.
@@ -86,6 +91,7 @@ class EnergyReadout:
             "context_features": features,
             "context_energy": None if context_energy is None else _tensor(context_energy),
             "initial_energy": None if initial_energy is None else _tensor(initial_energy),
+            "phase_energy": None if phase_energy is None else _tensor(phase_energy),
         }
         for name, values in optional.items():
             if values is not None and values.shape[0] != n:
@@ -98,6 +104,7 @@ class EnergyReadout:
             context_energy=optional["context_energy"],
             chunk_index=index,
             context_features=features,
+            phase_energy=optional["phase_energy"],
         )
 
     def row(self, i: int) -> "EnergyReadout":
@@ -115,4 +122,5 @@ class EnergyReadout:
             one(self.context_energy),
             index[i : i + 1] if isinstance(index, Tensor) and index.ndim else index,
             one(self.context_features),
+            one(self.phase_energy),
         )

@@ -1,0 +1,60 @@
+"""New held-out rollouts of K with its fitted phase energy: the second test of `joint_phase_time_energy` (issue 52,
+Table IV; research/docs/libero_runs.md, "The phase energy on new rollouts", fixed before they ran).
+
+K's checkpoint fitted by `ebvla-fit-phase-energy` records E_tau with every chunk as it runs, and with K's seeds it runs
+K's rollouts chunk for chunk; new seeds give new rollouts of the same fixed states: states 10-29 with seeds 6000 + i,
+states 30-49 with 7000 + i, 20 a task and set, through the LIBERO pipeline's evaluation (`libero_pipeline.evaluate`:
+two jobs side by side, one torch thread each, resumable: a job whose `eval_info.json` exists is skipped).
+
+    python research/benchmarks/phase_energy_rollouts.py --checkpoint=outputs/k_phase/pretrained_model \\
+        --recording_summary=research/results/libero_object10_b18/recording_summary.json \\
+        --work=outputs/libero10_b18_phase --deadline_s=4800
+"""
+
+import argparse
+import shutil
+from pathlib import Path
+
+from libero_pipeline import EvalJob, evaluate
+
+RUN = "ebvla_joint_fast_cpu_b18_phase"
+# (condition, first fixed state, seed of its first episode): states and seeds no earlier evaluation of K used
+# (calibration 1000, held out 2000, shifts 3000, confirmation 4000, fresh placements 200000).
+SETS = (("vanilla_heldout_new", 10, 6000), ("vanilla_confirm_new", 30, 7000))
+TASKS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 9)
+
+
+def jobs(per_task: int = 20) -> list[EvalJob]:
+    return [
+        EvalJob(RUN, condition, task, first, per_task, seed)
+        for condition, first, seed in SETS
+        for task in TASKS
+    ]
+
+
+def prepare(work: Path, checkpoint: Path, recording_summary: Path) -> None:
+    """The work folder as the pipeline reads it: the checkpoint as the run's last, and the recording's image size."""
+    last = work / "train" / RUN / "checkpoints" / "last"
+    last.mkdir(parents=True, exist_ok=True)
+    link = last / "pretrained_model"
+    if not link.exists():
+        link.symlink_to(checkpoint.resolve())
+    shutil.copy2(recording_summary, work / "recording_summary.json")
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--checkpoint", type=Path, required=True, help="K's checkpoint with its phase energy")
+    parser.add_argument("--recording_summary", type=Path, required=True)
+    parser.add_argument("--work", type=Path, required=True)
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--deadline_s", type=float, default=4800)
+    args = parser.parse_args(argv)
+    prepare(args.work, args.checkpoint, args.recording_summary)
+    evaluate(args.work, jobs(), "cpu", args.jobs, args.deadline_s)
+
+
+if __name__ == "__main__":
+    main()
