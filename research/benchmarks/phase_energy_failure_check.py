@@ -33,16 +33,13 @@ from pathlib import Path
 import numpy as np
 import torch
 from failure_check_test import (
-    BASELINE,
-    MIN_BALANCED_ACCURACY,
-    leads,
     report_markdown,
     row,
-    scores_at,
     write_report,
 )
-from failure_score_variants import difference_lines, rows_against_baseline
+from failure_score_variants import difference_lines
 from safetensors.torch import load_file, save_file
+from task_phase_failure_check import reading_targets, test_reading
 
 from lerobot_policy_ebvla.monitoring.baselines import episode_readout, vanilla_rollouts
 from lerobot_policy_ebvla.monitoring.records import Episode, load_episodes
@@ -52,7 +49,6 @@ from lerobot_policy_ebvla.runtime.calibration import FailureCalibration
 from lerobot_policy_ebvla.runtime.statistics import PhaseStatistics, energies_by_index
 
 CHOSEN = "joint_phase_time_energy"
-SHIPPED = "joint_phase_energy"
 CHUNKS = 16
 K = 1.0
 # Chunk bins of p(t | C): the demonstrations end within 40 chunks (320 steps); later chunks share the last bin.
@@ -179,56 +175,17 @@ def package_check(calibration: dict, held_out: dict, model: PhaseEnergy, n: int,
 
 
 def test(calibration: dict, held_out_sets: dict, model: PhaseEnergy, n: int = CHUNKS, k: float = K) -> dict:
-    """Every row of every held-out set and of all of them together, at T of the successful calibration rollouts."""
-    successful = np.array([episode[0].success for episode in calibration.values()])
-    sets = {**held_out_sets, "all held out": {key: e for s in held_out_sets.values() for key, e in s.items()}}
-    result = {"chosen": CHOSEN, "chunks": n, "k": k, "calibration_rollouts": int(successful.size)}
-    result["calibration_failed"] = int((~successful).sum())
-    result["sets"] = {}
-    for title, held_out in sets.items():
-        failed = np.array([not episode[0].success for episode in held_out.values()])
-        calibration_scores, held_scores, _ = joint_phase_time_scores(calibration, held_out, model, n)
-        values = {
-            CHOSEN: (calibration_scores, held_scores),
-            SHIPPED: scores_at(SHIPPED, calibration, held_out, n),
-            BASELINE: scores_at(BASELINE, calibration, held_out, n),
-        }
-        rows = rows_against_baseline(values, successful, failed, k)
-        chosen = next(r for r in rows if r["score"] == CHOSEN)
-        result["sets"][title] = {
-            "rollouts": int(failed.size),
-            "failed": int(failed.sum()),
-            "rows": rows,
-            "leads": leads(list(held_out.values()), held_scores, chosen["threshold"], n),
-        }
-    result["package"] = package_check(
-        calibration, sets["all held out"], model, n, (chosen["threshold"], held_scores)
-    )
+    """Every row of every held-out set and of all of them together, at T of the successful calibration rollouts
+    (`test_reading`), and the package's failure check on all of them (`package_check`)."""
+
+    def reading(held_out: dict) -> tuple[np.ndarray, np.ndarray]:
+        return joint_phase_time_scores(calibration, held_out, model, n)[:2]
+
+    result = test_reading(calibration, held_out_sets, CHOSEN, reading, n, k)
+    everyone = {key: e for s in held_out_sets.values() for key, e in s.items()}
+    threshold = next(r for r in result["sets"]["all held out"]["rows"] if r["score"] == CHOSEN)["threshold"]
+    result["package"] = package_check(calibration, everyone, model, n, (threshold, reading(everyone)[1]))
     return result
-
-
-def targets(result: dict) -> list[tuple[str, bool, str]]:
-    """The fixed reading on all held-out rollouts together: (target, met, figures)."""
-    rows = {r["score"]: r for r in result["sets"]["all held out"]["rows"]}
-    chosen, shipped = rows[CHOSEN], rows[SHIPPED]
-    low, high = chosen["auroc_minus_baseline_interval"]
-    return [
-        (
-            f"balanced accuracy >= {MIN_BALANCED_ACCURACY:.0%}",
-            chosen["balanced_accuracy"] >= MIN_BALANCED_ACCURACY,
-            f"{chosen['balanced_accuracy']:.1%}",
-        ),
-        (
-            f"AUROC above {SHIPPED}'s",
-            chosen["auroc"] > shipped["auroc"],
-            f"{chosen['auroc']:.3f} against {shipped['auroc']:.3f}",
-        ),
-        (
-            f"not below {BASELINE} outside the paired interval",
-            high >= 0,
-            f"{chosen['auroc_minus_baseline']:+.3f} [{low:+.3f}, {high:+.3f}]",
-        ),
-    ]
 
 
 def markdown(result: dict) -> str:
@@ -263,7 +220,7 @@ def markdown(result: dict) -> str:
             result["chunks"],
             result["k"],
             result,
-            targets(result),
+            reading_targets(result, at_least=False),
             lambda found: difference_lines(found["rows"], lambda name: f"`{name}`"),
         )
         + tail

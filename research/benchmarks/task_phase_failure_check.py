@@ -106,35 +106,47 @@ def task_phase_scores(
     return calibration_scores, np.array([score(e, everyone) for e in episodes.values()])
 
 
-def test(calibration: dict, held_out_sets: dict[str, dict], n: int = CHUNKS, k: float = K) -> dict:
-    """Every row of every held-out set and of all of them together, at T of the successful calibration rollouts."""
+def test_reading(
+    calibration: dict, held_out_sets: dict[str, dict], chosen: str, reading, n: int, k: float
+) -> dict:
+    """Every row of every held-out set and of all of them together, at T of the successful calibration rollouts: the
+    reading `chosen` (`reading(held_out)` gives the calibration rollouts' and the held-out ones' scores), the shipped
+    check and the baseline, with the chosen check's caught failures' leads."""
     successful = np.array([episode[0].success for episode in calibration.values()])
     sets = {**held_out_sets, "all held out": {key: e for s in held_out_sets.values() for key, e in s.items()}}
-    result = {"chosen": CHOSEN, "chunks": n, "k": k, "calibration_rollouts": int(successful.size)}
+    result = {"chosen": chosen, "chunks": n, "k": k, "calibration_rollouts": int(successful.size)}
     result["calibration_failed"] = int((~successful).sum())
     result["sets"] = {}
     for title, held_out in sets.items():
         failed = np.array([not episode[0].success for episode in held_out.values()])
         values = {
-            CHOSEN: task_phase_scores(calibration, held_out, n),
+            chosen: reading(held_out),
             SHIPPED: scores_at(SHIPPED, calibration, held_out, n),
             BASELINE: scores_at(BASELINE, calibration, held_out, n),
         }
         rows = rows_against_baseline(values, successful, failed, k)
-        chosen = next(r for r in rows if r["score"] == CHOSEN)
+        row = next(r for r in rows if r["score"] == chosen)
         result["sets"][title] = {
             "rollouts": int(failed.size),
             "failed": int(failed.sum()),
             "rows": rows,
-            "leads": leads(list(held_out.values()), values[CHOSEN][1], chosen["threshold"], n),
+            "leads": leads(list(held_out.values()), values[chosen][1], row["threshold"], n),
         }
     return result
 
 
-def targets(result: dict) -> list[tuple[str, bool, str]]:
-    """The fixed reading on all held-out rollouts together: (target, met, figures)."""
+def test(calibration: dict, held_out_sets: dict[str, dict], n: int = CHUNKS, k: float = K) -> dict:
+    """`task_phase_energy`'s rows (`test_reading`)."""
+    return test_reading(
+        calibration, held_out_sets, CHOSEN, lambda held_out: task_phase_scores(calibration, held_out, n), n, k
+    )
+
+
+def reading_targets(result: dict, at_least: bool = True) -> list[tuple[str, bool, str]]:
+    """The fixed reading on all held-out rollouts together: (target, met, figures); its AUROC against the shipped
+    check's at least (`at_least`) or above it."""
     rows = {r["score"]: r for r in result["sets"]["all held out"]["rows"]}
-    chosen, shipped = rows[CHOSEN], rows[SHIPPED]
+    chosen, shipped = rows[result["chosen"]], rows[SHIPPED]
     low, high = chosen["auroc_minus_baseline_interval"]
     return [
         (
@@ -143,8 +155,8 @@ def targets(result: dict) -> list[tuple[str, bool, str]]:
             f"{chosen['balanced_accuracy']:.1%}",
         ),
         (
-            f"AUROC at least {SHIPPED}'s",
-            chosen["auroc"] >= shipped["auroc"],
+            f"AUROC {'at least' if at_least else 'above'} {SHIPPED}'s",
+            chosen["auroc"] >= shipped["auroc"] if at_least else chosen["auroc"] > shipped["auroc"],
             f"{chosen['auroc']:.3f} against {shipped['auroc']:.3f}",
         ),
         (
@@ -161,7 +173,7 @@ def markdown(result: dict) -> str:
         result["chunks"],
         result["k"],
         result,
-        targets(result),
+        reading_targets(result),
         lambda found: difference_lines(found["rows"], lambda name: f"`{name}`"),
     )
 
