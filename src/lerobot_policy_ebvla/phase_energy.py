@@ -36,7 +36,7 @@ class PhaseEnergy(nn.Module):
 
     def __init__(self, dim: int, bins: int, hidden: int):
         super().__init__()
-        self.bins = bins
+        self.bins, self.hidden = bins, hidden
         self.register_buffer("feature_mean", torch.zeros(dim))
         self.register_buffer("feature_std", torch.ones(dim))
         self.register_buffer("fitted_frames", torch.zeros((), dtype=torch.long))
@@ -99,7 +99,7 @@ def _train(
     """A fresh copy of `template` (its standardization, new weights from `seed`) trained with cross-entropy on
     `rows`; with `held`, the held-out rows' NLL after each epoch."""
     torch.manual_seed(seed)
-    model = PhaseEnergy(features.shape[1], template.bins, template.net[0].out_features)
+    model = PhaseEnergy(features.shape[1], template.bins, template.hidden)
     model.feature_mean.copy_(template.feature_mean)
     model.feature_std.copy_(template.feature_std)
     optimizer = torch.optim.AdamW(model.parameters(), lr=FIT_LR, weight_decay=FIT_WEIGHT_DECAY)
