@@ -131,26 +131,38 @@ def test_ks_failure_check_meets_80_percent_but_not_the_feature_baseline(tmp_path
     assert paired["joint_phase_energy"]["auroc_minus_baseline_interval"][1] < 0
 
 
+def assert_rows_match(found: dict, committed: dict) -> None:
+    """Every row of every set as committed. E_tau is a torch forward, whose last bits differ between CPU kinds:
+    counts exact, figures to 1e-6."""
+    for title, committed_set in committed["sets"].items():
+        for row, committed_row in zip(found["sets"][title]["rows"], committed_set["rows"], strict=True):
+            for key, value in committed_row.items():
+                assert row[key] == (value if isinstance(value, int | str) else pytest.approx(value, rel=1e-6))
+
+
+PHASE_ENERGY_REPORTS = K / "reports" / "ebvla_joint_fast_cpu_b18" / "phase_energy"
+
+
+def phase_energy_check(folder, names: tuple[str, str], report: str, extra_sets: dict | None = None):
+    """`phase_energy_failure_check.test` with the committed E_tau on K's calibration rollouts and the held-out sets
+    `names` of `folder` (and `extra_sets`): its result, each set's rows checked against the committed `report` when
+    there are no extra sets, and the rows of all held-out rollouts together by score."""
+    check = load_benchmark("phase_energy_failure_check")
+    model = check.load_phase_energy(PHASE_ENERGY_REPORTS / "check.safetensors")
+    calibration = load_episodes([str(K_EVAL / "vanilla_calib" / "task*")])
+    held_out = {name: load_episodes([str(folder / name / "task*")]) for name in names} | (extra_sets or {})
+    found = check.test(calibration, held_out, model)
+    if extra_sets is None:
+        assert_rows_match(found, json.loads((PHASE_ENERGY_REPORTS / report).read_text()))
+    return found, {r["score"]: r for r in found["sets"]["all held out"]["rows"]}, held_out
+
+
 def test_the_phase_energy_lifts_ks_failure_check_to_93_6_percent_but_not_to_the_feature_baseline():
     """libero_runs.md, "A phase energy for the failure check": the committed E_tau (fitted on F's demonstrations under
     K's weights) read beside E_c and E - E_c on K's 400 held-out rollouts: 31/31 failed and 47/369 successful alarmed,
     93.6 %, AUROC 0.978, paired -0.017 [-0.029, -0.006] against `chunk_context_nn`: partial by the rule. The
     package's `FailureCalibration` of the same score makes the same decisions."""
-    check = load_benchmark("phase_energy_failure_check")
-    folder = K / "reports" / "ebvla_joint_fast_cpu_b18" / "phase_energy"
-    model = check.load_phase_energy(folder / "check.safetensors")
-    calibration = load_episodes([str(K_EVAL / "vanilla_calib" / "task*")])
-    held_out = {
-        name: load_episodes([str(K_EVAL / name / "task*")]) for name in ("vanilla_heldout", "vanilla_confirm")
-    }
-    found = check.test(calibration, held_out, model)
-    committed = json.loads((folder / "check.json").read_text())
-    # E_tau is a torch forward, whose last bits differ between CPU kinds: counts exact, figures to 1e-6.
-    for title, committed_set in committed["sets"].items():
-        for row, committed_row in zip(found["sets"][title]["rows"], committed_set["rows"], strict=True):
-            for key, value in committed_row.items():
-                assert row[key] == (value if isinstance(value, int | str) else pytest.approx(value, rel=1e-6))
-    rows = {r["score"]: r for r in found["sets"]["all held out"]["rows"]}
+    found, rows, _ = phase_energy_check(K_EVAL, ("vanilla_heldout", "vanilla_confirm"), "check.json")
     chosen = rows["joint_phase_time_energy"]
     assert (chosen["failed_alarmed"], chosen["failed"], chosen["successful_alarmed"]) == (31, 31, 47)
     assert round(chosen["balanced_accuracy"], 3) == 0.936 and round(chosen["auroc"], 3) == 0.978
@@ -158,7 +170,7 @@ def test_the_phase_energy_lifts_ks_failure_check_to_93_6_percent_but_not_to_the_
     assert chosen["auroc_minus_baseline_interval"][1] < 0  # still below the feature distance
     package = found["package"]["row"]
     assert (package["failed_alarmed"], package["successful_alarmed"]) == (31, 47)
-    assert committed["phase_energy"]["epochs"] == 35
+    assert json.loads((PHASE_ENERGY_REPORTS / "check.json").read_text())["phase_energy"]["epochs"] == 35
 
 
 def test_the_phase_energy_on_new_rollouts_meets_table_iv_by_a_hair_and_pooled_it_does_not():
@@ -166,39 +178,19 @@ def test_the_phase_energy_on_new_rollouts_meets_table_iv_by_a_hair_and_pooled_it
     of K used (363 succeeded), E_tau recorded by the policy as it ran: 36/37 failed and 46/363 successful alarmed,
     92.3 %, AUROC 0.980, paired against `chunk_context_nn` [-0.023, +0.0001]: met by the fixed rule. With K's first
     400 (read by then), the 800 together end below 0 (-0.014 [-0.023, -0.006])."""
-    check = load_benchmark("phase_energy_failure_check")
-    folder = K / "reports" / "ebvla_joint_fast_cpu_b18" / "phase_energy"
-    model = check.load_phase_energy(folder / "check.safetensors")
     new = K / "eval" / "ebvla_joint_fast_cpu_b18_phase"
-    calibration = load_episodes([str(K_EVAL / "vanilla_calib" / "task*")])
-    held_out = {
-        name: load_episodes([str(new / name / "task*")])
-        for name in ("vanilla_heldout_new", "vanilla_confirm_new")
-    }
+    names = ("vanilla_heldout_new", "vanilla_confirm_new")
+    found, rows, held_out = phase_energy_check(new, names, "new_rollouts.json")
     assert sum(e[0].success for s in held_out.values() for e in s.values()) == 363
-    found = check.test(calibration, held_out, model)
-    committed = json.loads((folder / "new_rollouts.json").read_text())
-    for title, committed_set in committed["sets"].items():
-        for row, committed_row in zip(found["sets"][title]["rows"], committed_set["rows"], strict=True):
-            for key, value in committed_row.items():
-                assert row[key] == (value if isinstance(value, int | str) else pytest.approx(value, rel=1e-6))
-    rows = {r["score"]: r for r in found["sets"]["all held out"]["rows"]}
     chosen = rows["joint_phase_time_energy"]
     assert (chosen["failed_alarmed"], chosen["failed"], chosen["successful_alarmed"]) == (36, 37, 46)
-    low, high = chosen["auroc_minus_baseline_interval"]
-    assert chosen["balanced_accuracy"] >= 0.80 and 0 <= high < 0.001
+    assert chosen["balanced_accuracy"] >= 0.80 and 0 <= chosen["auroc_minus_baseline_interval"][1] < 0.001
     assert found["package"]["recorded_phase_energy_difference"] < 1e-3  # the policy recorded E_tau as it ran
 
-    everything = {
-        **held_out,
-        **{
-            name: load_episodes([str(K_EVAL / name / "task*")])
-            for name in ("vanilla_heldout", "vanilla_confirm")
-        },
+    first = {
+        name: load_episodes([str(K_EVAL / name / "task*")]) for name in ("vanilla_heldout", "vanilla_confirm")
     }
-    pooled = {
-        r["score"]: r for r in check.test(calibration, everything, model)["sets"]["all held out"]["rows"]
-    }
+    _, pooled, _ = phase_energy_check(new, names, "", extra_sets=first)
     assert pooled["joint_phase_time_energy"]["auroc_minus_baseline_interval"][1] < 0
 
 
