@@ -414,9 +414,7 @@ class EBVLA(nn.Module):
     def phase_energy_of(self, features: Tensor | None, chunk_index: int) -> Tensor | None:
         """(B,) E_tau(C, t) of the pooled contexts `features` at chunk index t (`phase_energy.py`); None without a
         fitted phase energy."""
-        if self.phase_energy is None or not self.phase_energy.fitted:
-            return None
-        return self.phase_energy(features, chunk_index)
+        return self.phase_energy(features, chunk_index) if self.needs_context_features else None
 
     @property
     def needs_context_features(self) -> bool:
