@@ -6,8 +6,8 @@ chunk index t of its episode (beyond the paper; `PhaseEnergyConfig`).
 It is an energy over elapsed time, normalized per context, as E_c is one over contexts. On LIBERO a failing
 rollout often never grasps: its E_c and E - E_c stay where a successful rollout's were at the start, but at chunk 16
 its context is one the demonstrations left behind by chunk 5, so E_tau at t = 16 is high. The monitor's
-`joint_phase_time_energy` reads it beside E_c and E - E_c (`runtime/scores.py`); research/docs/libero_runs.md, "A phase
-energy for the failure check", measured it on two ten-task checkpoints.
+`joint_phase_time_energy` reads it beside E_c and E - E_c (`runtime/phase_scores.py`); research/docs/libero_runs.md,
+"A phase energy for the failure check", measured it on two ten-task checkpoints.
 
 It is fitted once the policy is trained (`fit_phase_energy`, on the training demonstrations' contexts under the
 frozen backbone; `ebvla-fit-phase-energy` does it for a checkpoint), never on a rollout.
