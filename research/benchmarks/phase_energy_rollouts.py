@@ -3,7 +3,7 @@ Table IV; research/docs/libero_runs.md, "The phase energy on new rollouts", fixe
 
 K's checkpoint fitted by `ebvla-fit-phase-energy` records E_tau with every chunk as it runs, and with K's seeds it runs
 K's rollouts chunk for chunk; new seeds give new rollouts of the same fixed states: states 10-29 with seeds 6000 + i,
-states 30-49 with 7000 + i, 20 a task and set, through the LIBERO pipeline's evaluation (`libero_pipeline.evaluate`:
+states 30-49 with 7000 + i (`--test=second`; `third`: 8000 + i and 9000 + i), 20 a task and set, through the LIBERO pipeline's evaluation (`libero_pipeline.evaluate`:
 two jobs side by side, one torch thread each, resumable: a job whose `eval_info.json` exists is skipped).
 
     python research/benchmarks/phase_energy_rollouts.py --checkpoint=outputs/k_phase/pretrained_model \\
@@ -18,16 +18,20 @@ from pathlib import Path
 from libero_pipeline import EvalJob, evaluate
 
 RUN = "ebvla_joint_fast_cpu_b18_phase"
-# (condition, first fixed state, seed of its first episode): states and seeds no earlier evaluation of K used
-# (calibration 1000, held out 2000, shifts 3000, confirmation 4000, fresh placements 200000).
-SETS = (("vanilla_heldout_new", 10, 6000), ("vanilla_confirm_new", 30, 7000))
+# (condition, first fixed state, seed of its first episode) per test: seeds no earlier evaluation of K used
+# (calibration 1000, held out 2000, shifts 3000, confirmation 4000, fresh placements 200000; the second test 6000 and
+# 7000 for the third's).
+TESTS = {
+    "second": (("vanilla_heldout_new", 10, 6000), ("vanilla_confirm_new", 30, 7000)),
+    "third": (("vanilla_heldout_third", 10, 8000), ("vanilla_confirm_third", 30, 9000)),
+}
 TASKS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 9)
 
 
-def jobs(per_task: int = 20) -> list[EvalJob]:
+def jobs(test: str = "second", per_task: int = 20) -> list[EvalJob]:
     return [
         EvalJob(RUN, condition, task, first, per_task, seed)
-        for condition, first, seed in SETS
+        for condition, first, seed in TESTS[test]
         for task in TASKS
     ]
 
@@ -49,11 +53,12 @@ def main(argv=None) -> None:
     parser.add_argument("--checkpoint", type=Path, required=True, help="K's checkpoint with its phase energy")
     parser.add_argument("--recording_summary", type=Path, required=True)
     parser.add_argument("--work", type=Path, required=True)
+    parser.add_argument("--test", choices=sorted(TESTS), default="second", help="which set of new seeds")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--deadline_s", type=float, default=4800)
     args = parser.parse_args(argv)
     prepare(args.work, args.checkpoint, args.recording_summary)
-    evaluate(args.work, jobs(), "cpu", args.jobs, args.deadline_s)
+    evaluate(args.work, jobs(args.test), "cpu", args.jobs, args.deadline_s)
 
 
 if __name__ == "__main__":
