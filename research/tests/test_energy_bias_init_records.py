@@ -276,3 +276,14 @@ def test_thirty_calibration_rollouts_do_not_lift_the_failure_check(tmp_path):
         ("preset_5aa37fd_seed6000", 10): (0.739, 0),
         ("preset_5aa37fd_seed6000", 30): (0.745, 3),
     }
+
+
+def test_the_main_job_after_the_scores_split_prints_what_b0821f5_printed_on_the_same_cpu():
+    """research/docs/benchmarks_speed.md, "The main job on an Intel Xeon with AVX512-BF16": the README's command from a
+    fresh clone of 404e15c (runtime/scores.py split in three) on the same kind of Xeon gives b0821f5's summary figure
+    for figure (vanilla 10/10, blank 5/10, pose_s3 6/10, camera 51.1 %, the monitor 1.00 / 1.00, failure 0.65); only the
+    timings differ."""
+    before = json.loads((BUDGET / "fresh_clone_b0821f5_intel_seed1000" / "summary.json").read_text())
+    after = json.loads((BUDGET / "fresh_clone_404e15c_intel_seed1000" / "summary.json").read_text())
+    assert {k for k in after if after[k] != before[k]} == {"timings_s"}
+    assert sum(after["timings_s"].values()) / 60 == pytest.approx(7.1, abs=0.05)

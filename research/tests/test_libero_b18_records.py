@@ -264,3 +264,32 @@ def test_no_reading_of_the_phase_energy_looked_at_closes_the_gap_on_ks_first_400
     shipped = variants.reading_scores(calibration, held, variants.READINGS[0])[1]
     assert variants.misordered_pairs(shipped, failed) == committed["misordered_pairs"]["shipped"]
     assert variants.misordered_pairs(baseline, failed) == committed["misordered_pairs"]["chunk_context_nn"]
+
+
+def test_the_phase_energy_on_a_third_set_of_new_rollouts_misses_the_feature_baseline():
+    """libero_runs.md, "Readings of the phase energy looked at, and a third test": 400 more rollouts of K's fitted
+    checkpoint (seeds 8000+ and 9000+, 368 succeeded), read by the rule fixed before them: 32/32 failed and 52/368
+    successful alarmed, 92.9 %, AUROC 0.978, paired against `chunk_context_nn` -0.013 [-0.025, -0.002]: missed."""
+    new = K / "eval" / "ebvla_joint_fast_cpu_b18_phase"
+    names = ("vanilla_heldout_third", "vanilla_confirm_third")
+    found, rows, held_out = phase_energy_check(new, names, "third_rollouts.json")
+    assert sum(e[0].success for s in held_out.values() for e in s.values()) == 368
+    chosen, baseline = rows["joint_phase_time_energy"], rows["chunk_context_nn"]
+    assert (chosen["failed_alarmed"], chosen["failed"], chosen["successful_alarmed"]) == (32, 32, 52)
+    assert chosen["balanced_accuracy"] >= 0.80 and chosen["auroc_minus_baseline_interval"][1] < 0
+    assert baseline["successful_alarmed"] == 31
+    assert found["package"]["recorded_phase_energy_difference"] < 1e-3
+
+    # The three sets of K together, descriptive (two had been read): 99/100 and 145/1100 against 100/100 and 76/1100.
+    earlier = {
+        name: load_episodes([str(K_EVAL / name / "task*")]) for name in ("vanilla_heldout", "vanilla_confirm")
+    }
+    earlier |= {
+        name: load_episodes([str(new / name / "task*")])
+        for name in ("vanilla_heldout_new", "vanilla_confirm_new")
+    }
+    _, pooled, _ = phase_energy_check(new, names, "", extra_sets=earlier)
+    energy, distance = pooled["joint_phase_time_energy"], pooled["chunk_context_nn"]
+    assert (energy["failed_alarmed"], energy["failed"], energy["successful_alarmed"]) == (99, 100, 145)
+    assert (distance["failed_alarmed"], distance["successful_alarmed"]) == (100, 76)
+    assert energy["auroc_minus_baseline_interval"][1] < 0

@@ -199,8 +199,9 @@ class JointPhaseTimeEnergy(PhaseTerms):
     The failure check of a LIBERO checkpoint with a fitted phase energy: a rollout that never grasps keeps E_c and
     E - E_c at their vanilla level, and E_tau says its context belongs to an earlier chunk. On K's 400 held-out
     rollouts it caught 31 of 31 failures at 93.6 % balanced accuracy, where `joint_phase_energy` reached 81.3 %, and
-    92.3 % on 400 new ones; the feature distance `chunk_context_nn` still reached 97 % on both, with half the false
-    alarms (research/docs/libero_runs.md, "A phase energy for the failure check", "The phase energy on new rollouts").
+    92.3 % and 92.9 % on two sets of 400 new ones; the feature distance `chunk_context_nn` still reached 95.8-97.0 %,
+    with about half the false alarms (research/docs/libero_runs.md, "A phase energy for the failure check" and the
+    two sections after it).
     """
 
     context: PhaseStatistics
