@@ -7,8 +7,8 @@ the mean over its first `--chunks` chunks of
 
 - one-sided: the raw final energy E(a^(K_inf), C) (the paper's score);
 - two-sided: the mean of |z_k|, z_k = (E_k - mu_v[k]) / sigma_v[k] against the calibration rollouts' final
-  energy at the same chunk index k: the shipped `phase_energy_deviation` score (`runtime.scores`), fitted on
-  the calibration rollouts;
+  energy at the same chunk index k: the `phase_energy_deviation` score (shipped when this report was written, now
+  `research_scores.py`), fitted on the calibration rollouts;
 
 and whether the condition is inverted (AUROC < 0.5).
 
