@@ -3,8 +3,8 @@
 `ChunkInputs` is an `EnergyReadout` of B chunks as a score reads it (`INPUT_SOURCES`: where each input comes
 from), `VanillaRollouts` the calibration rollouts a score is fitted on, and `ChunkScore` the protocol of one
 score. A rollout aggregates each component over its chunks (`rollout_score`, `rollout_aggregates`) and the score
-combines the aggregates (`score_rollout`). `check_statistics`, `statistics_pair`, `AbsoluteOfAggregate` and
-`fit_phase` are the small pieces the scores share. The scores are in `phase_scores.py` and `scores.py`, which also
+combines the aggregates (`score_rollout`). `check_statistics`, `statistics_pair` and `AbsoluteOfAggregate` are the small
+pieces the scores share. The scores are in `phase_scores.py` and `scores.py`, which also
 holds the registry.
 """
 
@@ -17,7 +17,7 @@ from torch import Tensor
 
 from .checkpoint_files import SideFile
 from .readout import EnergyReadout
-from .statistics import DEFAULT_KNN_K, PhaseStatistics, energies_by_index, float64
+from .statistics import DEFAULT_KNN_K, float64
 from .threshold import ArrayLike, as_array
 
 SCORE_AGGREGATIONS = ("mean", "max", "last", "median")
@@ -299,10 +299,3 @@ class AbsoluteOfAggregate:
 
     def combine(self, aggregates: np.ndarray) -> np.ndarray:
         return np.abs(aggregates[:, 0])
-
-
-def fit_phase(vanilla: VanillaRollouts, field_name: str, score: str) -> PhaseStatistics:
-    """mu_v[t] and sigma_v[t] of the vanilla rollouts' input `field_name` (a `ChunkInputs` field) at each chunk
-    index t, which the score `score` reads."""
-    series = zip(vanilla.series(field_name, score), vanilla.series("chunk_index", score), strict=True)
-    return PhaseStatistics.fit([energies_by_index(x, t) for x, t in series])

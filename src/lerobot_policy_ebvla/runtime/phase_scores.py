@@ -17,10 +17,16 @@ from .chunk_scores import (
     ChunkScore,
     VanillaRollouts,
     check_statistics,
-    fit_phase,
     statistics_pair,
 )
-from .statistics import PhaseStatistics
+from .statistics import PhaseStatistics, energies_by_index
+
+
+def fit_phase(vanilla: VanillaRollouts, field_name: str, score: str) -> PhaseStatistics:
+    """mu_v[t] and sigma_v[t] of the vanilla rollouts' input `field_name` (a `ChunkInputs` field) at each chunk
+    index t, which the score `score` reads."""
+    series = zip(vanilla.series(field_name, score), vanilla.series("chunk_index", score), strict=True)
+    return PhaseStatistics.fit([energies_by_index(x, t) for x, t in series])
 
 
 @dataclass(frozen=True)

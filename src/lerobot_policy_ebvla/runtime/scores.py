@@ -54,7 +54,6 @@ from .chunk_scores import (
     ChunkScore,
     VanillaRollouts,
     check_statistics,
-    fit_phase,
     rollout_aggregates,
     rollout_score,
     score_rollout,
@@ -68,6 +67,7 @@ from .phase_scores import (
     JointPhaseTimeEnergy,
     PhaseTerms,
     PhaseZScore,
+    fit_phase,
 )
 from .statistics import ContextNeighbours
 
