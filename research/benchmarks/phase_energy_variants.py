@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from failure_check_test import BASELINE, scores_at
+from failure_check_test import BASELINE, row, scores_at
 from phase_energy_failure_check import CHUNKS, HIDDEN, PHASE_BINS, load_phase_energy, train_phase_energy
 from task_phase_failure_check import fit_task_phase
 
@@ -194,15 +194,19 @@ def refit_phase(calibration: list[Rollout], demonstrations: dict | None) -> tupl
     fold = {i: k % FOLDS for k, i in enumerate(np.random.default_rng(0).permutation(successful))}
 
     def fit(indices: list[int]) -> PhaseEnergy:
-        features = [] if demonstrations is None else [demonstrations["features"]]
-        index = [] if demonstrations is None else [demonstrations["chunk_index"]]
-        episode = [] if demonstrations is None else [demonstrations["episode"]]
-        for j, i in enumerate(indices):
-            features.append(calibration[i].features)
-            index.append(calibration[i].index)
-            episode.append(np.full(len(calibration[i].index), 10**6 + j))
-        model = PhaseEnergy(features[0].shape[1], PHASE_BINS, HIDDEN)
-        fit_phase_energy(model, np.concatenate(features), np.concatenate(index), np.concatenate(episode))
+        # (contexts, chunk indices, episode ids) of each source; a rollout's id cannot be a demonstration's.
+        sources = (
+            []
+            if demonstrations is None
+            else [tuple(demonstrations[k] for k in ("features", "chunk_index", "episode"))]
+        )
+        sources += [
+            (calibration[i].features, calibration[i].index, np.full(len(calibration[i].index), 10**6 + j))
+            for j, i in enumerate(indices)
+        ]
+        features, index, episode = (np.concatenate(column) for column in zip(*sources, strict=True))
+        model = PhaseEnergy(features.shape[1], PHASE_BINS, HIDDEN)
+        fit_phase_energy(model, features, index, episode)
         return model.eval()
 
     log_p = {}
@@ -220,16 +224,18 @@ def refit_phase(calibration: list[Rollout], demonstrations: dict | None) -> tupl
 
 
 def result_row(name: str, calibration_scores, held_scores, baseline, failed) -> dict:
-    threshold = calibration_scores.mean() + calibration_scores.std()
-    low, high = bootstrap_auroc_difference_interval(
+    """The reading's decisions at T = mu + 1 sigma of the calibration scores (`failure_check_test.row`) and the
+    paired interval of its AUROC minus the feature distance's."""
+    found = row(name, held_scores, calibration_scores.mean() + calibration_scores.std(), failed)
+    paired = bootstrap_auroc_difference_interval(
         held_scores[~failed], held_scores[failed], baseline[~failed], baseline[failed]
     )
     return {
         "reading": name,
-        "auroc": auroc(held_scores[~failed], held_scores[failed]),
-        "paired_interval": [low, high],
-        "failed_alarmed": int((held_scores[failed] > threshold).sum()),
-        "successful_alarmed": int((held_scores[~failed] > threshold).sum()),
+        "auroc": found["auroc"],
+        "paired_interval": list(paired),
+        "failed_alarmed": found["failed_alarmed"],
+        "successful_alarmed": found["successful_alarmed"],
     }
 
 
@@ -244,7 +250,7 @@ def evaluate_set(
     """Every reading's row on one held-out set; `refits` keeps the E_tau fitted on this calibration for the next set
     that shares it."""
     failed = np.array([not r.success for r in held])
-    rows = []
+    rows, held_scores_of = [], {}
     for reading in READINGS:
         cal, out = calibration, held
         if reading.fitted_on != "demonstrations":
@@ -255,11 +261,9 @@ def evaluate_set(
                 refits[reading.fitted_on] = refit_phase(calibration, with_demonstrations)
             cal, model = refits[reading.fitted_on]
             out = [replace(r, log_p=log_probabilities(model, r.features)) for r in held]
-        calibration_scores, held_scores = reading_scores(cal, out, reading)
-        rows.append(result_row(reading.name, calibration_scores, held_scores, baseline, failed))
+        calibration_scores, held_scores_of[reading] = reading_scores(cal, out, reading)
+        rows.append(result_row(reading.name, calibration_scores, held_scores_of[reading], baseline, failed))
         print(f"  {reading.name}: AUROC {rows[-1]['auroc']:.3f}", flush=True)
-        if reading == READINGS[0]:
-            shipped = held_scores
     rows.append(
         {
             "reading": f"`{BASELINE}` (feature distance)",
@@ -269,26 +273,33 @@ def evaluate_set(
             "successful_alarmed": None,
         }
     )
-    task0 = np.array([r.task == held[0].task for r in held])
-    term_auroc = {}
-    for i, term in enumerate(("E_c", "E - E_c", "E_tau")):
-        alone = Reading("one term")
-        stats = PhaseStatistics.fit([terms(r, alone)[i] for r in calibration if r.success])
-        scores = np.array([score([terms(r, alone)[i]], [stats], "mean") for r in held])
-        term_auroc[term] = (
-            auroc(scores[task0 & ~failed], scores[task0 & failed]) if (task0 & failed).any() else None
-        )
     return {
         "failed": int(failed.sum()),
         "successful": int((~failed).sum()),
         "rows": rows,
         "misordered_pairs": {
-            "shipped": misordered_pairs(shipped, failed),
+            "shipped": misordered_pairs(held_scores_of[READINGS[0]], failed),
             BASELINE: misordered_pairs(baseline, failed),
         },
         "first_task": held[0].task,
-        "first_task_term_auroc": term_auroc,
+        "first_task_term_auroc": first_task_term_auroc(calibration, held, failed),
     }
+
+
+def first_task_term_auroc(calibration: list[Rollout], held: list[Rollout], failed: np.ndarray) -> dict:
+    """Each term of the shipped reading alone, its z averaged over the first chunks: AUROC of the failed against the
+    successful held-out rollouts of the first task (None without a failure there)."""
+    first = np.array([r.task == held[0].task for r in held])
+    shipped = READINGS[0]
+    found = {}
+    for i, term in enumerate(("E_c", "E - E_c", "E_tau")):
+        series = [terms(r, shipped)[i] for r in held]
+        stats = PhaseStatistics.fit([terms(r, shipped)[i] for r in calibration if r.success])
+        scores = np.array([score([s], [stats], "mean") for s in series])
+        found[term] = (
+            auroc(scores[first & ~failed], scores[first & failed]) if (first & failed).any() else None
+        )
+    return found
 
 
 def markdown(result: dict) -> str:

@@ -142,6 +142,12 @@ def assert_rows_match(found: dict, committed: dict) -> None:
 
 
 PHASE_ENERGY_REPORTS = K / "reports" / "ebvla_joint_fast_cpu_b18" / "phase_energy"
+PHASE_EVAL = K / "eval" / "ebvla_joint_fast_cpu_b18_phase"
+
+
+def held_out_sets(folder, names) -> dict:
+    """The records of each held-out set `names` of `folder`, by set."""
+    return {name: load_episodes([str(folder / name / "task*")]) for name in names}
 
 
 def phase_energy_check(folder, names: tuple[str, str], report: str, extra_sets: dict | None = None):
@@ -151,7 +157,7 @@ def phase_energy_check(folder, names: tuple[str, str], report: str, extra_sets: 
     check = load_benchmark("phase_energy_failure_check")
     model = check.load_phase_energy(PHASE_ENERGY_REPORTS / "check.safetensors")
     calibration = load_episodes([str(K_EVAL / "vanilla_calib" / "task*")])
-    held_out = {name: load_episodes([str(folder / name / "task*")]) for name in names} | (extra_sets or {})
+    held_out = held_out_sets(folder, names) | (extra_sets or {})
     found = check.test(calibration, held_out, model)
     if extra_sets is None:
         assert_rows_match(found, json.loads((PHASE_ENERGY_REPORTS / report).read_text()))
@@ -179,19 +185,16 @@ def test_the_phase_energy_on_new_rollouts_meets_table_iv_by_a_hair_and_pooled_it
     of K used (363 succeeded), E_tau recorded by the policy as it ran: 36/37 failed and 46/363 successful alarmed,
     92.3 %, AUROC 0.980, paired against `chunk_context_nn` [-0.023, +0.0001]: met by the fixed rule. With K's first
     400 (read by then), the 800 together end below 0 (-0.014 [-0.023, -0.006])."""
-    new = K / "eval" / "ebvla_joint_fast_cpu_b18_phase"
     names = ("vanilla_heldout_new", "vanilla_confirm_new")
-    found, rows, held_out = phase_energy_check(new, names, "new_rollouts.json")
+    found, rows, held_out = phase_energy_check(PHASE_EVAL, names, "new_rollouts.json")
     assert sum(e[0].success for s in held_out.values() for e in s.values()) == 363
     chosen = rows["joint_phase_time_energy"]
     assert (chosen["failed_alarmed"], chosen["failed"], chosen["successful_alarmed"]) == (36, 37, 46)
     assert chosen["balanced_accuracy"] >= 0.80 and 0 <= chosen["auroc_minus_baseline_interval"][1] < 0.001
     assert found["package"]["recorded_phase_energy_difference"] < 1e-3  # the policy recorded E_tau as it ran
 
-    first = {
-        name: load_episodes([str(K_EVAL / name / "task*")]) for name in ("vanilla_heldout", "vanilla_confirm")
-    }
-    _, pooled, _ = phase_energy_check(new, names, "", extra_sets=first)
+    first = held_out_sets(K_EVAL, ("vanilla_heldout", "vanilla_confirm"))
+    _, pooled, _ = phase_energy_check(PHASE_EVAL, names, "", extra_sets=first)
     assert pooled["joint_phase_time_energy"]["auroc_minus_baseline_interval"][1] < 0
 
 
@@ -243,8 +246,8 @@ def test_no_reading_of_the_phase_energy_looked_at_closes_the_gap_on_ks_first_400
     model = variants.load_phase_energy(PHASE_ENERGY_REPORTS / "check.safetensors")
     calibration_episodes = load_episodes([str(K_EVAL / "vanilla_calib" / "task*")])
     held_episodes = {}
-    for name in ("vanilla_heldout", "vanilla_confirm"):
-        held_episodes |= load_episodes([str(K_EVAL / name / "task*")])
+    for episodes in held_out_sets(K_EVAL, ("vanilla_heldout", "vanilla_confirm")).values():
+        held_episodes |= episodes
     _, baseline = variants.scores_at(variants.BASELINE, calibration_episodes, held_episodes, variants.CHUNKS)
     calibration = variants.rollouts(calibration_episodes, model)
     held = variants.rollouts(held_episodes, model)
@@ -270,9 +273,8 @@ def test_the_phase_energy_on_a_third_set_of_new_rollouts_misses_the_feature_base
     """libero_runs.md, "Readings of the phase energy looked at, and a third test": 400 more rollouts of K's fitted
     checkpoint (seeds 8000+ and 9000+, 368 succeeded), read by the rule fixed before them: 32/32 failed and 52/368
     successful alarmed, 92.9 %, AUROC 0.978, paired against `chunk_context_nn` -0.013 [-0.025, -0.002]: missed."""
-    new = K / "eval" / "ebvla_joint_fast_cpu_b18_phase"
     names = ("vanilla_heldout_third", "vanilla_confirm_third")
-    found, rows, held_out = phase_energy_check(new, names, "third_rollouts.json")
+    found, rows, held_out = phase_energy_check(PHASE_EVAL, names, "third_rollouts.json")
     assert sum(e[0].success for s in held_out.values() for e in s.values()) == 368
     chosen, baseline = rows["joint_phase_time_energy"], rows["chunk_context_nn"]
     assert (chosen["failed_alarmed"], chosen["failed"], chosen["successful_alarmed"]) == (32, 32, 52)
@@ -281,14 +283,9 @@ def test_the_phase_energy_on_a_third_set_of_new_rollouts_misses_the_feature_base
     assert found["package"]["recorded_phase_energy_difference"] < 1e-3
 
     # The three sets of K together, descriptive (two had been read): 99/100 and 145/1100 against 100/100 and 76/1100.
-    earlier = {
-        name: load_episodes([str(K_EVAL / name / "task*")]) for name in ("vanilla_heldout", "vanilla_confirm")
-    }
-    earlier |= {
-        name: load_episodes([str(new / name / "task*")])
-        for name in ("vanilla_heldout_new", "vanilla_confirm_new")
-    }
-    _, pooled, _ = phase_energy_check(new, names, "", extra_sets=earlier)
+    earlier = held_out_sets(K_EVAL, ("vanilla_heldout", "vanilla_confirm"))
+    earlier |= held_out_sets(PHASE_EVAL, ("vanilla_heldout_new", "vanilla_confirm_new"))
+    _, pooled, _ = phase_energy_check(PHASE_EVAL, names, "", extra_sets=earlier)
     energy, distance = pooled["joint_phase_time_energy"], pooled["chunk_context_nn"]
     assert (energy["failed_alarmed"], energy["failed"], energy["successful_alarmed"]) == (99, 100, 145)
     assert (distance["failed_alarmed"], distance["successful_alarmed"]) == (100, 76)
