@@ -3,12 +3,20 @@ Table IV; research/docs/libero_runs.md, "The phase energy on new rollouts", fixe
 
 K's checkpoint fitted by `ebvla-fit-phase-energy` records E_tau with every chunk as it runs, and with K's seeds it runs
 K's rollouts chunk for chunk; new seeds give new rollouts of the same fixed states: states 10-29 with seeds 6000 + i,
-states 30-49 with 7000 + i (`--test=second`; `third`: 8000 + i and 9000 + i), 20 a task and set, through the LIBERO pipeline's evaluation (`libero_pipeline.evaluate`:
-two jobs side by side, one torch thread each, resumable: a job whose `eval_info.json` exists is skipped).
+states 30-49 with 7000 + i (`--test=second`; `third`: 8000 + i and 9000 + i; `fourth`: 10000 + i and 11000 + i), 20
+a task and set, through the LIBERO pipeline's evaluation (`libero_pipeline.evaluate`: two jobs side by side, one torch
+thread each, resumable: a job whose `eval_info.json` exists is skipped).
+
+Without K's fitted checkpoint (its demonstrations are not committed), `assemble` rebuilds it from what is: the
+committed b18 checkpoint and the E_tau that `phase_energy_failure_check.py check` saved beside its report.
 
     python research/benchmarks/phase_energy_rollouts.py --checkpoint=outputs/k_phase/pretrained_model \\
         --recording_summary=research/results/libero_object10_b18/recording_summary.json \\
         --work=outputs/libero10_b18_phase --deadline_s=4800
+    python research/benchmarks/phase_energy_rollouts.py --test=fourth --assemble \
+        --checkpoint=research/results/libero_object10_b18/train/ebvla_joint_fast_cpu_b18/last/pretrained_model \
+        --phase_energy=research/results/libero_object10_b18/reports/ebvla_joint_fast_cpu_b18/phase_energy/check.safetensors \
+        --recording_summary=research/results/libero_object10_b18/recording_summary.json --work=outputs/libero10_b18_phase
 """
 
 import argparse
@@ -24,6 +32,7 @@ RUN = "ebvla_joint_fast_cpu_b18_phase"
 TESTS = {
     "second": (("vanilla_heldout_new", 10, 6000), ("vanilla_confirm_new", 30, 7000)),
     "third": (("vanilla_heldout_third", 10, 8000), ("vanilla_confirm_third", 30, 9000)),
+    "fourth": (("vanilla_heldout_fourth", 10, 10000), ("vanilla_confirm_fourth", 30, 11000)),
 }
 TASKS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 9)
 
@@ -34,6 +43,30 @@ def jobs(test: str = "second", per_task: int = 20) -> list[EvalJob]:
         for condition, first, seed in TESTS[test]
         for task in TASKS
     ]
+
+
+def assemble(checkpoint: Path, phase_energy: Path, output: Path) -> Path:
+    """K's fitted checkpoint from the unfitted one and a saved E_tau, as `ebvla-fit-phase-energy` writes it (the
+    weights, the config's `phase_energy` and failure score; the processors and other files copied, not the failure
+    calibration of the unfitted score). Kept if present."""
+    from phase_energy_failure_check import HIDDEN, PHASE_BINS, load_phase_energy
+
+    from lerobot_policy_ebvla import EBVLAPolicy
+    from lerobot_policy_ebvla.configuration_groups import PhaseEnergyConfig
+    from lerobot_policy_ebvla.runtime.calibration import FAILURE_CALIBRATION_FILENAME
+
+    if (output / "model.safetensors").exists():
+        return output
+    policy = EBVLAPolicy.from_pretrained(checkpoint)
+    policy.model.phase_energy = load_phase_energy(phase_energy)
+    policy.config.phase_energy = PhaseEnergyConfig(bins=PHASE_BINS, hidden=HIDDEN)
+    policy.config.monitor.failure_score = "joint_phase_time_energy"
+    output.mkdir(parents=True, exist_ok=True)
+    policy.save_pretrained(output)
+    for file in checkpoint.iterdir():
+        if file.is_file() and file.name != FAILURE_CALIBRATION_FILENAME and not (output / file.name).exists():
+            shutil.copy2(file, output / file.name)
+    return output
 
 
 def prepare(work: Path, checkpoint: Path, recording_summary: Path) -> None:
@@ -51,13 +84,24 @@ def main(argv=None) -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--checkpoint", type=Path, required=True, help="K's checkpoint with its phase energy")
+    parser.add_argument(
+        "--phase_energy", type=Path, default=None, help="with --assemble: the E_tau to fit into --checkpoint"
+    )
+    parser.add_argument(
+        "--assemble", action="store_true", help="--checkpoint is unfitted: fit --phase_energy in"
+    )
     parser.add_argument("--recording_summary", type=Path, required=True)
     parser.add_argument("--work", type=Path, required=True)
     parser.add_argument("--test", choices=sorted(TESTS), default="second", help="which set of new seeds")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--deadline_s", type=float, default=4800)
     args = parser.parse_args(argv)
-    prepare(args.work, args.checkpoint, args.recording_summary)
+    checkpoint = args.checkpoint
+    if args.assemble:
+        if args.phase_energy is None:
+            parser.error("--assemble needs --phase_energy")
+        checkpoint = assemble(checkpoint, args.phase_energy, args.work / "k_phase" / "pretrained_model")
+    prepare(args.work, checkpoint, args.recording_summary)
     evaluate(args.work, jobs(args.test), "cpu", args.jobs, args.deadline_s)
 
 

@@ -1,0 +1,464 @@
+"""A success energy for the failure check (issue 52, Table IV; research/docs/libero_runs.md, "A success energy fitted
+on the policy's own successful rollouts", where the reading was chosen on K's three read sets and the test fixed
+before the fourth set was read).
+
+The phase energy E_tau(C, t) = -log p(t | C) asks *when* a context belongs and is normalized over t; the feature
+distance `chunk_context_nn` asks whether the context at chunk t looks like any successful rollout's at chunk t, which
+is a question over contexts at a fixed t. The success energy asks that one as an energy:
+
+    E_s(C, t) = g(W C~ + e_t),   C~ the pooled context standardized by the successful calibration contexts,
+
+g an MLP to a scalar, e_t a learned embedding of the chunk index (t >= 40 shares the last). It is trained on the
+**successful calibration rollouts**, contrastively (InfoNCE): at each of their chunks the context it holds at t is
+the positive, against `NEGATIVES` contexts drawn from those rollouts at any chunk (most of another phase: a stalled
+rollout's context at t is one of an earlier t) and `NEGATIVES // 2` copies of it with Gaussian noise of std `NOISE`
+in standardized units (a context unlike any); a small penalty on the positives' squared energy (`anchor`) holds
+success at 0, since InfoNCE alone leaves each t's offset free. So E_s is about 0 where success is at chunk t and rises
+off it, in every direction the noise takes. It stores no context: an MLP and the standardization.
+
+No calibration rollout is scored by an E_s that saw it: the successful ones are cross-fitted in `FOLDS` folds (each
+read by the fold's E_s that left it out); the failed ones and every held-out rollout are read by the E_s fitted on
+all successful calibration rollouts, the one a checkpoint would ship. T = mu + 1 sigma of the successful calibration
+rollouts' scores.
+
+    # the development: every training and reading looked at, on K's three read sets (about 25 minutes, one thread)
+    python research/benchmarks/success_energy_failure_check.py choose \\
+        --output=research/results/libero_object10_b18/reports/ebvla_joint_fast_cpu_b18/success_energy/choice.json
+    # the test: the chosen reading on a set never read, against `chunk_context_nn`
+    python research/benchmarks/success_energy_failure_check.py test --held_out '<eval>/vanilla_heldout_fourth/task*' \\
+        '<eval>/vanilla_confirm_fourth/task*' --output=<...>/success_energy/fourth_rollouts.json
+"""
+
+import argparse
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from failure_check_test import (
+    BASELINE,
+    MIN_BALANCED_ACCURACY,
+    leads,
+    report_markdown,
+    scores_at,
+    write_report,
+)
+from failure_score_variants import difference_lines, rows_against_baseline
+from phase_energy_failure_check import (
+    CHOSEN as SHIPPED,
+)
+from phase_energy_failure_check import (
+    CHUNKS,
+    K,
+    first_chunks,
+    joint_phase_time_scores,
+    load_phase_energy,
+    term_series,
+)
+from safetensors.torch import load_file, save_file
+from torch import nn
+
+from lerobot_policy_ebvla.monitoring.records import Episode, load_episodes
+from lerobot_policy_ebvla.runtime.statistics import PhaseStatistics, energies_by_index
+
+RESULTS = Path("research/results/libero_object10_b18")
+K_EVAL = RESULTS / "eval/ebvla_joint_fast_cpu_b18"
+K_NEW = RESULTS / "eval/ebvla_joint_fast_cpu_b18_phase"
+K_PHASE = RESULTS / "reports/ebvla_joint_fast_cpu_b18/phase_energy/check.safetensors"
+CALIBRATION = K_EVAL / "vanilla_calib"
+# K's three sets of 400 held-out rollouts, every one read before this energy was thought of.
+READ_SETS = {
+    "K's first 400": (K_EVAL / "vanilla_heldout", K_EVAL / "vanilla_confirm"),
+    "K's second 400": (K_NEW / "vanilla_heldout_new", K_NEW / "vanilla_confirm_new"),
+    "K's third 400": (K_NEW / "vanilla_heldout_third", K_NEW / "vanilla_confirm_third"),
+}
+BINS = 40
+FOLDS = 5
+LATE = 4  # the last chunks of the window that the `late` readings average
+
+
+@dataclass(frozen=True)
+class Training:
+    """How E_s is fitted: which negatives, how many epochs (batch 128, AdamW at 1e-3)."""
+
+    negatives: str = "both"  # "both", "other contexts" or "noise"
+    epochs: int = 30
+    hidden: int = 256
+    noise: float = 1.0
+    n_negatives: int = 32
+    anchor: float = 0.1
+    seed: int = 0
+
+
+TRAININGS = {
+    "other contexts and noise": Training(),
+    "other contexts only": Training(negatives="other contexts"),
+    "noise only": Training(negatives="noise"),
+}
+# How a rollout's E_s (and, for the last, the three terms of `joint_phase_time_energy`) is read over its first
+# `CHUNKS` chunks.
+READINGS = {
+    "E_s, mean": "mean",
+    f"E_s, mean of the last {LATE}": "late",
+    "E_s, z at each chunk index, mean": "z",
+    "E_s's z beside the three terms": "four",
+}
+
+
+class SuccessEnergy(nn.Module):
+    """E_s(C, t) of pooled contexts C (B, D) at chunk indices t (B,); the standardization is a buffer."""
+
+    def __init__(self, dim: int, hidden: int, bins: int = BINS):
+        super().__init__()
+        self.bins = bins
+        self.register_buffer("feature_mean", torch.zeros(dim))
+        self.register_buffer("feature_std", torch.ones(dim))
+        self.context = nn.Linear(dim, hidden)
+        self.time = nn.Embedding(bins, hidden)
+        self.net = nn.Sequential(nn.SiLU(), nn.Linear(hidden, hidden), nn.SiLU(), nn.Linear(hidden, 1))
+
+    def standardize(self, features: torch.Tensor) -> torch.Tensor:
+        return (features - self.feature_mean) / self.feature_std
+
+    def energy(self, standardized: torch.Tensor, chunk_index: torch.Tensor) -> torch.Tensor:
+        return self.net(self.context(standardized) + self.time(chunk_index.clamp(0, self.bins - 1))).squeeze(
+            -1
+        )
+
+    def forward(self, features: torch.Tensor, chunk_index: torch.Tensor) -> torch.Tensor:
+        return self.energy(self.standardize(features.float()), chunk_index.long())
+
+
+def contexts(episode: Episode) -> tuple[np.ndarray, np.ndarray]:
+    """The episode's pooled contexts (T, D) and chunk indices (T,)."""
+    if any(record.context_feature is None for record in episode):
+        raise ValueError(
+            "E_s reads each chunk's pooled context (`ebvla-eval --record_context_features=true`)."
+        )
+    return (
+        np.stack([r.context_feature for r in episode]).astype(np.float32),
+        np.array([r.chunk_index for r in episode]),
+    )
+
+
+def fit_success_energy(episodes: list[Episode], training: Training) -> SuccessEnergy:
+    """E_s trained on `episodes` (successful rollouts) by InfoNCE against other contexts and noisy copies."""
+    generator = torch.Generator().manual_seed(training.seed)
+    torch.manual_seed(training.seed)
+    pairs = [contexts(e) for e in episodes]
+    features = torch.as_tensor(np.concatenate([f for f, _ in pairs]))
+    index = torch.as_tensor(np.concatenate([t for _, t in pairs])).long()
+    model = SuccessEnergy(features.shape[1], training.hidden)
+    model.feature_mean.copy_(features.mean(0))
+    model.feature_std.copy_(features.std(0) + 1e-6)
+    standardized = model.standardize(features)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-4)
+    n = len(index)
+    for _ in range(training.epochs):
+        for batch in torch.randperm(n, generator=generator).split(128):
+            positive, t = standardized[batch], index[batch]
+            negatives = []
+            if training.negatives in ("both", "other contexts"):
+                drawn = torch.randint(0, n, (len(batch), training.n_negatives), generator=generator)
+                negatives.append(standardized[drawn])
+            if training.negatives in ("both", "noise"):
+                shape = (len(batch), training.n_negatives // 2, positive.shape[1])
+                negatives.append(positive[:, None] + training.noise * torch.randn(shape, generator=generator))
+            candidates = torch.cat([positive[:, None], *negatives], 1)
+            times = t[:, None].expand(-1, candidates.shape[1])
+            logits = -model.energy(candidates.flatten(0, 1), times.flatten()).view(candidates.shape[:2])
+            loss = nn.functional.cross_entropy(logits, torch.zeros(len(batch), dtype=torch.long))
+            # InfoNCE leaves each chunk index's offset free; the anchor holds success at 0, so that energies of
+            # E_s fitted on other folds (calibration) and on all (held out) are read on one scale.
+            loss = loss + training.anchor * logits[:, 0].pow(2).mean()
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+    return model.eval()
+
+
+def success_series(model: SuccessEnergy, episode: Episode) -> np.ndarray:
+    """The episode's E_s, indexed by chunk index."""
+    features, index = contexts(episode)
+    with torch.no_grad():
+        values = model(torch.as_tensor(features), torch.as_tensor(index)).numpy()
+    return energies_by_index(values.astype(float), index)
+
+
+@dataclass
+class Fitted:
+    """E_s fitted on all successful calibration rollouts (`full`) and each calibration rollout's series, read by an
+    E_s that never saw it."""
+
+    full: SuccessEnergy
+    folds: list[SuccessEnergy]
+    calibration_series: dict
+
+
+def folds_of(successful: list, seed: int) -> tuple[list, list[list]]:
+    """The successful calibration rollouts' keys shuffled by `seed`, and in `FOLDS` folds of that order."""
+    order = np.random.default_rng(seed).permutation(len(successful))
+    return [successful[i] for i in order], [
+        [successful[i] for i in fold] for fold in np.array_split(order, FOLDS)
+    ]
+
+
+def read_calibration(calibration: dict, full: SuccessEnergy, folds: list[SuccessEnergy], seed: int) -> Fitted:
+    """Each successful calibration rollout read by the E_s of the fold that left it out, the rest by `full`."""
+    successful = [key for key, e in calibration.items() if e[0].success]
+    series = {}
+    for keys, model in zip(folds_of(successful, seed)[1], folds, strict=True):
+        series.update({key: success_series(model, calibration[key]) for key in keys})
+    series.update({key: success_series(full, e) for key, e in calibration.items() if key not in series})
+    return Fitted(full, folds, series)
+
+
+def cross_fit(calibration: dict, training: Training) -> Fitted:
+    successful = [key for key, e in calibration.items() if e[0].success]
+    models, (shuffled, folds) = [], folds_of(successful, training.seed)
+    for number, left_out in enumerate(folds):
+        kept = [calibration[key] for key in shuffled if key not in set(left_out)]
+        models.append(fit_success_energy(kept, replace(training, seed=training.seed + 1 + number)))
+    full = fit_success_energy([calibration[key] for key in successful], training)
+    return read_calibration(calibration, full, models, training.seed)
+
+
+def scores(fitted: Fitted, calibration: dict, held_out: dict, reading: str, phase=None, n: int = CHUNKS):
+    """(every calibration rollout's score, a successful one against statistics without it; the held-out rollouts'
+    scores), as `rows_against_baseline` reads them."""
+    successful = [key for key, e in calibration.items() if e[0].success]
+    held_series = {key: success_series(fitted.full, e) for key, e in held_out.items()}
+    if reading in ("mean", "late"):
+
+        def read(series: np.ndarray) -> float:
+            values, _ = first_chunks(series, n)
+            return float(np.mean(values[-LATE:] if reading == "late" else values))
+
+        return (
+            np.array([read(fitted.calibration_series[key]) for key in calibration]),
+            np.array([read(s) for s in held_series.values()]),
+        )
+    episodes = {**calibration, **held_out}
+    terms = {key: ([] if reading == "z" else term_series(e, phase)) for key, e in episodes.items()}
+    series = {**fitted.calibration_series, **held_series}
+
+    def statistics(leave_out=None) -> list[PhaseStatistics]:
+        kept = [[*terms[key], series[key]] for key in successful if key != leave_out]
+        return [PhaseStatistics.fit([r[i] for r in kept]) for i in range(len(kept[0]))]
+
+    def read(key, stats) -> float:
+        z = []
+        for values, phase_statistics in zip([*terms[key], series[key]], stats, strict=True):
+            kept, index = first_chunks(values, n)
+            z.append(phase_statistics.z(kept, index).mean())
+        return float(np.mean(z))
+
+    everyone = statistics()
+    return (
+        np.array([read(key, statistics(key) if key in successful else everyone) for key in calibration]),
+        np.array([read(key, everyone) for key in held_out]),
+    )
+
+
+def set_rows(values: dict, calibration: dict, held_out: dict) -> list[dict]:
+    """`rows_against_baseline` of {name: (calibration scores, held-out scores)} with the baseline added."""
+    successful = np.array([e[0].success for e in calibration.values()])
+    failed = np.array([not e[0].success for e in held_out.values()])
+    values = {**values, BASELINE: scores_at(BASELINE, calibration, held_out, CHUNKS)}
+    return rows_against_baseline(values, successful, failed, K)
+
+
+def load(paths) -> dict:
+    return load_episodes([str(Path(p) / "task*") for p in paths])
+
+
+def choose(threads: int = 1) -> dict:
+    """Every training and reading on K's three read sets, and the choice: the reading whose worst set's AUROC minus
+    the baseline's is highest, among those at a balanced accuracy of at least 80 % on each set."""
+    torch.set_num_threads(threads)
+    calibration = load([CALIBRATION])
+    phase = load_phase_energy(K_PHASE)
+    sets = {name: load(paths) for name, paths in READ_SETS.items()}
+    rows = []
+    for training_name, training in TRAININGS.items():
+        fitted = cross_fit(calibration, training)
+        for reading_name, reading in READINGS.items():
+            entry = {"training": training_name, "reading": reading_name, "sets": {}}
+            for set_name, held in sets.items():
+                found, baseline = set_rows(
+                    {reading_name: scores(fitted, calibration, held, reading, phase)}, calibration, held
+                )
+                entry["sets"][set_name] = {**found, "baseline_auroc": baseline["auroc"]}
+            entry["worst_difference"] = min(s["auroc_minus_baseline"] for s in entry["sets"].values())
+            entry["eligible"] = all(s["balanced_accuracy"] >= 0.8 for s in entry["sets"].values())
+            rows.append(entry)
+            print(
+                training_name,
+                "|",
+                reading_name,
+                f"{entry['worst_difference']:+.4f}",
+                entry["eligible"],
+                flush=True,
+            )
+    eligible = [r for r in rows if r["eligible"]]
+    chosen = max(eligible, key=lambda r: r["worst_difference"])
+    return {
+        "trainings": {name: asdict(t) for name, t in TRAININGS.items()},
+        "rows": rows,
+        "chosen": {"training": chosen["training"], "reading": chosen["reading"]},
+    }
+
+
+def choice_markdown(result: dict) -> str:
+    names = list(READ_SETS)
+    lines = [
+        "Development on K's three read sets (T = mu + 1 sigma of the successful calibration rollouts; first "
+        f"{CHUNKS} chunks): AUROC [paired interval minus `{BASELINE}`], failed and successful alarmed.",
+        "",
+        "| training | reading | " + " | ".join(names) + " | worst minus baseline |",
+        "|---|---|" + "---|" * len(names) + "---:|",
+    ]
+    for r in result["rows"]:
+        cells = []
+        for name in names:
+            s = r["sets"][name]
+            low, high = s["auroc_minus_baseline_interval"]
+            cells.append(
+                f"{s['auroc']:.3f} [{low:+.3f}, {high:+.3f}], {s['failed_alarmed']}/{s['failed']} and "
+                f"{s['successful_alarmed']}/{s['successful']}, {s['balanced_accuracy']:.1%}"
+            )
+        mark = "" if r["eligible"] else " (under 80 % somewhere)"
+        lines.append(
+            f"| {r['training']} | {r['reading']}{mark} | "
+            + " | ".join(cells)
+            + f" | {r['worst_difference']:+.4f} |"
+        )
+    first = result["rows"][0]["sets"]
+    lines.append(
+        f"| `{BASELINE}` | | " + " | ".join(f"{first[n]['baseline_auroc']:.3f}" for n in names) + " | |"
+    )
+    chosen = result["chosen"]
+    lines += ["", f"Chosen: **{chosen['training']}**, read as **{chosen['reading']}**.", ""]
+    return "\n".join(lines)
+
+
+def test(
+    held_out_paths: list[str],
+    training_name: str,
+    reading_name: str,
+    threads: int = 1,
+    fitted: Fitted | None = None,
+) -> tuple[dict, Fitted]:
+    """The chosen reading on each held-out set and on all of them, with the checkpoint's shipped check
+    (`joint_phase_time_energy`), `joint_phase_energy` and the baseline beside it, and its caught failures' leads; E_s
+    fitted as `training_name` says unless `fitted` is given."""
+    torch.set_num_threads(threads)
+    calibration = load([CALIBRATION])
+    phase = load_phase_energy(K_PHASE)
+    fitted = fitted or cross_fit(calibration, TRAININGS[training_name])
+    held_sets = {Path(p).name: load([p]) for p in held_out_paths}
+    held_sets["all held out"] = {key: e for s in held_sets.values() for key, e in s.items()}
+    successful = np.array([e[0].success for e in calibration.values()])
+    result = {"training": training_name, "reading": reading_name, "chunks": CHUNKS, "k": K, "sets": {}}
+    result["calibration_rollouts"], result["calibration_failed"] = (
+        int(successful.size),
+        int((~successful).sum()),
+    )
+    for name, held in held_sets.items():
+        values = {
+            reading_name: scores(fitted, calibration, held, READINGS[reading_name], phase),
+            SHIPPED: joint_phase_time_scores(calibration, held, phase, CHUNKS)[:2],
+            "joint_phase_energy": scores_at("joint_phase_energy", calibration, held, CHUNKS),
+        }
+        rows = set_rows(values, calibration, held)
+        result["sets"][name] = {
+            "rollouts": len(held),
+            "failed": int(sum(not e[0].success for e in held.values())),
+            "rows": rows,
+            "leads": leads(list(held.values()), values[reading_name][1], rows[0]["threshold"], CHUNKS),
+        }
+    chosen = result["sets"]["all held out"]["rows"][0]
+    result["met"] = bool(
+        chosen["balanced_accuracy"] >= MIN_BALANCED_ACCURACY
+        and chosen["auroc_minus_baseline_interval"][1] >= 0
+    )
+    return result, fitted
+
+
+def test_markdown(result: dict) -> str:
+    chosen = result["sets"]["all held out"]["rows"][0]
+    low, high = chosen["auroc_minus_baseline_interval"]
+    targets = [
+        (
+            f"balanced accuracy >= {MIN_BALANCED_ACCURACY:.0%}",
+            chosen["balanced_accuracy"] >= MIN_BALANCED_ACCURACY,
+            f"{chosen['balanced_accuracy']:.1%}",
+        ),
+        (
+            f"not below {BASELINE} outside the paired interval",
+            high >= 0,
+            f"{chosen['auroc_minus_baseline']:+.3f} [{low:+.3f}, {high:+.3f}]",
+        ),
+    ]
+    head = f"E_s trained as **{result['training']}**, read as **{result['reading']}**.\n\n"
+    return head + report_markdown(
+        result["reading"],
+        result["chunks"],
+        result["k"],
+        result,
+        targets,
+        lambda found: difference_lines(found["rows"], lambda name: f"`{name}`"),
+    )
+
+
+def save_models(fitted: Fitted, path: Path) -> None:
+    state = {f"full.{k}": v for k, v in fitted.full.state_dict().items()}
+    for number, model in enumerate(fitted.folds):
+        state.update({f"fold{number}.{k}": v for k, v in model.state_dict().items()})
+    save_file(state, path)
+
+
+def load_fitted(path: Path, calibration: dict, seed: int = 0) -> Fitted:
+    """The E_s that `test` saved (on all, and one per fold), reading `calibration` as `cross_fit` did."""
+    state = load_file(path)
+
+    def model(name: str) -> SuccessEnergy:
+        own = {k.removeprefix(f"{name}."): v for k, v in state.items() if k.startswith(f"{name}.")}
+        loaded = SuccessEnergy(own["feature_mean"].numel(), own["context.weight"].shape[0])
+        loaded.load_state_dict(own)
+        return loaded.eval()
+
+    return read_calibration(calibration, model("full"), [model(f"fold{i}") for i in range(FOLDS)], seed)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    commands = parser.add_subparsers(dest="command", required=True)
+    chooser = commands.add_parser("choose", help="every training and reading on K's three read sets")
+    tester = commands.add_parser("test", help="the chosen reading on new held-out sets")
+    tester.add_argument("--held_out", nargs="+", required=True, help="held-out record folders, one per set")
+    tester.add_argument("--training", default=None, help="default: the choice's (--choice)")
+    tester.add_argument("--reading", default=None)
+    tester.add_argument("--choice", type=Path, default=None, help="`choose`'s JSON")
+    for command in (chooser, tester):
+        command.add_argument("--threads", type=int, default=1)
+        command.add_argument("--output", type=Path, default=None)
+    args = parser.parse_args(argv)
+    if args.command == "choose":
+        result = choose(args.threads)
+        write_report(result, choice_markdown(result), args.output)
+        return
+    chosen = {} if args.choice is None else __import__("json").loads(args.choice.read_text())["chosen"]
+    training, reading = args.training or chosen.get("training"), args.reading or chosen.get("reading")
+    if training is None or reading is None:
+        parser.error("give --choice, or --training and --reading")
+    result, fitted = test(args.held_out, training, reading, args.threads)
+    write_report(result, test_markdown(result), args.output)
+    if args.output is not None:
+        save_models(fitted, args.output.with_suffix(".safetensors"))
+
+
+if __name__ == "__main__":
+    main()
