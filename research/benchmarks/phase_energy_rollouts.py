@@ -24,6 +24,11 @@ import shutil
 from pathlib import Path
 
 from libero_pipeline import EvalJob, evaluate
+from phase_energy_failure_check import HIDDEN, PHASE_BINS, load_phase_energy
+
+from lerobot_policy_ebvla import EBVLAPolicy
+from lerobot_policy_ebvla.configuration_groups import PhaseEnergyConfig
+from lerobot_policy_ebvla.runtime.calibration import FAILURE_CALIBRATION_FILENAME
 
 RUN = "ebvla_joint_fast_cpu_b18_phase"
 # (condition, first fixed state, seed of its first episode) per test: seeds no earlier evaluation of K used
@@ -49,12 +54,6 @@ def assemble(checkpoint: Path, phase_energy: Path, output: Path) -> Path:
     """K's fitted checkpoint from the unfitted one and a saved E_tau, as `ebvla-fit-phase-energy` writes it (the
     weights, the config's `phase_energy` and failure score; the processors and other files copied, not the failure
     calibration of the unfitted score). Kept if present."""
-    from phase_energy_failure_check import HIDDEN, PHASE_BINS, load_phase_energy
-
-    from lerobot_policy_ebvla import EBVLAPolicy
-    from lerobot_policy_ebvla.configuration_groups import PhaseEnergyConfig
-    from lerobot_policy_ebvla.runtime.calibration import FAILURE_CALIBRATION_FILENAME
-
     if (output / "model.safetensors").exists():
         return output
     policy = EBVLAPolicy.from_pretrained(checkpoint)

@@ -30,6 +30,7 @@ rollouts' scores.
 """
 
 import argparse
+import json
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -348,13 +349,16 @@ def test(
     reading_name: str,
     threads: int = 1,
     fitted: Fitted | None = None,
+    calibration_path: Path = CALIBRATION,
+    phase_path: Path | None = K_PHASE,
 ) -> tuple[dict, Fitted]:
     """The chosen reading on each held-out set and on all of them, with the checkpoint's shipped check
-    (`joint_phase_time_energy`), `joint_phase_energy` and the baseline beside it, and its caught failures' leads; E_s
-    fitted as `training_name` says unless `fitted` is given."""
+    (`joint_phase_time_energy`, when its E_tau is given), `joint_phase_energy` and the baseline beside it, and its
+    caught failures' leads; E_s fitted on `calibration_path`'s rollouts as `training_name` says unless `fitted` is
+    given."""
     torch.set_num_threads(threads)
-    calibration = load([CALIBRATION])
-    phase = load_phase_energy(K_PHASE)
+    calibration = load([calibration_path])
+    phase = None if phase_path is None else load_phase_energy(phase_path)
     fitted = fitted or cross_fit(calibration, TRAININGS[training_name])
     held_sets = {Path(p).name: load([p]) for p in held_out_paths}
     held_sets["all held out"] = {key: e for s in held_sets.values() for key, e in s.items()}
@@ -365,11 +369,10 @@ def test(
         int((~successful).sum()),
     )
     for name, held in held_sets.items():
-        values = {
-            reading_name: scores(fitted, calibration, held, READINGS[reading_name], phase),
-            SHIPPED: joint_phase_time_scores(calibration, held, phase, CHUNKS)[:2],
-            "joint_phase_energy": scores_at("joint_phase_energy", calibration, held, CHUNKS),
-        }
+        values = {reading_name: scores(fitted, calibration, held, READINGS[reading_name], phase)}
+        if phase is not None:
+            values[SHIPPED] = joint_phase_time_scores(calibration, held, phase, CHUNKS)[:2]
+        values["joint_phase_energy"] = scores_at("joint_phase_energy", calibration, held, CHUNKS)
         rows = set_rows(values, calibration, held)
         result["sets"][name] = {
             "rollouts": len(held),
@@ -442,6 +445,14 @@ def main(argv=None) -> None:
     tester.add_argument("--training", default=None, help="default: the choice's (--choice)")
     tester.add_argument("--reading", default=None)
     tester.add_argument("--choice", type=Path, default=None, help="`choose`'s JSON")
+    tester.add_argument(
+        "--calibration", type=Path, default=CALIBRATION, help="the calibration records' folder"
+    )
+    tester.add_argument(
+        "--phase_energy",
+        default=str(K_PHASE),
+        help="the checkpoint's E_tau, or 'none' (no shipped check's row)",
+    )
     for command in (chooser, tester):
         command.add_argument("--threads", type=int, default=1)
         command.add_argument("--output", type=Path, default=None)
@@ -450,11 +461,12 @@ def main(argv=None) -> None:
         result = choose(args.threads)
         write_report(result, choice_markdown(result), args.output)
         return
-    chosen = {} if args.choice is None else __import__("json").loads(args.choice.read_text())["chosen"]
+    chosen = {} if args.choice is None else json.loads(args.choice.read_text())["chosen"]
     training, reading = args.training or chosen.get("training"), args.reading or chosen.get("reading")
     if training is None or reading is None:
         parser.error("give --choice, or --training and --reading")
-    result, fitted = test(args.held_out, training, reading, args.threads)
+    phase = None if args.phase_energy == "none" else Path(args.phase_energy)
+    result, fitted = test(args.held_out, training, reading, args.threads, None, args.calibration, phase)
     write_report(result, test_markdown(result), args.output)
     if args.output is not None:
         save_models(fitted, args.output.with_suffix(".safetensors"))
