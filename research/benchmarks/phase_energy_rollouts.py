@@ -24,11 +24,10 @@ import shutil
 from pathlib import Path
 
 from libero_pipeline import EvalJob, evaluate
-from phase_energy_failure_check import HIDDEN, PHASE_BINS, load_phase_energy
+from phase_energy_failure_check import load_phase_energy
 
 from lerobot_policy_ebvla import EBVLAPolicy
-from lerobot_policy_ebvla.configuration_groups import PhaseEnergyConfig
-from lerobot_policy_ebvla.runtime.calibration import FAILURE_CALIBRATION_FILENAME
+from lerobot_policy_ebvla.pipelines.phase_energy import save_with_phase_energy
 
 RUN = "ebvla_joint_fast_cpu_b18_phase"
 # (condition, first fixed state, seed of its first episode) per test: seeds no earlier evaluation of K used
@@ -51,20 +50,11 @@ def jobs(test: str = "second", per_task: int = 20) -> list[EvalJob]:
 
 
 def assemble(checkpoint: Path, phase_energy: Path, output: Path) -> Path:
-    """K's fitted checkpoint from the unfitted one and a saved E_tau, as `ebvla-fit-phase-energy` writes it (the
-    weights, the config's `phase_energy` and failure score; the processors and other files copied, not the failure
-    calibration of the unfitted score). Kept if present."""
-    if (output / "model.safetensors").exists():
-        return output
-    policy = EBVLAPolicy.from_pretrained(checkpoint)
-    policy.model.phase_energy = load_phase_energy(phase_energy)
-    policy.config.phase_energy = PhaseEnergyConfig(bins=PHASE_BINS, hidden=HIDDEN)
-    policy.config.monitor.failure_score = "joint_phase_time_energy"
-    output.mkdir(parents=True, exist_ok=True)
-    policy.save_pretrained(output)
-    for file in checkpoint.iterdir():
-        if file.is_file() and file.name != FAILURE_CALIBRATION_FILENAME and not (output / file.name).exists():
-            shutil.copy2(file, output / file.name)
+    """K's fitted checkpoint from the unfitted one and a saved E_tau, written as `ebvla-fit-phase-energy` writes it
+    (`save_with_phase_energy`). Kept if present."""
+    if not (output / "model.safetensors").exists():
+        policy = EBVLAPolicy.from_pretrained(checkpoint)
+        save_with_phase_energy(policy, load_phase_energy(phase_energy), checkpoint, output)
     return output
 
 

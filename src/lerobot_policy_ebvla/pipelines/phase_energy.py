@@ -102,6 +102,25 @@ def _source_folder(policy_path: str) -> Path:
     return Path(snapshot_download(policy_path))
 
 
+def save_with_phase_energy(
+    policy, phase_energy: PhaseEnergy, source: Path, output_dir: Path, processors=()
+) -> None:
+    """`policy` with the fitted `phase_energy`, saved to `output_dir` as a checkpoint of `source`: its config's
+    `phase_energy` set (and, with E_c on its own encoder, its failure check `joint_phase_time_energy`), the
+    `processors` saved, and the source's other files copied but for its failure calibration."""
+    policy.model.phase_energy = phase_energy.to(policy.config.device)
+    policy.config.phase_energy = PhaseEnergyConfig(bins=phase_energy.bins, hidden=phase_energy.hidden)
+    if policy.config.context_energy_on_own_encoder:
+        policy.config.monitor.failure_score = "joint_phase_time_energy"
+    output_dir.mkdir(parents=True, exist_ok=True)
+    policy.save_pretrained(output_dir)
+    for processor in processors:
+        processor.save_pretrained(output_dir)
+    for file in source.iterdir():
+        if file.is_file() and file.name not in _NOT_COPIED and not (output_dir / file.name).exists():
+            shutil.copy2(file, output_dir / file.name)
+
+
 def run(cfg: FitPhaseEnergyConfig) -> Path:
     """Fits the phase energy and writes the new checkpoint folder; returns it."""
     cfg.validate()
@@ -127,18 +146,7 @@ def run(cfg: FitPhaseEnergyConfig) -> Path:
 
     phase_energy = PhaseEnergy(contexts["features"].shape[1], cfg.bins, cfg.hidden)
     fit = fit_phase_energy(phase_energy, **contexts, seed=cfg.seed)
-    policy.model.phase_energy = phase_energy.to(policy.config.device)
-    policy.config.phase_energy = PhaseEnergyConfig(bins=cfg.bins, hidden=cfg.hidden)
-    if policy.config.context_energy_on_own_encoder:
-        policy.config.monitor.failure_score = "joint_phase_time_energy"
-
-    cfg.output_dir.mkdir(parents=True, exist_ok=True)
-    policy.save_pretrained(cfg.output_dir)
-    preprocessor.save_pretrained(cfg.output_dir)
-    postprocessor.save_pretrained(cfg.output_dir)
-    for file in source.iterdir():
-        if file.is_file() and file.name not in _NOT_COPIED and not (cfg.output_dir / file.name).exists():
-            shutil.copy2(file, cfg.output_dir / file.name)
+    save_with_phase_energy(policy, phase_energy, source, cfg.output_dir, (preprocessor, postprocessor))
     summary = {"source": str(cfg.policy_path), "dataset": cfg.dataset_repo_id, **asdict(fit)}
     (cfg.output_dir / FIT_SUMMARY_FILENAME).write_text(json.dumps(summary, indent=1) + "\n")
     logging.info(
