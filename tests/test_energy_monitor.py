@@ -193,7 +193,7 @@ def test_the_failure_check_stores_no_features_and_leaves_the_ood_calibrations_si
         ]
     )
     OODCalibration.calibrate("context_knn", vanilla).save(tmp_path)
-    with pytest.raises(ValueError, match="stores no features; `context_knn` reads the pooled context"):
+    with pytest.raises(ValueError, match="stores no features; `context_knn` is a feature baseline"):
         FailureCalibration.calibrate("context_knn", vanilla)
     saved = FailureCalibration.calibrate("final_energy", vanilla, chunks=2)
     saved.save(tmp_path)

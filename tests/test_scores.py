@@ -26,7 +26,7 @@ from lerobot_policy_ebvla.runtime.statistics import PhaseStatistics
 PHASE = PhaseStatistics((0.0, -10.0), (1.0, 2.0))
 
 
-def test_the_package_ships_seven_scores_and_the_config_names_each():
+def test_the_package_ships_eight_scores_and_the_config_names_each():
     assert PACKAGE_SCORES == (
         "final_energy",
         "context_phase_energy",
@@ -34,6 +34,7 @@ def test_the_package_ships_seven_scores_and_the_config_names_each():
         "joint_phase_energy",
         "context_start_energy",
         "joint_phase_time_energy",
+        "success_energy",
         "context_knn",
     )
     assert MONITOR_SCORES == PACKAGE_SCORES

@@ -78,6 +78,7 @@ class ContextDistance(ChunkScore):
     name = "context_distance"
     reads = ("context_features",)
     side_files = (CONTEXT_FILE,)
+    feature_baseline = True
 
     def __post_init__(self):
         check_statistics(self.name, "context", self.context, ContextStatistics)
@@ -112,6 +113,7 @@ class EnergyAndContext(ChunkScore):
     n_components = 2
     json_fields = ("combined_mean", "combined_std")
     side_files = (CONTEXT_FILE,)
+    feature_baseline = True
 
     def __post_init__(self):
         check_statistics(self.name, "context", self.context, ContextStatistics)
@@ -253,6 +255,7 @@ class EnergyTwoSidedAndContextKNN(ChunkScore):
     n_components = 2
     json_fields = ("phase_mean", "phase_std", "combined_mean", "combined_std")
     side_files = (NEIGHBOURS_FILE,)
+    feature_baseline = True
 
     def __post_init__(self):
         check_statistics(self.name, "phase", self.phase, PhaseStatistics)

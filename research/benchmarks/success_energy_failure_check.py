@@ -19,19 +19,22 @@ off it, in every direction the noise takes. It stores no context: an MLP and the
 No calibration rollout is scored by an E_s that saw it: the successful ones are cross-fitted in `FOLDS` folds (each
 read by the fold's E_s that left it out); the failed ones and every held-out rollout are read by the E_s fitted on
 all successful calibration rollouts, the one a checkpoint would ship. T = mu + 1 sigma of the successful calibration
-rollouts' scores.
+rollouts' scores. The module, its fit and the cross-fitting are the package's (`lerobot_policy_ebvla.runtime.success_energy`,
+the `success_energy` failure check); this script adds the trainings and readings the choice compared.
 
     # the development: every training and reading looked at, on K's three read sets (about 25 minutes, one thread)
     python research/benchmarks/success_energy_failure_check.py choose \\
         --output=research/results/libero_object10_b18/reports/ebvla_joint_fast_cpu_b18/success_energy/choice.json
-    # the test: the chosen reading on a set never read, against `chunk_context_nn`
+    # the test: the chosen reading on a set never read, against `chunk_context_nn` (`--fitted`: with the E_s an
+    # earlier test saved, as the fifth set is read)
     python research/benchmarks/success_energy_failure_check.py test --held_out '<eval>/vanilla_heldout_fourth/task*' \\
         '<eval>/vanilla_confirm_fourth/task*' --output=<...>/success_energy/fourth_rollouts.json
 """
 
 import argparse
 import json
-from dataclasses import asdict, dataclass, replace
+import shutil
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -55,10 +58,20 @@ from phase_energy_failure_check import (
     term_series,
 )
 from safetensors.torch import load_file, save_file
-from torch import nn
 
+from lerobot_policy_ebvla.monitoring.baselines import episode_readout
+from lerobot_policy_ebvla.monitoring.ood_report import OODReportConfig, write_ood_report
 from lerobot_policy_ebvla.monitoring.records import Episode, load_episodes
+from lerobot_policy_ebvla.runtime.calibration import FAILURE_CALIBRATION_FILENAME, FailureCalibration
 from lerobot_policy_ebvla.runtime.statistics import PhaseStatistics, energies_by_index
+from lerobot_policy_ebvla.runtime.success_energy import (
+    FOLDS,
+    NEGATIVES,
+    SuccessEnergy,
+    fit_success_energy,
+    fold_order,
+    fold_readers,
+)
 
 RESULTS = Path("research/results/libero_object10_b18")
 K_EVAL = RESULTS / "eval/ebvla_joint_fast_cpu_b18"
@@ -72,22 +85,23 @@ READ_SETS = {
     "K's third 400": (K_NEW / "vanilla_heldout_third", K_NEW / "vanilla_confirm_third"),
 }
 SHIPPED = CHOSEN  # the checkpoint's own failure check, `joint_phase_time_energy`
-BINS = 40
-FOLDS = 5
 LATE = 4  # the last chunks of the window that the `late` readings average
 
 
 @dataclass(frozen=True)
 class Training:
-    """How E_s is fitted: which negatives, how many epochs (batch 128, AdamW at 1e-3)."""
+    """How E_s is fitted (`fit_success_energy`: batch 128, AdamW at 1e-3, 30 epochs): which negatives."""
 
     negatives: str = "both"  # "both", "other contexts" or "noise"
-    epochs: int = 30
-    hidden: int = 256
-    noise: float = 1.0
-    n_negatives: int = 32
-    anchor: float = 0.1
     seed: int = 0
+
+    @property
+    def fit_kwargs(self) -> dict:
+        """`fit_success_energy`'s negatives: 0 of a kind leaves it out."""
+        return {
+            "other_contexts": 0 if self.negatives == "noise" else NEGATIVES,
+            "noisy_copies": 0 if self.negatives == "other contexts" else NEGATIVES // 2,
+        }
 
 
 TRAININGS = {
@@ -105,30 +119,6 @@ READINGS = {
 }
 
 
-class SuccessEnergy(nn.Module):
-    """E_s(C, t) of pooled contexts C (B, D) at chunk indices t (B,); the standardization is a buffer."""
-
-    def __init__(self, dim: int, hidden: int, bins: int = BINS):
-        super().__init__()
-        self.bins = bins
-        self.register_buffer("feature_mean", torch.zeros(dim))
-        self.register_buffer("feature_std", torch.ones(dim))
-        self.context = nn.Linear(dim, hidden)
-        self.time = nn.Embedding(bins, hidden)
-        self.net = nn.Sequential(nn.SiLU(), nn.Linear(hidden, hidden), nn.SiLU(), nn.Linear(hidden, 1))
-
-    def standardize(self, features: torch.Tensor) -> torch.Tensor:
-        return (features - self.feature_mean) / self.feature_std
-
-    def energy(self, standardized: torch.Tensor, chunk_index: torch.Tensor) -> torch.Tensor:
-        return self.net(self.context(standardized) + self.time(chunk_index.clamp(0, self.bins - 1))).squeeze(
-            -1
-        )
-
-    def forward(self, features: torch.Tensor, chunk_index: torch.Tensor) -> torch.Tensor:
-        return self.energy(self.standardize(features.float()), chunk_index.long())
-
-
 def contexts(episode: Episode) -> tuple[np.ndarray, np.ndarray]:
     """The episode's pooled contexts (T, D) and chunk indices (T,)."""
     if any(record.context_feature is None for record in episode):
@@ -141,48 +131,10 @@ def contexts(episode: Episode) -> tuple[np.ndarray, np.ndarray]:
     )
 
 
-def fit_success_energy(episodes: list[Episode], training: Training) -> SuccessEnergy:
-    """E_s trained on `episodes` (successful rollouts) by InfoNCE against other contexts and noisy copies."""
-    generator = torch.Generator().manual_seed(training.seed)
-    torch.manual_seed(training.seed)
-    pairs = [contexts(e) for e in episodes]
-    features = torch.as_tensor(np.concatenate([f for f, _ in pairs]))
-    index = torch.as_tensor(np.concatenate([t for _, t in pairs])).long()
-    model = SuccessEnergy(features.shape[1], training.hidden)
-    model.feature_mean.copy_(features.mean(0))
-    model.feature_std.copy_(features.std(0) + 1e-6)
-    standardized = model.standardize(features)
-    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-4)
-    n = len(index)
-    for _ in range(training.epochs):
-        for batch in torch.randperm(n, generator=generator).split(128):
-            positive, t = standardized[batch], index[batch]
-            negatives = []
-            if training.negatives in ("both", "other contexts"):
-                drawn = torch.randint(0, n, (len(batch), training.n_negatives), generator=generator)
-                negatives.append(standardized[drawn])
-            if training.negatives in ("both", "noise"):
-                shape = (len(batch), training.n_negatives // 2, positive.shape[1])
-                negatives.append(positive[:, None] + training.noise * torch.randn(shape, generator=generator))
-            candidates = torch.cat([positive[:, None], *negatives], 1)
-            times = t[:, None].expand(-1, candidates.shape[1])
-            logits = -model.energy(candidates.flatten(0, 1), times.flatten()).view(candidates.shape[:2])
-            loss = nn.functional.cross_entropy(logits, torch.zeros(len(batch), dtype=torch.long))
-            # InfoNCE leaves each chunk index's offset free; the anchor holds success at 0, so that energies of
-            # E_s fitted on other folds (calibration) and on all (held out) are read on one scale.
-            loss = loss + training.anchor * logits[:, 0].pow(2).mean()
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
-    return model.eval()
-
-
 def success_series(model: SuccessEnergy, episode: Episode) -> np.ndarray:
     """The episode's E_s, indexed by chunk index."""
     features, index = contexts(episode)
-    with torch.no_grad():
-        values = model(torch.as_tensor(features), torch.as_tensor(index)).numpy()
-    return energies_by_index(values.astype(float), index)
+    return energies_by_index(model.series(features, index), index)
 
 
 @dataclass
@@ -195,32 +147,24 @@ class Fitted:
     calibration_series: dict
 
 
-def folds_of(successful: list, seed: int) -> tuple[list, list[list]]:
-    """The successful calibration rollouts' keys shuffled by `seed`, and in `FOLDS` folds of that order."""
-    order = np.random.default_rng(seed).permutation(len(successful))
-    return [successful[i] for i in order], [
-        [successful[i] for i in fold] for fold in np.array_split(order, FOLDS)
-    ]
-
-
 def read_calibration(calibration: dict, full: SuccessEnergy, folds: list[SuccessEnergy], seed: int) -> Fitted:
-    """Each successful calibration rollout read by the E_s of the fold that left it out, the rest by `full`."""
+    """Each successful calibration rollout read by the E_s of the fold that left it out (`fold_order`), the rest by
+    `full`."""
     successful = [key for key, e in calibration.items() if e[0].success]
     series = {}
-    for keys, model in zip(folds_of(successful, seed)[1], folds, strict=True):
-        series.update({key: success_series(model, calibration[key]) for key in keys})
+    for fold, model in zip(fold_order(len(successful), seed), folds, strict=True):
+        series.update({successful[i]: success_series(model, calibration[successful[i]]) for i in fold})
     series.update({key: success_series(full, e) for key, e in calibration.items() if key not in series})
     return Fitted(full, folds, series)
 
 
 def cross_fit(calibration: dict, training: Training) -> Fitted:
-    successful = [key for key, e in calibration.items() if e[0].success]
-    models, (shuffled, folds) = [], folds_of(successful, training.seed)
-    for number, left_out in enumerate(folds):
-        kept = [calibration[key] for key in shuffled if key not in set(left_out)]
-        models.append(fit_success_energy(kept, replace(training, seed=training.seed + 1 + number)))
-    full = fit_success_energy([calibration[key] for key in successful], training)
-    return read_calibration(calibration, full, models, training.seed)
+    """The package's fit and cross-fitting (`fit_success_energy`, `fold_readers`) with `training`'s negatives."""
+    successful = [contexts(e) for e in calibration.values() if e[0].success]
+    readers = fold_readers(successful, training.seed, **training.fit_kwargs)
+    folds = list({id(model): model for model in readers}.values())  # in fold order: each fold's first reader
+    full = fit_success_energy(successful, training.seed, **training.fit_kwargs)
+    return read_calibration(calibration, full, folds, training.seed)
 
 
 def scores(fitted: Fitted, calibration: dict, held_out: dict, reading: str, phase=None, n: int = CHUNKS):
@@ -426,12 +370,86 @@ def load_fitted(path: Path, calibration: dict, seed: int = 0) -> Fitted:
     state = load_file(path)
 
     def model(name: str) -> SuccessEnergy:
-        own = {k.removeprefix(f"{name}."): v for k, v in state.items() if k.startswith(f"{name}.")}
-        loaded = SuccessEnergy(own["feature_mean"].numel(), own["context.weight"].shape[0])
-        loaded.load_state_dict(own)
-        return loaded.eval()
+        return SuccessEnergy.from_state(
+            {k.removeprefix(f"{name}."): v for k, v in state.items() if k.startswith(f"{name}.")}
+        )
 
     return read_calibration(calibration, model("full"), [model(f"fold{i}") for i in range(FOLDS)], seed)
+
+
+def package_check(
+    held_out_paths: list[str],
+    fitted_path: Path,
+    checkpoint: Path,
+    ood_path: Path,
+    work: Path,
+    calibration_path: Path = CALIBRATION,
+    threads: int = 1,
+) -> dict:
+    """The package's route on the same rollouts, a check of the code: `ebvla-ood-report --calibrate_to` with
+    `--failure_score=success_energy` on a copy of `checkpoint` (its config's failure check set to it) and
+    `calibration_path`'s rollouts; its E_s against the one `fitted_path` holds, its T against the research reading's,
+    and every held-out rollout's score and decision against the research reading's."""
+    torch.set_num_threads(threads)
+    copy = work / "checkpoint"
+    if not copy.exists():
+        shutil.copytree(checkpoint, copy)
+        config = json.loads((copy / "config.json").read_text())
+        config["monitor"]["failure_score"] = "success_energy"
+        (copy / "config.json").write_text(json.dumps(config, indent=4))
+    if not (copy / FAILURE_CALIBRATION_FILENAME).exists():
+        write_ood_report(
+            OODReportConfig(
+                calibration=[str(calibration_path / "task*")],
+                vanilla=[f"{p}/task*" for p in held_out_paths],
+                ood=[str(ood_path / "task*")],
+                output_dir=work / "report",
+                calibrate_to=copy,
+                overwrite_calibration=True,
+                failure_score="success_energy",
+                failure_chunks=CHUNKS,
+                failure_reference="successful",
+                n_bootstrap=200,
+            )
+        )
+    return compare_package(
+        FailureCalibration.from_pretrained(copy), held_out_paths, fitted_path, calibration_path
+    )
+
+
+def compare_package(package, held_out_paths, fitted_path: Path, calibration_path: Path = CALIBRATION) -> dict:
+    """The package's saved failure check against the research reading with the E_s of `fitted_path`."""
+    calibration = load([calibration_path])
+    fitted = load_fitted(fitted_path, calibration)
+    ours = fitted.full.state_dict()
+    theirs = package.score.energy.state_dict()
+    difference = max(float((ours[k] - theirs[k]).abs().max()) for k in ours)
+    held = load(held_out_paths)
+    calibration_scores, research_scores = scores(fitted, calibration, held, "late")
+    successful = np.array([e[0].success for e in calibration.values()])
+    reference = calibration_scores[successful]
+    research_threshold = float(reference.mean() + K * reference.std())
+    package_scores = np.array(
+        [package.score_rollout(package.chunk_components(episode_readout(e))[:CHUNKS]) for e in held.values()]
+    )
+    failed = np.array([not e[0].success for e in held.values()])
+    alarms = {
+        "package": package_scores > package.threshold,
+        "research": research_scores > research_threshold,
+    }
+    return {
+        "max_weight_difference": difference,
+        "threshold": {"package": package.threshold, "research": research_threshold},
+        "max_score_difference": float(np.abs(package_scores - research_scores).max()),
+        "same_decisions": int((alarms["package"] == alarms["research"]).sum()),
+        "rollouts": len(held),
+        "alarmed": {
+            name: {"failed": int(a[failed].sum()), "successful": int(a[~failed].sum())}
+            for name, a in alarms.items()
+        },
+        "aggregation": package.aggregation,
+        "chunks": package.chunks,
+    }
 
 
 def main(argv=None) -> None:
@@ -440,6 +458,16 @@ def main(argv=None) -> None:
     )
     commands = parser.add_subparsers(dest="command", required=True)
     chooser = commands.add_parser("choose", help="every training and reading on K's three read sets")
+    packaged = commands.add_parser(
+        "package", help="the package's route (`ebvla-ood-report`) on the same rollouts"
+    )
+    packaged.add_argument("--held_out", nargs="+", required=True)
+    packaged.add_argument("--fitted", type=Path, required=True, help="the E_s a `test` saved")
+    packaged.add_argument("--checkpoint", type=Path, required=True, help="K's fitted checkpoint")
+    packaged.add_argument(
+        "--ood", type=Path, default=K_EVAL / "light_dim5", help="perturbed rollouts the report needs"
+    )
+    packaged.add_argument("--work", type=Path, required=True)
     tester = commands.add_parser("test", help="the chosen reading on new held-out sets")
     tester.add_argument("--held_out", nargs="+", required=True, help="held-out record folders, one per set")
     tester.add_argument("--training", default=None, help="default: the choice's (--choice)")
@@ -449,11 +477,17 @@ def main(argv=None) -> None:
         "--calibration", type=Path, default=CALIBRATION, help="the calibration records' folder"
     )
     tester.add_argument(
+        "--fitted",
+        type=Path,
+        default=None,
+        help="E_s saved by an earlier `test` (its .safetensors): read with it instead of refitting",
+    )
+    tester.add_argument(
         "--phase_energy",
         default=str(K_PHASE),
         help="the checkpoint's E_tau, or 'none' (no shipped check's row)",
     )
-    for command in (chooser, tester):
+    for command in (chooser, tester, packaged):
         command.add_argument("--threads", type=int, default=1)
         command.add_argument("--output", type=Path, default=None)
     args = parser.parse_args(argv)
@@ -461,12 +495,21 @@ def main(argv=None) -> None:
         result = choose(args.threads)
         write_report(result, choice_markdown(result), args.output)
         return
+    if args.command == "package":
+        result = package_check(
+            args.held_out, args.fitted, args.checkpoint, args.ood, args.work, threads=args.threads
+        )
+        write_report(result, json.dumps(result, indent=1), args.output)
+        return
     chosen = {} if args.choice is None else json.loads(args.choice.read_text())["chosen"]
     training, reading = args.training or chosen.get("training"), args.reading or chosen.get("reading")
     if training is None or reading is None:
         parser.error("give --choice, or --training and --reading")
     phase = None if args.phase_energy == "none" else Path(args.phase_energy)
-    result, fitted = test(args.held_out, training, reading, args.threads, None, args.calibration, phase)
+    fitted = None
+    if args.fitted is not None:
+        fitted = load_fitted(args.fitted, load([args.calibration]), TRAININGS[training].seed)
+    result, fitted = test(args.held_out, training, reading, args.threads, fitted, args.calibration, phase)
     write_report(result, test_markdown(result), args.output)
     if args.output is not None:
         save_models(fitted, args.output.with_suffix(".safetensors"))

@@ -418,3 +418,25 @@ def test_the_success_energy_on_a_fourth_set_matches_the_feature_distances_decisi
     assert -0.001 < chosen["auroc_minus_baseline_interval"][1] < 0  # missed, by a hair
     shipped = rows["joint_phase_time_energy"]
     assert shipped["successful_alarmed"] == 44 and shipped["auroc"] < chosen["auroc"]
+
+
+def test_the_packages_failure_check_with_the_saved_e_s_decides_as_the_research_reading_on_the_fourth_set():
+    """The package's `success_energy` failure check (its score, its "late" reading of the first 16 chunks, T on the
+    successful calibration rollouts' cross-fitted scores) built from the E_s the fourth test saved: every held-out
+    rollout's score and decision is the research script's."""
+    from lerobot_policy_ebvla.runtime.calibration import FailureCalibration
+    from lerobot_policy_ebvla.runtime.scores import SuccessEnergyScore
+
+    check, calibration, fitted = success_energy_fitted()
+    calibration_scores, _ = check.scores(fitted, calibration, {}, "late")
+    successful = np.array([e[0].success for e in calibration.values()])
+    package = FailureCalibration.fit(
+        calibration_scores[successful], aggregation="late", score=SuccessEnergyScore(fitted.full)
+    )
+    package = FailureCalibration.of(package, check.CHUNKS)
+    held = [PHASE_EVAL / "vanilla_heldout_fourth", PHASE_EVAL / "vanilla_confirm_fourth"]
+    found = check.compare_package(package, held, SUCCESS_ENERGY_REPORTS / "fourth_rollouts.safetensors")
+    assert found["max_weight_difference"] == 0 and found["max_score_difference"] < 1e-9
+    assert found["threshold"]["package"] == pytest.approx(found["threshold"]["research"], rel=1e-12)
+    assert found["same_decisions"] == found["rollouts"] == 400
+    assert found["alarmed"]["package"] == {"failed": 35, "successful": 18}

@@ -416,12 +416,15 @@ MONITOR_SCORES = (
     "joint_phase_energy",
     "context_start_energy",
     "joint_phase_time_energy",
+    "success_energy",
     "context_knn",
 )
-CONTEXT_ENERGY_SCORES = tuple(s for s in MONITOR_SCORES if s not in ("final_energy", "context_knn"))
+# The scores that read each chunk's pooled context: the policy passes it with the readout when one is monitored.
+CONTEXT_FEATURE_SCORES = ("success_energy", "context_knn")
+CONTEXT_ENERGY_SCORES = tuple(s for s in MONITOR_SCORES if s not in ("final_energy", *CONTEXT_FEATURE_SCORES))
 # The scores that also read the phase energy E_tau (`phase_energy.bins` > 0).
 PHASE_ENERGY_SCORES = ("joint_phase_time_energy",)
-# The failure check reads energies only (no features stored); "none" leaves it out.
+# The failure check stores no features (the success energy keeps a model, not contexts); "none" leaves it out.
 FAILURE_SCORES = ("none", *(s for s in MONITOR_SCORES if s != "context_knn"))
 
 
@@ -457,8 +460,10 @@ class MonitorConfig:
         failure_score: The energy score of the monitor's failure check (`runtime.EnergyMonitor`), which
             `ebvla-ood-report --calibrate_to` fits on the same vanilla rollouts and saves as
             `failure_calibration.json`: "head_energy_two_sided" (the head's part of the joint energy, E - E_c,
-            against vanilla at each chunk index, on either side), another energy score, or "none". None (the
-            default) is decided with `score`: "joint_phase_time_energy" where the policy trains E_c on its own
+            against vanilla at each chunk index, on either side), "success_energy" (the success energy E_s(C, t),
+            fitted by `--calibrate_to` on the successful calibration rollouts' pooled contexts and saved beside
+            it: it needs about 100 of them, recorded with `--record_context_features=true`), another energy
+            score, or "none". None (the default) is decided with `score`: "joint_phase_time_energy" where the policy trains E_c on its own
             encoder and has a phase energy, "head_energy_two_sided" where it has E_c alone, "none" otherwise (without E_c no energy score told failures apart).
         failure_chunks: N, the first chunks the failure check scores; it decides at the end of chunk N.
     """

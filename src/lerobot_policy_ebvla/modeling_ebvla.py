@@ -26,6 +26,7 @@ from torch.utils.hooks import RemovableHandle
 from .backbone_resnet import EBVLAResNetBackbone
 from .compile_ebvla import CHUNK_GRAPH_MODE, compiled_context, compiled_energy_fn, refinement_graphs
 from .configuration_ebvla import EBVLAConfig, load_saved_config
+from .configuration_groups import CONTEXT_FEATURE_SCORES
 from .energy_head import ContextKV, EBVLAEnergyHead, pooled_context
 from .inputs_ebvla import (
     batch_size_of,
@@ -194,7 +195,9 @@ class EBVLAPolicy(PreTrainedPolicy):
             execution_horizon: Overrides `rtc_config.execution_horizon`, the end of the guided overlap.
         """
         validate_observation(batch, self.config)
-        monitor_reads_features = self.ood_response is not None and self.ood_response.needs_context_features
+        monitor_reads_features = (
+            self.ood_response is not None and self.ood_response.needs_context_features
+        ) or self.config.monitor.failure_score in CONTEXT_FEATURE_SCORES
         needs_features = monitor_reads_features or self.model.needs_context_features
         # lerobot-eval runs under inference_mode, but refinement differentiates the energy w.r.t. a.
         with torch.inference_mode(False):

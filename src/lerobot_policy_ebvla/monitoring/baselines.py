@@ -235,14 +235,21 @@ def recorded_inputs(episodes: Sequence[Episode]) -> set[str]:
 def vanilla_rollouts(
     episodes: Mapping[Hashable, Episode], aggregation: str = "mean", knn_k: int = DEFAULT_KNN_K
 ) -> VanillaRollouts:
-    """The calibration episodes as a run-time score is fitted on them (`episode_readout`)."""
-    return VanillaRollouts([episode_readout(episode) for episode in episodes.values()], aggregation, knn_k)
+    """The calibration episodes as a run-time score is fitted on them (`episode_readout`), with whether each
+    succeeded."""
+    return VanillaRollouts(
+        [episode_readout(episode) for episode in episodes.values()],
+        aggregation,
+        knn_k,
+        [episode[0].success for episode in episodes.values()],
+    )
 
 
 class RegisteredScoreModel:
     """A run-time score of `SCORES` that this module has no baseline of, fitted on the calibration episodes.
 
-    A calibration episode (named by `episode_id`) is scored against the score refitted without it (cached per
+    A calibration episode (named by `episode_id`) is scored against a score that never saw it: the score's own
+    cross-fitting where it has one (`ChunkScore.held_out_fits`), else the score refitted without it (cached per
     episode); with no other calibration episode, against the full fit.
     """
 
@@ -254,6 +261,11 @@ class RegisteredScoreModel:
         self.score = score
         self.fitted = score.fit(self.rollouts)
         self._left_out: dict[Hashable, ChunkScore] = {}
+        readers = score.held_out_fits(self.rollouts) if len(self.keys) > 1 else None
+        if readers is not None:
+            self._left_out = {
+                key: reader or self.fitted for key, reader in zip(self.keys, readers, strict=True)
+            }
 
     def fitted_for(self, episode_id: Hashable = None) -> ChunkScore:
         """The fitted score an episode is scored with."""

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..configuration_ebvla import EBVLAConfig
-from ..configuration_groups import MonitorConfig
+from ..configuration_groups import CONTEXT_FEATURE_SCORES, MonitorConfig
 from ..runtime.calibration import (
     DEFAULT_FAILURE_CHUNKS,
     FAILURE_CALIBRATION_FILENAME,
@@ -271,7 +271,7 @@ class OODScores:
 
     def fit(self, name: str, first_chunks: int | None = None) -> OODCalibration:
         """The threshold statistics of a score on the calibration rollouts' scores over the same chunks."""
-        return self._fit(self.scores(self.calibration_chunks, name, first_chunks))
+        return self._fit(self.scores(self.calibration_chunks, name, first_chunks), name=name)
 
     @cached_property
     def saved_fit(self) -> OODCalibration:
@@ -282,7 +282,8 @@ class OODScores:
         n = self.cfg.table_iii_first_chunks
         if not n:
             return self.fit(self.saved_score)
-        return self._fit(self.running_scores(self.calibration_chunks, self.saved_score, n), window=True)
+        running = self.running_scores(self.calibration_chunks, self.saved_score, n)
+        return self._fit(running, window=True, name=self.saved_score)
 
     def running_scores(self, chunks: dict, name: str, window_chunks: int) -> np.ndarray:
         """(R, N) each rollout's score over its first 1, ..., N chunks (a rollout shorter than n: all its chunks)."""
@@ -307,6 +308,7 @@ class OODScores:
         return self._fit(
             self.scores(self.calibration_chunks, name, first_chunks)[self.failure_reference_mask()],
             self.cfg.failure_rule,
+            name=name,
         )
 
     def failure_reference_mask(self) -> np.ndarray:
@@ -322,14 +324,16 @@ class OODScores:
         return successful
 
     def _fit(
-        self, calibration_scores: np.ndarray, rule: str | None = None, window: bool = False
+        self, calibration_scores: np.ndarray, rule: str | None = None, window: bool = False, name: str = ""
     ) -> OODCalibration:
-        """The report's threshold statistics of calibration scores, or with `window` of (R, N) running scores."""
+        """The report's threshold statistics of calibration scores (of the score `name`), or with `window` of
+        (R, N) running scores; aggregated as the score's own reading says where it has one."""
         fit = OODCalibration.fit_window if window else OODCalibration.fit
+        reading = SCORES[name].rollout_aggregation if name in SCORES else None
         return fit(
             calibration_scores,
             k=self.cfg.k,
-            aggregation=self.cfg.aggregation,
+            aggregation=reading or self.cfg.aggregation,
             false_alarm_rate=self.cfg.false_alarm_rate,
             rule=self.cfg.threshold_rule if rule is None else rule,
         )
@@ -392,17 +396,29 @@ def score_ood_report(cfg: OODReportConfig) -> OODScores:
     inputs = recorded_inputs(every_episode)
     has_features = "context_features" in inputs
     can_combine = all(name in chunk_names for name in COMBINED_FROM)
-    registered = [n for n in registered_scores() if set(SCORES[n].reads) <= inputs]
-    names = _beside_one_sided([*chunk_names, *(COMBINED_SCORES if can_combine else ()), *registered])
     monitor = checkpoint_monitor(cfg.calibrate_to)
     saved_score = cfg.score or checkpoint_monitor_score(cfg.calibrate_to)
     failure_score = cfg.failure_score or (
         monitor.failure_score
         if monitor is not None
         else _DEFAULT_FAILURE_SCORE
-        if _DEFAULT_FAILURE_SCORE in names
+        if _DEFAULT_FAILURE_SCORE in SCORES and set(SCORES[_DEFAULT_FAILURE_SCORE].reads) <= inputs
         else "none"
     )
+    if monitor is not None and failure_score in CONTEXT_FEATURE_SCORES and monitor.failure_score != failure_score:
+        raise ValueError(
+            f"`--failure_score={failure_score}` reads each chunk's pooled context, which the policy passes with its "
+            f"readout only when its config names such a failure check, and {cfg.calibrate_to}'s config names "
+            f"{monitor.failure_score!r}: calibrate a checkpoint saved with `monitor.failure_score={failure_score!r}`."
+        )
+    # A score that trains a model is computed only when it is the one saved or the failure check.
+    registered = [
+        n
+        for n in registered_scores()
+        if set(SCORES[n].reads) <= inputs
+        and (not SCORES[n].trains_model or n in (saved_score, failure_score))
+    ]
+    names = _beside_one_sided([*chunk_names, *(COMBINED_SCORES if can_combine else ()), *registered])
     failure_chunks = cfg.failure_chunks or (
         DEFAULT_FAILURE_CHUNKS if monitor is None else monitor.failure_chunks
     )
@@ -553,7 +569,10 @@ def _failure_calibration(scored: OODScores) -> FailureCalibration:
     """The failure check `--calibrate_to` saves: its score fitted on every calibration rollout, mu_v and sigma_v
     those of the reference rollouts' first N chunks (`failure_reference`; leave-one-out, as the report's)."""
     cfg, name, n = scored.cfg, scored.failure_score, scored.failure_chunks
-    score = SCORES[name].fit(vanilla_rollouts(scored.calibration_set, cfg.aggregation, cfg.knn_k))
+    if name in scored.reference.registered:  # fitted on every calibration rollout already
+        score = scored.reference.registered[name].fitted
+    else:
+        score = SCORES[name].fit(vanilla_rollouts(scored.calibration_set, cfg.aggregation, cfg.knn_k))
     return FailureCalibration.of(dataclasses.replace(scored.fit_failure(name, n), score=score), n)
 
 

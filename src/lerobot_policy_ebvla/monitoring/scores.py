@@ -124,9 +124,15 @@ def registered_rollout_scores(
     first_chunks: int | None = None,
 ) -> np.ndarray:
     """One rollout score per episode of a registered score, from each episode's fitted score and chunk
-    components (`baselines.RegisteredScoreModel.components`), over its first k chunks or all."""
+    components (`baselines.RegisteredScoreModel.components`), over its first k chunks or all; a score with its
+    own reading (`ChunkScore.rollout_aggregation`) is aggregated that way."""
     _check_first_chunks(first_chunks)
-    return np.array([score_rollout(s, c[:first_chunks], aggregation) for s, c in components.values()])
+    return np.array(
+        [
+            score_rollout(s, c[:first_chunks], s.rollout_aggregation or aggregation)
+            for s, c in components.values()
+        ]
+    )
 
 
 def combined_rollout_scores(

@@ -113,6 +113,12 @@ class OODCalibration(CheckpointJSON):
             raise ValueError(
                 f"`score` must be a `ChunkScore` registered in `SCORES` ({', '.join(SCORES)}), got {self.score!r}."
             )
+        reading = self.score.rollout_aggregation
+        if reading is not None and self.aggregation != reading:
+            raise ValueError(
+                f"`{self.score.name}` is read as the {reading!r} aggregation of its chunks, the reading it was chosen "
+                f"with; got `aggregation={self.aggregation!r}`."
+            )
         if self.window is not None and not isinstance(self.window, ChunkWindow):
             raise ValueError(f"`window` must be a `ChunkWindow` or None, got {type(self.window).__name__}.")
 
@@ -174,7 +180,9 @@ class OODCalibration(CheckpointJSON):
         """The calibration of the score named `score` (a checkpoint's `config.monitor.score`) on vanilla rollouts.
 
         The score is fitted on every vanilla rollout; mu_v and sigma_v are those of the vanilla rollouts' scores,
-        each rollout scored against the score fitted without it (leave-one-out), as a new rollout would be.
+        each rollout scored against a score fitted without it (leave-one-out, or the score's own cross-fitting:
+        `ChunkScore.held_out_fits`), as a new rollout would be. A score with its own reading
+        (`rollout_aggregation`) is aggregated that way whatever `vanilla.aggregation` says.
         With `window_chunks=N` the rollout scores are window scores over the first N chunks (`ChunkWindow`), each
         standardized by the window of the other rollouts; a rollout shorter than N keeps its last running score.
 
@@ -188,20 +196,26 @@ class OODCalibration(CheckpointJSON):
             rollout.require(score_class.reads, score)
         if window_chunks is not None and window_chunks < 1:
             raise ValueError(f"`window_chunks` must be >= 1 or None, got {window_chunks}.")
+        aggregation = score_class.rollout_aggregation or vanilla.aggregation
+        full = score_class.fit(vanilla)
+        readers = score_class.held_out_fits(vanilla)
         running = []
         for i, rollout in enumerate(vanilla.rollouts):
-            fitted = score_class.fit(vanilla.without(i) if len(vanilla) > 1 else vanilla)
+            if readers is not None:
+                fitted = readers[i] or full
+            else:
+                fitted = score_class.fit(vanilla.without(i)) if len(vanilla) > 1 else full
             components = fitted.components(rollout)
             lengths = [len(components)] if window_chunks is None else range(1, window_chunks + 1)
-            running.append([score_rollout(fitted, components[:n], vanilla.aggregation) for n in lengths])
+            running.append([score_rollout(fitted, components[:n], aggregation) for n in lengths])
         fit = cls.fit_window if window_chunks is not None else cls.fit
         return fit(
             running if window_chunks is not None else np.asarray(running)[:, 0],
             k=k,
-            aggregation=vanilla.aggregation,
+            aggregation=aggregation,
             false_alarm_rate=false_alarm_rate,
             rule=rule,
-            score=score_class.fit(vanilla),
+            score=full,
         )
 
     @classmethod
@@ -369,10 +383,11 @@ class FailureCalibration(OODCalibration):
         super().__post_init__()
         if self.chunks < 1:
             raise ValueError(f"`chunks` must be >= 1, got {self.chunks}.")
-        if type(self.score).side_files or "context_features" in self.score.reads:
+        if type(self.score).feature_baseline:
             raise ValueError(
-                f"The failure check reads the policy's energies only and stores no features; `{self.score.name}` "
-                "reads the pooled context. Use an energy score (head_energy_two_sided, the default)."
+                f"The failure check stores no features; `{self.score.name}` is a feature baseline, which keeps the "
+                "calibration's pooled contexts or their statistics. Use an energy score (head_energy_two_sided, the "
+                "default, or success_energy)."
             )
 
     @classmethod
@@ -395,11 +410,8 @@ class FailureCalibration(OODCalibration):
         rule: str = "mean_std",
     ) -> "FailureCalibration":
         """`OODCalibration.calibrate` on the vanilla rollouts' first `chunks` chunks."""
-        first = VanillaRollouts(
-            [r.first(chunks) for r in vanilla.rollouts], vanilla.aggregation, vanilla.knn_k
-        )
         calibration = OODCalibration.calibrate(
-            score, first, k=k, false_alarm_rate=false_alarm_rate, rule=rule
+            score, vanilla.first(chunks), k=k, false_alarm_rate=false_alarm_rate, rule=rule
         )
         return cls.of(calibration, chunks)
 

@@ -20,7 +20,10 @@ from .readout import EnergyReadout
 from .statistics import DEFAULT_KNN_K, float64
 from .threshold import ArrayLike, as_array
 
-SCORE_AGGREGATIONS = ("mean", "max", "last", "median")
+SCORE_AGGREGATIONS = ("mean", "max", "last", "median", "late")
+# "late": the mean of a rollout's last chunks, this many, where a score tells failures apart once the rollouts
+# have had time to diverge (`SuccessEnergyScore`).
+LATE_CHUNKS = 4
 
 
 def rollout_score(chunk_energies: ArrayLike, aggregation: str = "mean") -> float:
@@ -29,8 +32,9 @@ def rollout_score(chunk_energies: ArrayLike, aggregation: str = "mean") -> float
     Args:
         chunk_energies: E(a^(K_inf), C) of each predicted chunk of the rollout.
         aggregation: "mean" (default, every chunk counts equally), "max" (the least confident chunk),
-            "last" (the most recent chunk, what a streaming monitor sees) or "median" (robust to a few
-            outlying chunks). With "mean" and "max" one +inf chunk makes the score +inf.
+            "last" (the most recent chunk, what a streaming monitor sees), "median" (robust to a few
+            outlying chunks) or "late" (the mean of the last `LATE_CHUNKS`). With "mean", "max" and "late" one
+            +inf chunk makes the score +inf.
 
     Raises:
         ValueError: No energies, or an unknown aggregation.
@@ -40,7 +44,13 @@ def rollout_score(chunk_energies: ArrayLike, aggregation: str = "mean") -> float
     energies = as_array(chunk_energies)
     if energies.size == 0:
         raise ValueError("A rollout score needs at least one chunk energy.")
-    reduce = {"mean": np.mean, "max": np.max, "last": lambda e: e[-1], "median": np.median}[aggregation]
+    reduce = {
+        "mean": np.mean,
+        "max": np.max,
+        "last": lambda e: e[-1],
+        "median": np.median,
+        "late": lambda e: np.mean(e[-LATE_CHUNKS:]),
+    }[aggregation]
     return float(reduce(energies))
 
 
@@ -169,15 +179,24 @@ class VanillaRollouts:
         rollouts: Each rollout's readout, in chunk order.
         aggregation: How the calibration aggregates a rollout's chunks (`rollout_score`).
         knn_k: Which nearest vanilla context the context k-NN distance measures to.
+        succeeded: Whether each rollout succeeded, where known: a score fitted on successful rollouts only
+            (`SuccessEnergyScore`) reads it.
     """
 
     rollouts: Sequence[EnergyReadout | ChunkInputs]
     aggregation: str = "mean"
     knn_k: int = DEFAULT_KNN_K
+    succeeded: Sequence[bool] | None = None
 
     def __post_init__(self):
         chunks = [r if isinstance(r, ChunkInputs) else ChunkInputs.of(r) for r in self.rollouts]
         object.__setattr__(self, "rollouts", chunks)
+        if self.succeeded is not None:
+            if len(self.succeeded) != len(chunks):
+                raise ValueError(
+                    f"`succeeded` has {len(self.succeeded)} entries and `rollouts` {len(chunks)}: give one per rollout."
+                )
+            object.__setattr__(self, "succeeded", tuple(bool(s) for s in self.succeeded))
 
     def __len__(self) -> int:
         return len(self.rollouts)
@@ -204,7 +223,29 @@ class VanillaRollouts:
     def without(self, rollout: int) -> "VanillaRollouts":
         """The same rollouts but one: what a calibration rollout is scored against (leave-one-out)."""
         others = [r for i, r in enumerate(self.rollouts) if i != rollout]
-        return VanillaRollouts(others, self.aggregation, self.knn_k)
+        succeeded = (
+            None if self.succeeded is None else [s for i, s in enumerate(self.succeeded) if i != rollout]
+        )
+        return VanillaRollouts(others, self.aggregation, self.knn_k, succeeded)
+
+    def first(self, n: int) -> "VanillaRollouts":
+        """Each rollout's first n chunks (`ChunkInputs.first`)."""
+        return VanillaRollouts(
+            [r.first(n) for r in self.rollouts], self.aggregation, self.knn_k, self.succeeded
+        )
+
+    def successful(self, score: str) -> list[int]:
+        """The positions of the rollouts that succeeded, which `score` is fitted on.
+
+        Raises:
+            ValueError: Whether they succeeded is not known.
+        """
+        if self.succeeded is None:
+            raise ValueError(
+                f"The {score} score is fitted on the successful calibration rollouts: give `succeeded`, whether "
+                "each rollout succeeded (the records' `success`)."
+            )
+        return [i for i, s in enumerate(self.succeeded) if s]
 
 
 class ChunkScore(Protocol):
@@ -224,6 +265,13 @@ class ChunkScore(Protocol):
     # Its plain JSON fields, and the statistics it saves beside the JSON (`to_json` gives them as objects).
     json_fields: ClassVar[tuple[str, ...]] = ()
     side_files: ClassVar[tuple[SideFile, ...]] = ()
+    # A feature baseline keeps the calibration's contexts or their statistics: reported beside the energies, never
+    # the failure check.
+    feature_baseline: ClassVar[bool] = False
+    # The aggregation the score's rollout reading was chosen with, which a calibration of it must use; None: any.
+    rollout_aggregation: ClassVar[str | None] = None
+    # Whether fitting trains a model (minutes, not milliseconds): a report computes it only where it is asked for.
+    trains_model: ClassVar[bool] = False
 
     @classmethod
     def fit(cls, vanilla: VanillaRollouts) -> Self:
@@ -232,6 +280,13 @@ class ChunkScore(Protocol):
         for name in cls.reads:
             vanilla.series(name, cls.name)
         return cls()
+
+    @classmethod
+    def held_out_fits(cls, vanilla: VanillaRollouts) -> list[Self | None] | None:
+        """For each vanilla rollout, the fitted score that reads it in a calibration, one that never saw it (None
+        for a rollout the fit on all never saw either). None (the default): each is refitted without it
+        (`VanillaRollouts.without`), which a score that trains a model replaces by cross-fitting."""
+        return None
 
     def components(self, chunks: ChunkInputs) -> np.ndarray:
         """(B, n_components) from the inputs of B chunks; the inputs of `reads` are there (`ChunkInputs.get`)."""
