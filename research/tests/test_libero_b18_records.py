@@ -440,3 +440,19 @@ def test_the_packages_failure_check_with_the_saved_e_s_decides_as_the_research_r
     assert found["threshold"]["package"] == pytest.approx(found["threshold"]["research"], rel=1e-12)
     assert found["same_decisions"] == found["rollouts"] == 400
     assert found["alarmed"]["package"] == {"failed": 35, "successful": 18}
+
+
+def test_the_rollouts_e_s_ranks_wrongly_on_the_fourth_set_are_the_slow_successes():
+    """libero_runs.md, "E_s in the package, and a fifth set" (descriptive): on the fourth set the successful rollouts
+    E_s ranks among the failed are the six that took 25-35 chunks (the step cap is 35), which the feature distance
+    ranks there too; the report recomputes."""
+    ranking = load_benchmark("success_energy_ranking")
+    committed = json.loads((SUCCESS_ENERGY_REPORTS / "fourth_ranking.json").read_text())
+    held = [str(PHASE_EVAL / "vanilla_heldout_fourth"), str(PHASE_EVAL / "vanilla_confirm_fourth")]
+    found = ranking.ranking(SUCCESS_ENERGY_REPORTS / "fourth_rollouts.safetensors", held)
+    assert found["rows"] == committed["rows"]
+    assert found["successful_by_length"] == committed["successful_by_length"]
+    slow = [b for b in found["successful_by_length"] if b["chunks"][0] >= 25]
+    quick = [b for b in found["successful_by_length"] if b["chunks"][0] < 25]
+    assert sum(b["rollouts"] for b in slow) == 6
+    assert min(b["success_energy_mean"] for b in slow) > 5 > max(b["success_energy_mean"] for b in quick)

@@ -7,13 +7,16 @@
 - `statistics`: what the chunk scores measure against, fitted on vanilla rollouts (`PhaseStatistics`,
   `ContextStatistics`, `ContextNeighbours`, `CombinedStatistics`), and `ChunkWindow`, the one score of a rollout's
   first N running scores that lets one T bound a run-time monitor's N decisions.
-- `scores`: `ChunkInputs` (a readout as the scores read it), the `ChunkScore` protocol, the package's seven scores
-  (final energy, context phase energy, two-sided head energy, joint phase energy, context start energy, context
-  k-NN), and `SCORES`,
-  the registry that names them, with `register_score`, its hook for research scores.
+- `scores`: `ChunkInputs` (a readout as the scores read it), the `ChunkScore` protocol, the package's eight scores
+  (final energy, context phase energy, two-sided head energy, joint phase energy, context start energy, joint phase
+  time energy, success energy, context k-NN), and `SCORES`, the registry that names them, with `register_score`,
+  its hook for research scores.
+- `success_energy`: `SuccessEnergy`, E_s(C, t), an energy of the pooled context at chunk index t fitted on the
+  successful calibration rollouts, its fit and its cross-fitting (the `success_energy` failure check).
 - `calibration`: `OODCalibration`, the threshold statistics of one chunk score (`ood_calibration.json` beside
   the weights, the score's statistics in safetensors files beside it), and `FailureCalibration`, the failure
-  check's: an energy score over the first N chunks, set on the same vanilla rollouts (`failure_calibration.json`).
+  check's: an energy score over the first N chunks, set on the same vanilla rollouts (`failure_calibration.json`;
+  the success energy's weights beside it).
 - `monitor`: `EnergyMonitor`, the checkpoint's monitor: both thresholds applied to the policy's readouts as they
   come (`from_pretrained`, `update(policy.last_energy)`, `reset`), and `EnergyOODMonitor`, one calibration alone.
 - `failure_alarm`: `FailureAlarm`, the paper's energy-slope failure predictor as one check at a step chosen on

@@ -366,7 +366,8 @@ class FailureCalibration(OODCalibration):
     `ebvla-ood-report --failure_reference=successful`), so the alarm says "these first chunks are unlike a
     vanilla rollout's", and the report measures how often that means failure. It is decided once, at
     the end of chunk N, and kept for the episode (`EnergyMonitor`). The score is an energy score, the head's part
-    of the joint energy by default (`monitor.failure_score`): it stores no features.
+    of the joint energy by default (`monitor.failure_score`), or the success energy E_s (`success_energy`), whose
+    weights are saved beside it: it stores no features.
 
     Args:
         chunks: N, the chunks the rollout score aggregates (the first N; an episode that ends before chunk N is
