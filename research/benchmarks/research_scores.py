@@ -340,6 +340,7 @@ TABLE_ORDER = (
     "joint_phase_energy",
     "context_start_energy",
     "joint_phase_time_energy",
+    "success_energy",  # computed only where named (it trains a model): in no committed table
 )
 for _score in RESEARCH_SCORES:
     register_score(_score)

@@ -511,7 +511,7 @@ def main(argv=None) -> None:
         fitted = load_fitted(args.fitted, load([args.calibration]), TRAININGS[training].seed)
     result, fitted = test(args.held_out, training, reading, args.threads, fitted, args.calibration, phase)
     write_report(result, test_markdown(result), args.output)
-    if args.output is not None:
+    if args.output is not None and args.fitted is None:  # E_s read from a file is not saved again
         save_models(fitted, args.output.with_suffix(".safetensors"))
 
 
