@@ -267,3 +267,9 @@ def test_ood_report_refuses_e_s_for_a_checkpoint_whose_policy_would_not_pass_the
             ]
         )
     assert not (checkpoint / FAILURE_CALIBRATION_FILENAME).exists()
+
+
+def test_a_fit_on_few_successful_rollouts_warns(caplog):
+    with caplog.at_level("WARNING"):
+        SuccessEnergyScore.fit(vanilla(6, 0, seed=3))
+    assert "fitted on 6 successful calibration rollouts" in caplog.text

@@ -405,7 +405,11 @@ def score_ood_report(cfg: OODReportConfig) -> OODScores:
         if _DEFAULT_FAILURE_SCORE in SCORES and set(SCORES[_DEFAULT_FAILURE_SCORE].reads) <= inputs
         else "none"
     )
-    if monitor is not None and failure_score in CONTEXT_FEATURE_SCORES and monitor.failure_score != failure_score:
+    if (
+        monitor is not None
+        and failure_score in CONTEXT_FEATURE_SCORES
+        and monitor.failure_score != failure_score
+    ):
         raise ValueError(
             f"`--failure_score={failure_score}` reads each chunk's pooled context, which the policy passes with its "
             f"readout only when its config names such a failure check, and {cfg.calibrate_to}'s config names "

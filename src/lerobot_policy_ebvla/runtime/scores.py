@@ -43,6 +43,7 @@ baseline `ContextKNN` and the registry here.
 This module re-exports the other two's names, so a score and its base are still imported from `runtime.scores`.
 """
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -75,6 +76,8 @@ from .phase_scores import (
 )
 from .statistics import ContextNeighbours
 from .success_energy import SuccessEnergy, fit_success_energy, fold_readers
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
     "INPUT_SOURCES",
@@ -157,6 +160,8 @@ class ContextKNN(ChunkScore):
         return cls(fields.get(NEIGHBOURS_FILE.field))
 
 
+# Fewer successful calibration rollouts than this, and the success energy's fit warns.
+FEW_SUCCESSFUL_ROLLOUTS = 50
 # E_s's weights and standardization, beside the calibration that reads it (a model, not the contexts it saw).
 SUCCESS_ENERGY_FILE = SideFile(
     "success_energy",
@@ -173,11 +178,13 @@ class SuccessEnergyScore(ChunkScore):
     on the successful vanilla rollouts and read as the mean of a window's last `LATE_CHUNKS` chunks ("late").
 
     A failure score: a rollout whose context at chunk t is unlike any successful rollout's at t is heading for
-    failure. On K's fourth set of 400 LIBERO rollouts, over the first 16 chunks, it caught 35 of 36 failures with 18
-    of 364 successful rollouts alarmed (96.1 %), level with the feature distance `chunk_context_nn` at the threshold
-    and 0.012 below it in AUROC (research/docs/libero_runs.md, "A success energy fitted on the policy's own
-    successful rollouts"). A calibration reads each successful rollout with the E_s of the fold that left it out.
-    It needs about 100 successful calibration rollouts with their pooled contexts.
+    failure. On two sets of 400 new LIBERO rollouts of K, over the first 16 chunks, it caught 35/36 and 27/27 failures
+    with 18/364 and 20/373 successful rollouts alarmed (96.1 %, 97.3 %), level with the feature distance
+    `chunk_context_nn` at the threshold and 0.012 and 0.006 below it in AUROC, and with half the false alarms of
+    `joint_phase_time_energy` (research/docs/libero_runs.md, "E_s in the package, and a fifth set"). A calibration
+    reads each successful rollout with the E_s of the fold that left it out. It was chosen with 95 successful
+    calibration rollouts and needs about that many, with their pooled contexts; the fit warns below
+    `FEW_SUCCESSFUL_ROLLOUTS`.
     """
 
     energy: SuccessEnergy = field(compare=False)
@@ -191,10 +198,6 @@ class SuccessEnergyScore(ChunkScore):
     def __post_init__(self):
         check_statistics(self.name, "energy", self.energy, SuccessEnergy)
 
-    @staticmethod
-    def _successful(vanilla: VanillaRollouts) -> list[int]:
-        return vanilla.successful(SuccessEnergyScore.name)
-
     @classmethod
     def _rollouts(cls, vanilla: VanillaRollouts, positions: list[int]) -> list:
         chunks = [vanilla.rollouts[i] for i in positions]
@@ -202,11 +205,18 @@ class SuccessEnergyScore(ChunkScore):
 
     @classmethod
     def fit(cls, vanilla: VanillaRollouts) -> "SuccessEnergyScore":
-        return cls(fit_success_energy(cls._rollouts(vanilla, cls._successful(vanilla))))
+        successful = vanilla.successful(cls.name)
+        if len(successful) < FEW_SUCCESSFUL_ROLLOUTS:
+            logger.warning(
+                "The success energy is fitted on %d successful calibration rollouts; it was chosen and tested with 95 "
+                "(LIBERO), and with fewer its threshold rests on few, noisy reads.",
+                len(successful),
+            )
+        return cls(fit_success_energy(cls._rollouts(vanilla, successful)))
 
     @classmethod
     def held_out_fits(cls, vanilla: VanillaRollouts) -> list["SuccessEnergyScore | None"]:
-        successful = cls._successful(vanilla)
+        successful = vanilla.successful(cls.name)
         readers: list[SuccessEnergyScore | None] = [None] * len(vanilla)
         for position, model in zip(successful, fold_readers(cls._rollouts(vanilla, successful)), strict=True):
             readers[position] = cls(model)
