@@ -162,7 +162,7 @@ def cross_fit(calibration: dict, training: Training) -> Fitted:
     """The package's fit and cross-fitting (`fit_success_energy`, `fold_readers`) with `training`'s negatives."""
     successful = [contexts(e) for e in calibration.values() if e[0].success]
     readers = fold_readers(successful, training.seed, **training.fit_kwargs)
-    folds = list({id(model): model for model in readers}.values())  # in fold order: each fold's first reader
+    folds = [readers[fold[0]] for fold in fold_order(len(successful), training.seed)]
     full = fit_success_energy(successful, training.seed, **training.fit_kwargs)
     return read_calibration(calibration, full, folds, training.seed)
 

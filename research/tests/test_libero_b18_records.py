@@ -521,3 +521,27 @@ def test_the_packages_route_fitted_the_same_e_s_and_decides_the_fifth_set_as_the
     found = check.compare_package(package, FIFTH, SUCCESS_ENERGY_REPORTS / "fourth_rollouts.safetensors")
     assert found == json.loads((SUCCESS_ENERGY_REPORTS / "fifth_package_route.json").read_text())
     assert found["max_weight_difference"] == 0 and found["same_decisions"] == 400
+
+
+def test_the_research_cross_fitting_reads_each_calibration_rollout_with_a_fold_that_never_saw_it(monkeypatch):
+    """`success_energy_failure_check.cross_fit` pairs each fold's E_s with that fold's rollouts (in fold order, as
+    `save_models` writes and `load_fitted` reads them): no successful calibration rollout is read by an E_s fitted
+    on it. The fit is replaced by one that remembers its rollouts, so this takes seconds."""
+    import lerobot_policy_ebvla.runtime.success_energy as package
+
+    check = load_benchmark("success_energy_failure_check")
+
+    class Remembering:
+        def __init__(self, rollouts, seed=0, **_):
+            self.seen = {features.tobytes() for features, _ in rollouts}
+
+        def series(self, features, index):
+            return np.full(len(index), float(np.asarray(features, dtype=np.float32).tobytes() in self.seen))
+
+    monkeypatch.setattr(package, "fit_success_energy", Remembering)
+    monkeypatch.setattr(check, "fit_success_energy", Remembering)
+    calibration = load_episodes([str(K_EVAL / "vanilla_calib" / "task*")])
+    fitted = check.cross_fit(calibration, check.TRAININGS["other contexts and noise"])
+    successful = [key for key, e in calibration.items() if e[0].success]
+    assert len(successful) == 95 and len(fitted.folds) == 5
+    assert all(not fitted.calibration_series[key].any() for key in successful)

@@ -34,7 +34,7 @@ from ..runtime.calibration import (
     FailureCalibration,
     OODCalibration,
 )
-from ..runtime.scores import INPUT_SOURCES, SCORE_AGGREGATIONS, SCORES
+from ..runtime.scores import INPUT_SOURCES, SCORE_AGGREGATIONS, SCORES, reading_of
 from ..runtime.statistics import DEFAULT_KNN_K
 from .baselines import (
     COMBINED_FROM,
@@ -329,11 +329,12 @@ class OODScores:
         """The report's threshold statistics of calibration scores (of the score `name`), or with `window` of
         (R, N) running scores; aggregated as the score's own reading says where it has one."""
         fit = OODCalibration.fit_window if window else OODCalibration.fit
-        reading = SCORES[name].rollout_aggregation if name in SCORES else None
         return fit(
             calibration_scores,
             k=self.cfg.k,
-            aggregation=reading or self.cfg.aggregation,
+            aggregation=reading_of(SCORES[name], self.cfg.aggregation)
+            if name in SCORES
+            else self.cfg.aggregation,
             false_alarm_rate=self.cfg.false_alarm_rate,
             rule=self.cfg.threshold_rule if rule is None else rule,
         )

@@ -15,7 +15,7 @@ from collections.abc import Hashable, Mapping
 
 import numpy as np
 
-from ..runtime.scores import ChunkScore, rollout_score, score_rollout
+from ..runtime.scores import ChunkScore, reading_of, rollout_score, score_rollout
 from ..runtime.statistics import CombinedStatistics
 from .baselines import (
     COMBINED_FROM,
@@ -128,10 +128,7 @@ def registered_rollout_scores(
     own reading (`ChunkScore.rollout_aggregation`) is aggregated that way."""
     _check_first_chunks(first_chunks)
     return np.array(
-        [
-            score_rollout(s, c[:first_chunks], s.rollout_aggregation or aggregation)
-            for s, c in components.values()
-        ]
+        [score_rollout(s, c[:first_chunks], reading_of(s, aggregation)) for s, c in components.values()]
     )
 
 

@@ -36,6 +36,7 @@ from .scores import (
     ChunkScore,
     FinalEnergy,
     VanillaRollouts,
+    reading_of,
     score_rollout,
 )
 from .statistics import ChunkWindow, PhaseStatistics
@@ -196,7 +197,7 @@ class OODCalibration(CheckpointJSON):
             rollout.require(score_class.reads, score)
         if window_chunks is not None and window_chunks < 1:
             raise ValueError(f"`window_chunks` must be >= 1 or None, got {window_chunks}.")
-        aggregation = score_class.rollout_aggregation or vanilla.aggregation
+        aggregation = reading_of(score_class, vanilla.aggregation)
         full = score_class.fit(vanilla)
         readers = score_class.held_out_fits(vanilla)
         running = []

@@ -306,6 +306,11 @@ class ChunkScore(Protocol):
         return cls()
 
 
+def reading_of(score: ChunkScore | type[ChunkScore], aggregation: str) -> str:
+    """The aggregation `score` is read with: its own (`rollout_aggregation`) where it has one, else `aggregation`."""
+    return score.rollout_aggregation or aggregation
+
+
 def score_rollout(score: ChunkScore, components: ArrayLike, aggregation: str) -> float:
     """The rollout score of (N, n_components) chunk components: each column aggregated, then combined.
 
