@@ -4,7 +4,7 @@ Table IV; research/docs/libero_runs.md, "The phase energy on new rollouts", fixe
 K's checkpoint fitted by `ebvla-fit-phase-energy` records E_tau with every chunk as it runs, and with K's seeds it runs
 K's rollouts chunk for chunk; new seeds give new rollouts of the same fixed states: states 10-29 with seeds 6000 + i,
 states 30-49 with 7000 + i (`--test=second`; `third`: 8000 + i and 9000 + i; `fourth`: 10000 + i and 11000 + i; `fifth`: 12000 + i and
-13000 + i), 20
+13000 + i; `sixth`: 14000 + i and 15000 + i), 20
 a task and set, through the LIBERO pipeline's evaluation (`libero_pipeline.evaluate`: two jobs side by side, one torch
 thread each, resumable: a job whose `eval_info.json` exists is skipped).
 
@@ -33,12 +33,13 @@ from lerobot_policy_ebvla.pipelines.phase_energy import save_with_phase_energy
 RUN = "ebvla_joint_fast_cpu_b18_phase"
 # (condition, first fixed state, seed of its first episode) per test: seeds no earlier evaluation of K used
 # (calibration 1000, held out 2000, shifts 3000, confirmation 4000, fresh placements 200000; the second test 6000 and
-# 7000, the third 8000 and 9000, the fourth 10000 and 11000 for the fifth's).
+# 7000, the third 8000 and 9000, the fourth 10000 and 11000, the fifth 12000 and 13000 for the sixth's).
 TESTS = {
     "second": (("vanilla_heldout_new", 10, 6000), ("vanilla_confirm_new", 30, 7000)),
     "third": (("vanilla_heldout_third", 10, 8000), ("vanilla_confirm_third", 30, 9000)),
     "fourth": (("vanilla_heldout_fourth", 10, 10000), ("vanilla_confirm_fourth", 30, 11000)),
     "fifth": (("vanilla_heldout_fifth", 10, 12000), ("vanilla_confirm_fifth", 30, 13000)),
+    "sixth": (("vanilla_heldout_sixth", 10, 14000), ("vanilla_confirm_sixth", 30, 15000)),
 }
 TASKS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 9)
 

@@ -123,19 +123,24 @@ def fit_success_energy(
     epochs: int = EPOCHS,
     other_contexts: int = NEGATIVES,
     noisy_copies: int = NEGATIVES // 2,
+    noise: float = NOISE,
 ) -> SuccessEnergy:
     """E_s trained on successful rollouts (each its contexts (T, D) and chunk indices (T,)) by InfoNCE against
-    `other_contexts` contexts drawn from them and `noisy_copies` noisy copies of the positive, with the anchor at 0
-    (0 of a kind leaves that kind out). Deterministic for a seed on a given CPU.
+    `other_contexts` contexts drawn from them and `noisy_copies` copies of the positive with Gaussian noise of std
+    `noise` (standardized units), with the anchor at 0 (0 of a kind leaves that kind out). Deterministic for a seed on
+    a given CPU.
 
     Raises:
-        ValueError: No rollout, no negatives, contexts of different widths, or a non-finite context.
+        ValueError: No rollout, no negatives, a noise std not > 0, contexts of different widths, or a non-finite
+            context.
     """
     _check_rollouts(rollouts, 1)
     if other_contexts < 0 or noisy_copies < 0 or other_contexts + noisy_copies == 0:
         raise ValueError(
             f"`other_contexts` and `noisy_copies` must be >= 0, one of them > 0; got {other_contexts}, {noisy_copies}."
         )
+    if not noise > 0:
+        raise ValueError(f"`noise`, the noisy copies' std in standardized units, must be > 0; got {noise}.")
     generator = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
     features = torch.as_tensor(np.concatenate([np.asarray(f, dtype=np.float32) for f, _ in rollouts]))
@@ -154,8 +159,10 @@ def fit_success_energy(
                 drawn = torch.randint(0, n, (len(batch), other_contexts), generator=generator)
                 candidates.append(standardized[drawn])
             if noisy_copies:
-                noise = torch.randn((len(batch), noisy_copies, positive.shape[1]), generator=generator)
-                candidates.append(positive[:, None] + NOISE * noise)
+                standard_normal = torch.randn(
+                    (len(batch), noisy_copies, positive.shape[1]), generator=generator
+                )
+                candidates.append(positive[:, None] + noise * standard_normal)
             candidates = torch.cat(candidates, 1)
             times = t[:, None].expand(-1, candidates.shape[1])
             logits = -model.energy(candidates.flatten(0, 1), times.flatten()).view(candidates.shape[:2])
