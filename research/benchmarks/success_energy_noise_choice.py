@@ -7,7 +7,8 @@ standardized units), so this is development: E_s fitted on all successful calibr
 each set's rollouts read over their first 16 chunks three ways (the package's `late`, the mean of chunks 12-15; the
 last chunk, 15, where `chunk_context_nn` reads; the maximum of chunks 12-15), and the AUROC minus the feature distance
 `chunk_context_nn`'s on the same rollouts with its paired bootstrap interval, per set and over all 2000. AUROC needs
-no threshold, so the calibration rollouts are read with that E_s too (nothing here is a balanced accuracy).
+no threshold, so the calibration rollouts are read with that E_s too (nothing here is a balanced accuracy). The fitted
+E_s are saved beside the report (.safetensors) and read from there when it exists.
 
     python research/benchmarks/success_energy_noise_choice.py --noises 1.0 0.5 --seeds 0 1 2 \\
         --output=research/results/libero_object10_b18/reports/ebvla_joint_fast_cpu_b18/success_energy/noise_choice.json
@@ -21,6 +22,7 @@ import torch
 from failure_check_test import BASELINE, scores_at, write_report
 from failure_score_variants import rows_against_baseline
 from phase_energy_failure_check import first_chunks
+from safetensors.torch import load_file, save_file
 from success_energy_failure_check import (
     CALIBRATION,
     CHUNKS,
@@ -32,7 +34,7 @@ from success_energy_failure_check import (
     success_series,
 )
 
-from lerobot_policy_ebvla.runtime.success_energy import fit_success_energy
+from lerobot_policy_ebvla.runtime.success_energy import SuccessEnergy, fit_success_energy
 
 FIVE_READ_SETS = {
     "first": (K_EVAL / "vanilla_heldout", K_EVAL / "vanilla_confirm"),
@@ -62,8 +64,17 @@ def difference(values, baseline, successful, failed) -> dict:
     }
 
 
-def look(noises: list[float], seeds: list[int], threads: int = 1) -> dict:
+def weights_key(noise: float, seed: int) -> str:
+    return f"noise{noise:g}_seed{seed}"
+
+
+def look(noises: list[float], seeds: list[int], threads: int = 1, weights: Path | None = None) -> dict:
+    """Every noise, seed and reading over the five read sets. With `weights`: E_s read from that file where it holds
+    them (a committed look recomputes without refitting, whose last digits differ between CPUs), else fitted and
+    saved there."""
     torch.set_num_threads(threads)
+    saved = load_file(weights) if weights is not None and weights.exists() else {}
+    fitted = {}
     calibration = load([CALIBRATION])
     sets = {name: load(paths) for name, paths in FIVE_READ_SETS.items()}
     successful = np.array([e[0].success for e in calibration.values()])
@@ -78,7 +89,12 @@ def look(noises: list[float], seeds: list[int], threads: int = 1) -> dict:
     rows = []
     for noise in noises:
         for seed in seeds:
-            model = fit_success_energy(training, seed, noise=noise)
+            key = weights_key(noise, seed)
+            state = {k.removeprefix(f"{key}."): v for k, v in saved.items() if k.startswith(f"{key}.")}
+            model = (
+                SuccessEnergy.from_state(state) if state else fit_success_energy(training, seed, noise=noise)
+            )
+            fitted.update({f"{key}.{k}": v.contiguous() for k, v in model.state_dict().items()})
             cal_windows = windows(model, calibration)
             held_windows = {name: windows(model, episodes) for name, episodes in sets.items()}
             for reading, how in READINGS.items():
@@ -94,6 +110,8 @@ def look(noises: list[float], seeds: list[int], threads: int = 1) -> dict:
                 )
                 rows.append(entry)
                 print(noise, seed, reading, f"{entry['pooled']['difference']:+.4f}", flush=True)
+    if weights is not None and not saved:
+        save_file(fitted, weights)
     return {"chunks": CHUNKS, "sets": list(sets), "rows": rows}
 
 
@@ -123,7 +141,8 @@ def main(argv=None) -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--output", type=Path, default=None)
     args = parser.parse_args(argv)
-    result = look(args.noises, args.seeds, args.threads)
+    weights = None if args.output is None else args.output.with_suffix(".safetensors")
+    result = look(args.noises, args.seeds, args.threads, weights)
     write_report(result, markdown(result), args.output)
 
 

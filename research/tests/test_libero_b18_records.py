@@ -545,3 +545,35 @@ def test_the_research_cross_fitting_reads_each_calibration_rollout_with_a_fold_t
     successful = [key for key, e in calibration.items() if e[0].success]
     assert len(successful) == 95 and len(fitted.folds) == 5
     assert all(not fitted.calibration_series[key].any() for key in successful)
+
+
+def test_the_narrower_noise_was_chosen_by_its_rule_and_its_rows_recompute_from_the_saved_weights():
+    """libero_runs.md, "Narrower noisy copies, and a sixth set": on K's five read sets, E_s at std 0.5 and 1.0 (seeds
+    0-2, the saved weights) read three ways recompute as committed, and std 0.5 was chosen by the rule: its `late`
+    difference from `chunk_context_nn` over all 2000, averaged over the seeds, is above std 1.0's."""
+    choice = load_benchmark("success_energy_noise_choice")
+    committed = json.loads((SUCCESS_ENERGY_REPORTS / "noise_choice.json").read_text())
+    found = choice.look([1.0, 0.5], [0, 1, 2], weights=SUCCESS_ENERGY_REPORTS / "noise_choice.safetensors")
+    assert len(found["rows"]) == len(committed["rows"]) == 18
+    for row, expected in zip(found["rows"], committed["rows"], strict=True):
+        assert (row["noise"], row["seed"], row["reading"]) == (
+            expected["noise"],
+            expected["seed"],
+            expected["reading"],
+        )
+        for name in [*expected["sets"], "pooled"]:
+            cell = row["pooled"] if name == "pooled" else row["sets"][name]
+            reference = expected["pooled"] if name == "pooled" else expected["sets"][name]
+            assert cell["auroc"] == pytest.approx(reference["auroc"], rel=1e-6)
+            assert cell["interval"] == pytest.approx(reference["interval"], rel=1e-6, abs=1e-9)
+    late = {
+        noise: np.mean(
+            [
+                r["pooled"]["difference"]
+                for r in found["rows"]
+                if r["noise"] == noise and r["reading"] == "late"
+            ]
+        )
+        for noise in (1.0, 0.5)
+    }
+    assert late[0.5] > late[1.0]
