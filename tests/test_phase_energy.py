@@ -133,7 +133,7 @@ def test_the_config_checks_its_phase_energy():
         tiny_config(joint_energy=OWN_ENCODER, monitor={"failure_score": "joint_phase_time_energy"})
     assert tiny_config(joint_energy=OWN_ENCODER).monitor.failure_score == "head_energy_two_sided"
     with_phase = tiny_config(joint_energy=OWN_ENCODER, phase_energy={"bins": 4})
-    assert with_phase.monitor.failure_score == "joint_phase_time_energy"
+    assert with_phase.monitor.failure_score == "success_energy"
 
 
 def rollout(n, context, head, phase, chunk_offset=0.0):
@@ -194,7 +194,7 @@ def test_the_fit_script_writes_a_new_checkpoint_and_leaves_the_source_as_it_was(
     assert {f.name: f.read_bytes() for f in source.iterdir()} == before
     saved = json.loads((output / "config.json").read_text())
     assert saved["phase_energy"] == {"bins": 4, "hidden": 16}
-    assert saved["monitor"]["failure_score"] == "joint_phase_time_energy"
+    assert saved["monitor"]["failure_score"] == "success_energy"
     assert not (output / "failure_calibration.json").exists()
     assert (output / "train_config.json").read_text() == '{"steps": 3}'
     summary = json.loads((output / "phase_energy_fit.json").read_text())

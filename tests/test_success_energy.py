@@ -118,7 +118,10 @@ def test_the_fit_names_what_is_wrong_with_its_inputs(change, message):
 
 def test_the_noisy_copies_std_is_the_fits_to_choose_and_must_be_positive():
     data = rollouts(6, seed=0)
-    wide, narrow = fit_success_energy(data, epochs=1), fit_success_energy(data, epochs=1, noise=0.5)
+    wide, narrow = (
+        fit_success_energy(data, epochs=1, noise=1.0),
+        fit_success_energy(data, epochs=1, noise=0.5),
+    )
     assert not torch.equal(wide.net[-1].weight, narrow.net[-1].weight)
     for noise in (0.0, -1.0, float("nan")):
         with pytest.raises(ValueError, match="`noise`.*must be > 0"):

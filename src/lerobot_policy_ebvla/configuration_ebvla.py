@@ -323,7 +323,7 @@ class EBVLAConfig(PreTrainedConfig):
             self.phase_energy = PhaseEnergyConfig(**self.phase_energy)
         if self.monitor.failure_score is None:
             self.monitor.failure_score = (
-                ("joint_phase_time_energy" if self.phase_energy.bins else "head_energy_two_sided")
+                ("success_energy" if self.phase_energy.bins else "head_energy_two_sided")
                 if self.context_energy_on_own_encoder
                 else "none"
             )

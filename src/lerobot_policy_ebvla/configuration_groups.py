@@ -463,8 +463,10 @@ class MonitorConfig:
             against vanilla at each chunk index, on either side), "success_energy" (the success energy E_s(C, t),
             fitted by `--calibrate_to` on the successful calibration rollouts' pooled contexts and saved beside
             it: it needs about 100 of them, recorded with `--record_context_features=true`), another energy
-            score, or "none". None (the default) is decided with `score`: "joint_phase_time_energy" where the policy trains E_c on its own
-            encoder and has a phase energy, "head_energy_two_sided" where it has E_c alone, "none" otherwise (without E_c no energy score told failures apart).
+            score, or "none". None (the default) is decided with `score`: "success_energy" where the policy trains
+            E_c on its own encoder and has a phase energy (the LIBERO checkpoints `ebvla-fit-phase-energy`
+            writes, calibrated on about 100 rollouts), "head_energy_two_sided" where it has E_c alone,
+            "none" otherwise (without E_c no energy score told failures apart).
         failure_chunks: N, the first chunks the failure check scores; it decides at the end of chunk N.
     """
 

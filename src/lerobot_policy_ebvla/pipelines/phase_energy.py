@@ -4,8 +4,10 @@ The body of `ebvla-fit-phase-energy`: load the policy and its pre-processor, rea
 demonstration frame at a multiple of `n_action_steps` (the frames the policy would refine a chunk from, t = the
 frame's chunk index), fit `phase_energy.PhaseEnergy` on them (`fit_phase_energy`) and save a new checkpoint folder:
 the policy with E_tau, its processors, and the source's OOD calibration (E and E_c are unchanged). The source's failure
-calibration is left behind: the checkpoint's failure check becomes `joint_phase_time_energy`, which needs new
-calibration rollouts (`ebvla-ood-report --calibrate_to`). The source folder is never written to.
+calibration is left behind: the checkpoint's failure check becomes `success_energy` (E_s(C, t), fitted at
+calibration on the successful rollouts' pooled contexts), which needs new calibration rollouts recorded with their
+contexts (`ebvla-ood-report --calibrate_to`); `joint_phase_time_energy`, which reads E_tau, is the option
+beside it. The source folder is never written to.
 """
 
 import json
@@ -106,12 +108,12 @@ def save_with_phase_energy(
     policy, phase_energy: PhaseEnergy, source: Path, output_dir: Path, processors=()
 ) -> None:
     """`policy` with the fitted `phase_energy`, saved to `output_dir` as a checkpoint of `source`: its config's
-    `phase_energy` set (and, with E_c on its own encoder, its failure check `joint_phase_time_energy`), the
+    `phase_energy` set (and, with E_c on its own encoder, its failure check `success_energy`), the
     `processors` saved, and the source's other files copied but for its failure calibration."""
     policy.model.phase_energy = phase_energy.to(policy.config.device)
     policy.config.phase_energy = PhaseEnergyConfig(bins=phase_energy.bins, hidden=phase_energy.hidden)
     if policy.config.context_energy_on_own_encoder:
-        policy.config.monitor.failure_score = "joint_phase_time_energy"
+        policy.config.monitor.failure_score = "success_energy"
     output_dir.mkdir(parents=True, exist_ok=True)
     policy.save_pretrained(output_dir)
     for processor in processors:

@@ -179,11 +179,13 @@ class SuccessEnergyScore(ChunkScore):
     """The success energy E_s(C, t) of the chunk's pooled context at its chunk index (`success_energy.py`), fitted
     on the successful vanilla rollouts and read as the mean of a window's last `LATE_CHUNKS` chunks ("late").
 
-    A failure score: a rollout whose context at chunk t is unlike any successful rollout's at t is heading for
-    failure. On two sets of 400 new LIBERO rollouts of K, over the first 16 chunks, it caught 35/36 and 27/27 failures
-    with 18/364 and 20/373 successful rollouts alarmed (96.1 %, 97.3 %), level with the feature distance
-    `chunk_context_nn` at the threshold and 0.012 and 0.006 below it in AUROC, and with half the false alarms of
-    `joint_phase_time_energy` (research/docs/libero_runs.md, "E_s in the package, and a fifth set"). A calibration
+    A failure score, and the LIBERO checkpoints' (`ebvla-fit-phase-energy` sets it): a rollout whose context at
+    chunk t is unlike any successful rollout's at t is heading for failure. On a sixth set of 400 new LIBERO rollouts
+    of K, fixed before they were read, over the first 16 chunks it caught 29/32 failures with 22/368 successful
+    rollouts alarmed (92.3 %), AUROC 0.973 against the feature distance `chunk_context_nn`'s 0.979 (paired -0.007
+    [-0.023, +0.005]: not below it beyond noise) and `joint_phase_time_energy`'s 0.957; on the two sets before, with
+    noisy copies twice as wide, it was level at the threshold but 0.012 and 0.006 below in AUROC
+    (research/docs/libero_runs.md, "Narrower noisy copies, and a sixth set"). A calibration
     reads each successful rollout with the E_s of the fold that left it out. It was chosen with 95 successful
     calibration rollouts and needs about that many, with their pooled contexts; the fit warns below
     `FEW_SUCCESSFUL_ROLLOUTS`.

@@ -1,7 +1,8 @@
 """`ebvla-fit-phase-energy`: fit a trained checkpoint's phase energy E_tau(C, t) on its training demonstrations.
 
-Writes a new checkpoint folder with E_tau (the source stays as it was); its failure check becomes
-`joint_phase_time_energy`, calibrated as any other with `ebvla-ood-report --calibrate_to` on new vanilla rollouts.
+Writes a new checkpoint folder with E_tau (the source stays as it was); its failure check becomes `success_energy`
+(`joint_phase_time_energy`, which reads E_tau, is the option beside it), calibrated as any other with
+`ebvla-ood-report --calibrate_to` on new vanilla rollouts recorded with their pooled contexts.
 
 Example:
     ebvla-fit-phase-energy --policy_path=outputs/train/ebvla/checkpoints/last/pretrained_model \
