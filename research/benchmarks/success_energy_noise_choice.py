@@ -28,12 +28,12 @@ from success_energy_failure_check import (
     CHUNKS,
     K_EVAL,
     K_NEW,
-    LATE,
     contexts,
     load,
     success_series,
 )
 
+from lerobot_policy_ebvla.runtime.chunk_scores import LATE_CHUNKS, rollout_score
 from lerobot_policy_ebvla.runtime.success_energy import SuccessEnergy, fit_success_energy
 
 FIVE_READ_SETS = {
@@ -44,9 +44,9 @@ FIVE_READ_SETS = {
     "fifth": (K_NEW / "vanilla_heldout_fifth", K_NEW / "vanilla_confirm_fifth"),
 }
 READINGS = {
-    "late": lambda values: float(np.mean(values[-LATE:])),
-    "last": lambda values: float(values[-1]),
-    "max of the last 4": lambda values: float(np.max(values[-LATE:])),
+    "late": lambda values: rollout_score(values, "late"),
+    "last": lambda values: rollout_score(values, "last"),
+    "max of the last 4": lambda values: float(np.max(values[-LATE_CHUNKS:])),
 }
 
 
@@ -80,10 +80,8 @@ def look(noises: list[float], seeds: list[int], threads: int = 1, weights: Path 
     successful = np.array([e[0].success for e in calibration.values()])
     failed = {name: np.array([not e[0].success for e in held.values()]) for name, held in sets.items()}
     baseline = {name: scores_at(BASELINE, calibration, held, CHUNKS) for name, held in sets.items()}
-    pooled_baseline = (
-        baseline["first"][0],
-        np.concatenate([baseline[name][1] for name in sets]),
-    )
+    # The calibration rollouts' distances are each against the others, the same whichever set is read.
+    pooled_baseline = (baseline["first"][0], np.concatenate([baseline[name][1] for name in sets]))
     pooled_failed = np.concatenate([failed[name] for name in sets])
     training = [contexts(e) for e in calibration.values() if e[0].success]
     rows = []

@@ -358,6 +358,18 @@ def success_energy_test(report, calibration_folder, held_out_folders, phase_ener
     return {r["score"]: r for r in found["sets"]["all held out"]["rows"]}
 
 
+def k_success_energy_test(report: str, held_out_folders, weights: str | None = None) -> dict:
+    """`success_energy_test` of a report on K's rollouts (K's calibration, its E_tau): `report` and `weights` named
+    in `SUCCESS_ENERGY_REPORTS`."""
+    return success_energy_test(
+        SUCCESS_ENERGY_REPORTS / report,
+        K_EVAL / "vanilla_calib",
+        held_out_folders,
+        PHASE_ENERGY_REPORTS / "check.safetensors",
+        weights=None if weights is None else SUCCESS_ENERGY_REPORTS / weights,
+    )
+
+
 def test_the_success_energy_on_gs_400_is_level_with_the_feature_distance():
     """libero_runs.md, "A success energy fitted on the policy's own successful rollouts", descriptive: the chosen E_s
     fitted on G's 92 successful calibration rollouts and read on G's 400 held-out rollouts (read before by other
@@ -407,12 +419,7 @@ def test_the_success_energy_on_a_fourth_set_matches_the_feature_distances_decisi
     below the feature distance's 0.991 with a paired interval that ends at -0.0005: missed by the rule. Beside it the
     checkpoint's shipped `joint_phase_time_energy` falls to 92.6 %, paired -0.023 [-0.055, -0.002]."""
     held = [PHASE_EVAL / "vanilla_heldout_fourth", PHASE_EVAL / "vanilla_confirm_fourth"]
-    rows = success_energy_test(
-        SUCCESS_ENERGY_REPORTS / "fourth_rollouts.json",
-        K_EVAL / "vanilla_calib",
-        held,
-        PHASE_ENERGY_REPORTS / "check.safetensors",
-    )
+    rows = k_success_energy_test("fourth_rollouts.json", held)
     assert sum(e[0].success for e in load_episodes([str(f / "task*") for f in held]).values()) == 364
     chosen, distance = rows["E_s, mean of the last 4"], rows["chunk_context_nn"]
     assert (chosen["failed_alarmed"], chosen["failed"], chosen["successful_alarmed"]) == (35, 36, 18)
@@ -470,13 +477,7 @@ def test_the_success_energy_on_a_fifth_set_beats_the_shipped_check_but_misses_th
     alarms on 27/27 failed and 20/373 successful rollouts, 97.3 % (`chunk_context_nn`: 27/27 and 23/373, 96.9 %), but
     its AUROC 0.990 is below the feature distance's 0.996, paired -0.006 [-0.013, -0.001]: missed by the rule. The
     shipped `joint_phase_time_energy`: 43/373 alarmed, 94.2 %."""
-    rows = success_energy_test(
-        SUCCESS_ENERGY_REPORTS / "fifth_rollouts.json",
-        K_EVAL / "vanilla_calib",
-        FIFTH,
-        PHASE_ENERGY_REPORTS / "check.safetensors",
-        weights=SUCCESS_ENERGY_REPORTS / "fourth_rollouts.safetensors",
-    )
+    rows = k_success_energy_test("fifth_rollouts.json", FIFTH, "fourth_rollouts.safetensors")
     assert sum(e[0].success for e in load_episodes([str(f / "task*") for f in FIFTH]).values()) == 373
     chosen, distance = rows["E_s, mean of the last 4"], rows["chunk_context_nn"]
     assert (chosen["failed_alarmed"], chosen["failed"], chosen["successful_alarmed"]) == (27, 27, 20)
@@ -490,12 +491,10 @@ def test_the_fourth_and_fifth_sets_pooled_and_the_fifth_sets_ranking_recompute()
     """libero_runs.md, "E_s in the package, and a fifth set", descriptive: the 800 rollouts of the two tests pooled
     (E_s 96.6 %, 38/737 successful alarmed; `chunk_context_nn` 96.4 %, 42/737; paired -0.009 [-0.019, -0.002]), and on
     the fifth set the slow successes again score like failures."""
-    pooled = success_energy_test(
-        SUCCESS_ENERGY_REPORTS / "fourth_and_fifth_pooled.json",
-        K_EVAL / "vanilla_calib",
+    pooled = k_success_energy_test(
+        "fourth_and_fifth_pooled.json",
         [PHASE_EVAL / "vanilla_heldout_fourth", PHASE_EVAL / "vanilla_confirm_fourth", *FIFTH],
-        PHASE_ENERGY_REPORTS / "check.safetensors",
-        weights=SUCCESS_ENERGY_REPORTS / "fourth_rollouts.safetensors",
+        "fourth_rollouts.safetensors",
     )
     assert pooled["E_s, mean of the last 4"]["successful_alarmed"] == 38
     assert pooled["chunk_context_nn"]["successful_alarmed"] == 42
@@ -511,18 +510,28 @@ def test_the_fourth_and_fifth_sets_pooled_and_the_fifth_sets_ranking_recompute()
     )
 
 
+def package_route_matches(calibration: str, held_out_folders, weights: str, report: str) -> dict:
+    """The committed package calibration (`ebvla-ood-report --calibrate_to`, in `calibration`) against the research
+    E_s in `weights` on `held_out_folders`: as `report` says, with E_s weight for weight and all 400 decisions the
+    same. All names in `SUCCESS_ENERGY_REPORTS`."""
+    from lerobot_policy_ebvla.runtime.calibration import FailureCalibration
+
+    check = load_benchmark("success_energy_failure_check")
+    package = FailureCalibration.from_pretrained(SUCCESS_ENERGY_REPORTS / calibration)
+    assert package.score.name == "success_energy" and package.chunks == 16 and package.n_rollouts == 95
+    found = check.compare_package(package, held_out_folders, SUCCESS_ENERGY_REPORTS / weights)
+    assert found == json.loads((SUCCESS_ENERGY_REPORTS / report).read_text())
+    assert found["max_weight_difference"] == 0 and found["same_decisions"] == 400
+    return found
+
+
 def test_the_packages_route_fitted_the_same_e_s_and_decides_the_fifth_set_as_the_research_reading():
     """libero_runs.md, "E_s in the package, and a fifth set": the failure check `ebvla-ood-report --calibrate_to
     --failure_score=success_energy` saved for a copy of K's checkpoint (committed: `package_calibration/`) holds the E_s
     of the research test weight for weight, its T, and makes the same 400 decisions on the fifth set."""
-    from lerobot_policy_ebvla.runtime.calibration import FailureCalibration
-
-    check = load_benchmark("success_energy_failure_check")
-    package = FailureCalibration.from_pretrained(SUCCESS_ENERGY_REPORTS / "package_calibration")
-    assert package.score.name == "success_energy" and package.chunks == 16 and package.n_rollouts == 95
-    found = check.compare_package(package, FIFTH, SUCCESS_ENERGY_REPORTS / "fourth_rollouts.safetensors")
-    assert found == json.loads((SUCCESS_ENERGY_REPORTS / "fifth_package_route.json").read_text())
-    assert found["max_weight_difference"] == 0 and found["same_decisions"] == 400
+    package_route_matches(
+        "package_calibration", FIFTH, "fourth_rollouts.safetensors", "fifth_package_route.json"
+    )
 
 
 def test_the_research_cross_fitting_reads_each_calibration_rollout_with_a_fold_that_never_saw_it(monkeypatch):
@@ -563,9 +572,10 @@ def test_the_narrower_noise_was_chosen_by_its_rule_and_its_rows_recompute_from_t
             expected["seed"],
             expected["reading"],
         )
-        for name in [*expected["sets"], "pooled"]:
-            cell = row["pooled"] if name == "pooled" else row["sets"][name]
-            reference = expected["pooled"] if name == "pooled" else expected["sets"][name]
+        cells = [*row["sets"].values(), row["pooled"]]
+        references = [*expected["sets"].values(), expected["pooled"]]
+        assert list(row["sets"]) == list(expected["sets"])
+        for cell, reference in zip(cells, references, strict=True):
             assert cell["auroc"] == pytest.approx(reference["auroc"], rel=1e-6)
             assert cell["interval"] == pytest.approx(reference["interval"], rel=1e-6, abs=1e-9)
     late = {
@@ -590,12 +600,7 @@ def test_the_success_energy_at_the_narrower_noise_meets_table_iv_on_a_sixth_set(
     22/368 successful alarmed, 92.3 %, AUROC 0.973 against `chunk_context_nn`'s 0.979, paired -0.007 [-0.023, +0.005]:
     met. The feature distance still decides a little better here (30/32 and 24/368, 93.6 %); the shipped
     `joint_phase_time_energy` 38/368 alarmed, paired -0.023 [-0.055, -0.000]."""
-    rows = success_energy_test(
-        SUCCESS_ENERGY_REPORTS / "sixth_rollouts.json",
-        K_EVAL / "vanilla_calib",
-        SIXTH,
-        PHASE_ENERGY_REPORTS / "check.safetensors",
-    )
+    rows = k_success_energy_test("sixth_rollouts.json", SIXTH)
     assert sum(e[0].success for e in load_episodes([str(f / "task*") for f in SIXTH]).values()) == 368
     chosen, distance = rows["E_s, mean of the last 4"], rows["chunk_context_nn"]
     assert (chosen["failed_alarmed"], chosen["failed"], chosen["successful_alarmed"]) == (29, 32, 22)
@@ -611,17 +616,10 @@ def test_the_sixth_set_does_not_tell_the_two_noises_apart_and_the_six_sets_pool_
     saved would also have met on the sixth set (-0.007 [-0.020, +0.002]); over all six sets (2400 rollouts, five of
     them read to choose the std) the std-0.5 E_s is 95.7 % against the feature distance's 96.0 %, paired -0.002
     [-0.006, +0.001]; the sixth set's slow successes are few (4 of 368 took 25 chunks or more)."""
-    wide = success_energy_test(
-        SUCCESS_ENERGY_REPORTS / "sixth_rollouts_std1.json",
-        K_EVAL / "vanilla_calib",
-        SIXTH,
-        PHASE_ENERGY_REPORTS / "check.safetensors",
-        weights=SUCCESS_ENERGY_REPORTS / "fourth_rollouts.safetensors",
-    )
+    wide = k_success_energy_test("sixth_rollouts_std1.json", SIXTH, "fourth_rollouts.safetensors")
     assert wide["E_s, mean of the last 4"]["auroc_minus_baseline_interval"][1] >= 0
-    pooled = success_energy_test(
-        SUCCESS_ENERGY_REPORTS / "six_sets_pooled.json",
-        K_EVAL / "vanilla_calib",
+    pooled = k_success_energy_test(
+        "six_sets_pooled.json",
         [
             K_EVAL / "vanilla_heldout",
             K_EVAL / "vanilla_confirm",
@@ -631,8 +629,7 @@ def test_the_sixth_set_does_not_tell_the_two_noises_apart_and_the_six_sets_pool_
                 for name in ("new", "third", "fourth", "fifth", "sixth")
             ],
         ],
-        PHASE_ENERGY_REPORTS / "check.safetensors",
-        weights=SUCCESS_ENERGY_REPORTS / "sixth_rollouts.safetensors",
+        "sixth_rollouts.safetensors",
     )
     energy, distance = pooled["E_s, mean of the last 4"], pooled["chunk_context_nn"]
     assert (energy["failed"], energy["failed_alarmed"], energy["successful_alarmed"]) == (195, 190, 135)
@@ -649,12 +646,7 @@ def test_the_packages_route_at_its_new_default_fitted_the_sixth_tests_e_s_and_de
     --failure_score=success_energy` at the package's default std (0.5) saved for a copy of K's checkpoint (committed:
     `package_calibration_sixth/`) the E_s the sixth test fitted, weight for weight, its T, and the same 400
     decisions on the sixth set."""
-    from lerobot_policy_ebvla.runtime.calibration import FailureCalibration
-
-    check = load_benchmark("success_energy_failure_check")
-    package = FailureCalibration.from_pretrained(SUCCESS_ENERGY_REPORTS / "package_calibration_sixth")
-    assert package.score.name == "success_energy" and package.chunks == 16 and package.n_rollouts == 95
-    found = check.compare_package(package, SIXTH, SUCCESS_ENERGY_REPORTS / "sixth_rollouts.safetensors")
-    assert found == json.loads((SUCCESS_ENERGY_REPORTS / "sixth_package_route.json").read_text())
-    assert found["max_weight_difference"] == 0 and found["same_decisions"] == 400
+    found = package_route_matches(
+        "package_calibration_sixth", SIXTH, "sixth_rollouts.safetensors", "sixth_package_route.json"
+    )
     assert found["alarmed"]["package"] == {"failed": 29, "successful": 22}

@@ -24,6 +24,7 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from .configuration_groups import (
     CONTEXT_ENERGY_SCORES,
     PHASE_ENERGY_SCORES,
+    PHASE_FITTED_FAILURE_SCORE,
     ContrastiveConfig,
     JointEnergyConfig,
     MonitorConfig,
@@ -323,7 +324,7 @@ class EBVLAConfig(PreTrainedConfig):
             self.phase_energy = PhaseEnergyConfig(**self.phase_energy)
         if self.monitor.failure_score is None:
             self.monitor.failure_score = (
-                ("success_energy" if self.phase_energy.bins else "head_energy_two_sided")
+                (PHASE_FITTED_FAILURE_SCORE if self.phase_energy.bins else "head_energy_two_sided")
                 if self.context_energy_on_own_encoder
                 else "none"
             )

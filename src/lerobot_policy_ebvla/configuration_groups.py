@@ -424,6 +424,10 @@ CONTEXT_FEATURE_SCORES = ("success_energy", "context_knn")
 CONTEXT_ENERGY_SCORES = tuple(s for s in MONITOR_SCORES if s not in ("final_energy", *CONTEXT_FEATURE_SCORES))
 # The scores that also read the phase energy E_tau (`phase_energy.bins` > 0).
 PHASE_ENERGY_SCORES = ("joint_phase_time_energy",)
+# The failure check of a checkpoint with a phase energy (the LIBERO ones `ebvla-fit-phase-energy` writes): the config's
+# default where one is fitted, and what the fit sets (research/docs/libero_runs.md, "Narrower noisy copies, and a sixth
+# set").
+PHASE_FITTED_FAILURE_SCORE = "success_energy"
 # The failure check stores no features (the success energy keeps a model, not contexts); "none" leaves it out.
 FAILURE_SCORES = ("none", *(s for s in MONITOR_SCORES if s != "context_knn"))
 

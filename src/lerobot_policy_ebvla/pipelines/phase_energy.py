@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..configuration_groups import PhaseEnergyConfig
+from ..configuration_groups import PHASE_FITTED_FAILURE_SCORE, PhaseEnergyConfig
 from ..phase_energy import PhaseEnergy, fit_phase_energy
 from ..runtime.calibration import FAILURE_CALIBRATION_FILENAME
 
@@ -113,7 +113,7 @@ def save_with_phase_energy(
     policy.model.phase_energy = phase_energy.to(policy.config.device)
     policy.config.phase_energy = PhaseEnergyConfig(bins=phase_energy.bins, hidden=phase_energy.hidden)
     if policy.config.context_energy_on_own_encoder:
-        policy.config.monitor.failure_score = "success_energy"
+        policy.config.monitor.failure_score = PHASE_FITTED_FAILURE_SCORE
     output_dir.mkdir(parents=True, exist_ok=True)
     policy.save_pretrained(output_dir)
     for processor in processors:
