@@ -8,6 +8,9 @@ states 30-49 with 7000 + i (`--test=second`; `third`: 8000 + i and 9000 + i; `fo
 a task and set, through the LIBERO pipeline's evaluation (`libero_pipeline.evaluate`: two jobs side by side, one torch
 thread each, resumable: a job whose `eval_info.json` exists is skipped).
 
+`--test=seventh --run=<its name>` runs another checkpoint the same way (G's confirmation of the success energy: 16000 + i
+and 17000 + i; research/docs/libero_runs.md, "The success energy on another checkpoint").
+
 Without K's fitted checkpoint (its demonstrations are not committed), `assemble` rebuilds it from what is: the
 committed b18 checkpoint and the E_tau that `phase_energy_failure_check.py check` saved beside its report.
 
@@ -40,13 +43,15 @@ TESTS = {
     "fourth": (("vanilla_heldout_fourth", 10, 10000), ("vanilla_confirm_fourth", 30, 11000)),
     "fifth": (("vanilla_heldout_fifth", 10, 12000), ("vanilla_confirm_fifth", 30, 13000)),
     "sixth": (("vanilla_heldout_sixth", 10, 14000), ("vanilla_confirm_sixth", 30, 15000)),
+    # G's: seeds neither G (1000, 2000, 4000) nor K ever ran.
+    "seventh": (("vanilla_heldout_seventh", 10, 16000), ("vanilla_confirm_seventh", 30, 17000)),
 }
 TASKS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 9)
 
 
-def jobs(test: str = "second", per_task: int = 20) -> list[EvalJob]:
+def jobs(test: str = "second", per_task: int = 20, run: str = RUN) -> list[EvalJob]:
     return [
-        EvalJob(RUN, condition, task, first, per_task, seed)
+        EvalJob(run, condition, task, first, per_task, seed)
         for condition, first, seed in TESTS[test]
         for task in TASKS
     ]
@@ -61,9 +66,9 @@ def assemble(checkpoint: Path, phase_energy: Path, output: Path) -> Path:
     return output
 
 
-def prepare(work: Path, checkpoint: Path, recording_summary: Path) -> None:
+def prepare(work: Path, checkpoint: Path, recording_summary: Path, run: str = RUN) -> None:
     """The work folder as the pipeline reads it: the checkpoint as the run's last, and the recording's image size."""
-    last = work / "train" / RUN / "checkpoints" / "last"
+    last = work / "train" / run / "checkpoints" / "last"
     last.mkdir(parents=True, exist_ok=True)
     link = last / "pretrained_model"
     if not link.exists():
@@ -85,6 +90,11 @@ def main(argv=None) -> None:
     parser.add_argument("--recording_summary", type=Path, required=True)
     parser.add_argument("--work", type=Path, required=True)
     parser.add_argument("--test", choices=sorted(TESTS), default="second", help="which set of new seeds")
+    parser.add_argument(
+        "--run",
+        default=RUN,
+        help="the run name the rollouts are filed under (another checkpoint than K's: its own name)",
+    )
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--deadline_s", type=float, default=4800)
     args = parser.parse_args(argv)
@@ -93,8 +103,8 @@ def main(argv=None) -> None:
         if args.phase_energy is None:
             parser.error("--assemble needs --phase_energy")
         checkpoint = assemble(checkpoint, args.phase_energy, args.work / "k_phase" / "pretrained_model")
-    prepare(args.work, checkpoint, args.recording_summary)
-    evaluate(args.work, jobs(args.test), "cpu", args.jobs, args.deadline_s)
+    prepare(args.work, checkpoint, args.recording_summary, args.run)
+    evaluate(args.work, jobs(args.test, run=args.run), "cpu", args.jobs, args.deadline_s)
 
 
 if __name__ == "__main__":
