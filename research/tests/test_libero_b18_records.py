@@ -650,3 +650,51 @@ def test_the_packages_route_at_its_new_default_fitted_the_sixth_tests_e_s_and_de
         "package_calibration_sixth", SIXTH, "sixth_rollouts.safetensors", "sixth_package_route.json"
     )
     assert found["alarmed"]["package"] == {"failed": 29, "successful": 22}
+
+
+G_SUCCESS_ENERGY_REPORTS = RESULTS / "libero_object10_arm_more" / "reports" / "success_energy"
+SEVENTH = [G_EVAL / "vanilla_heldout_seventh", G_EVAL / "vanilla_confirm_seventh"]
+
+
+def g_success_energy_test(report: str, held_out_folders, weights: str | None = None) -> dict:
+    """`success_energy_test` of a report on G's rollouts (G's calibration, no E_tau): names in
+    `G_SUCCESS_ENERGY_REPORTS`."""
+    return success_energy_test(
+        G_SUCCESS_ENERGY_REPORTS / report,
+        G_EVAL / "vanilla_calib",
+        held_out_folders,
+        None,
+        weights=None if weights is None else G_SUCCESS_ENERGY_REPORTS / weights,
+    )
+
+
+def test_the_shipped_success_energy_is_confirmed_on_400_new_rollouts_of_another_checkpoint():
+    """libero_runs.md, "The success energy on another checkpoint": 400 new rollouts of G (seeds 16000+ and 17000+,
+    346 succeeded) read by the rule committed before them, E_s as the package ships it (std 0.5) fitted on G's 92
+    successful calibration rollouts: 54/54 failed and 15/346 successful alarmed, 97.8 %, AUROC 0.995, paired +0.001
+    [-0.003, +0.005] against `chunk_context_nn` (54/54 and 13/346, 98.1 %): confirmed, level, not better."""
+    rows = g_success_energy_test("seventh_rollouts.json", SEVENTH)
+    assert sum(e[0].success for e in load_episodes([str(f / "task*") for f in SEVENTH]).values()) == 346
+    chosen, distance = rows["E_s, mean of the last 4"], rows["chunk_context_nn"]
+    assert (chosen["failed_alarmed"], chosen["failed"], chosen["successful_alarmed"]) == (54, 54, 15)
+    assert (distance["failed_alarmed"], distance["successful_alarmed"]) == (54, 13)
+    low, high = chosen["auroc_minus_baseline_interval"]
+    assert low < 0 < high and chosen["balanced_accuracy"] >= 0.8  # confirmed
+    assert distance["balanced_accuracy"] > chosen["balanced_accuracy"]
+
+
+def test_on_g_the_narrower_noise_alarms_on_fewer_successful_rollouts_than_the_wider():
+    """libero_runs.md, "The success energy on another checkpoint", descriptive: on the same 400 G's std-1.0 E_s alarms
+    on 28/346 successful rollouts (the std-0.5 one 15), paired -0.003 [-0.009, +0.001]; the std-0.5 E_s on G's 400
+    earlier held-out rollouts: 42/42 and 19/358 (the std-1.0 one 31), paired +0.001 [-0.006, +0.009]."""
+    wide = g_success_energy_test("seventh_rollouts_std1.json", SEVENTH, "g_rollouts.safetensors")
+    assert wide["E_s, mean of the last 4"]["successful_alarmed"] == 28
+    earlier = g_success_energy_test(
+        "g_rollouts_std05.json",
+        [G_EVAL / "vanilla_heldout", G_EVAL / "vanilla_confirm"],
+        "seventh_rollouts.safetensors",
+    )
+    narrow = earlier["E_s, mean of the last 4"]
+    assert (narrow["failed_alarmed"], narrow["failed"], narrow["successful_alarmed"]) == (42, 42, 19)
+    low, high = narrow["auroc_minus_baseline_interval"]
+    assert low < 0 < high
