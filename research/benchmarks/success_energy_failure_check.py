@@ -471,7 +471,12 @@ def main(argv=None) -> None:
     )
     packaged.add_argument("--held_out", nargs="+", required=True)
     packaged.add_argument("--fitted", type=Path, required=True, help="the E_s a `test` saved")
-    packaged.add_argument("--checkpoint", type=Path, required=True, help="K's fitted checkpoint")
+    packaged.add_argument(
+        "--checkpoint", type=Path, required=True, help="K's fitted checkpoint (or another one: --calibration)"
+    )
+    packaged.add_argument(
+        "--calibration", type=Path, default=CALIBRATION, help="the checkpoint's calibration records' folder"
+    )
     packaged.add_argument(
         "--ood", type=Path, default=K_EVAL / "light_dim5", help="perturbed rollouts the report needs"
     )
@@ -505,7 +510,13 @@ def main(argv=None) -> None:
         return
     if args.command == "package":
         result = package_check(
-            args.held_out, args.fitted, args.checkpoint, args.ood, args.work, threads=args.threads
+            args.held_out,
+            args.fitted,
+            args.checkpoint,
+            args.ood,
+            args.work,
+            args.calibration,
+            threads=args.threads,
         )
         write_report(result, json.dumps(result, indent=1), args.output)
         return

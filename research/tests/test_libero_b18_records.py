@@ -4,6 +4,7 @@ checkpoint at the end of its 20,000 steps, and its evaluation (success paired wi
 committed records."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -510,17 +511,28 @@ def test_the_fourth_and_fifth_sets_pooled_and_the_fifth_sets_ranking_recompute()
     )
 
 
-def package_route_matches(calibration: str, held_out_folders, weights: str, report: str) -> dict:
+def package_route_matches(
+    calibration: str,
+    held_out_folders,
+    weights: str,
+    report: str,
+    reports: Path = SUCCESS_ENERGY_REPORTS,
+    calibration_records: Path = K_EVAL / "vanilla_calib",
+    successful: int = 95,
+) -> dict:
     """The committed package calibration (`ebvla-ood-report --calibrate_to`, in `calibration`) against the research
     E_s in `weights` on `held_out_folders`: as `report` says, with E_s weight for weight and all 400 decisions the
-    same. All names in `SUCCESS_ENERGY_REPORTS`."""
+    same. All names in `reports` (K's by default), calibrated on `calibration_records` with `successful` of them
+    successful."""
     from lerobot_policy_ebvla.runtime.calibration import FailureCalibration
 
     check = load_benchmark("success_energy_failure_check")
-    package = FailureCalibration.from_pretrained(SUCCESS_ENERGY_REPORTS / calibration)
-    assert package.score.name == "success_energy" and package.chunks == 16 and package.n_rollouts == 95
-    found = check.compare_package(package, held_out_folders, SUCCESS_ENERGY_REPORTS / weights)
-    assert found == json.loads((SUCCESS_ENERGY_REPORTS / report).read_text())
+    package = FailureCalibration.from_pretrained(reports / calibration)
+    assert (
+        package.score.name == "success_energy" and package.chunks == 16 and package.n_rollouts == successful
+    )
+    found = check.compare_package(package, held_out_folders, reports / weights, calibration_records)
+    assert found == json.loads((reports / report).read_text())
     assert found["max_weight_difference"] == 0 and found["same_decisions"] == 400
     return found
 
@@ -698,3 +710,20 @@ def test_on_g_the_narrower_noise_alarms_on_fewer_successful_rollouts_than_the_wi
     assert (narrow["failed_alarmed"], narrow["failed"], narrow["successful_alarmed"]) == (42, 42, 19)
     low, high = narrow["auroc_minus_baseline_interval"]
     assert low < 0 < high
+
+
+def test_the_packages_route_fits_the_same_e_s_for_a_checkpoint_without_a_phase_energy():
+    """libero_runs.md, "The success energy on another checkpoint": `ebvla-ood-report --calibrate_to
+    --failure_score=success_energy` for a copy of G's checkpoint (no phase energy; committed:
+    `package_calibration_seventh/`) saved the E_s the test fitted, weight for weight, its T, and the same 400
+    decisions on the seventh set (54/54 and 15/346)."""
+    found = package_route_matches(
+        "package_calibration_seventh",
+        SEVENTH,
+        "seventh_rollouts.safetensors",
+        "seventh_package_route.json",
+        G_SUCCESS_ENERGY_REPORTS,
+        G_EVAL / "vanilla_calib",
+        successful=92,
+    )
+    assert found["alarmed"]["package"] == {"failed": 54, "successful": 15}
