@@ -5,6 +5,7 @@ committed records."""
 
 import json
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -359,15 +360,31 @@ def success_energy_test(report, calibration_folder, held_out_folders, phase_ener
     return {r["score"]: r for r in found["sets"]["all held out"]["rows"]}
 
 
-def k_success_energy_test(report: str, held_out_folders, weights: str | None = None) -> dict:
-    """`success_energy_test` of a report on K's rollouts (K's calibration, its E_tau): `report` and `weights` named
-    in `SUCCESS_ENERGY_REPORTS`."""
+class Checkpoint(NamedTuple):
+    """Where a checkpoint's success-energy reports, its calibration records and its E_tau (None: none) are."""
+
+    reports: Path
+    calibration: Path
+    phase_energy: Path | None
+
+
+K_READS = Checkpoint(
+    SUCCESS_ENERGY_REPORTS, K_EVAL / "vanilla_calib", PHASE_ENERGY_REPORTS / "check.safetensors"
+)
+G_SUCCESS_ENERGY_REPORTS = RESULTS / "libero_object10_arm_more" / "reports" / "success_energy"
+G_READS = Checkpoint(G_SUCCESS_ENERGY_REPORTS, G_EVAL / "vanilla_calib", None)
+
+
+def checkpoint_success_energy_test(
+    checkpoint: Checkpoint, report: str, held_out_folders, weights: str | None = None
+) -> dict:
+    """`success_energy_test` of a report on `checkpoint`'s rollouts: `report` and `weights` named in its reports."""
     return success_energy_test(
-        SUCCESS_ENERGY_REPORTS / report,
-        K_EVAL / "vanilla_calib",
+        checkpoint.reports / report,
+        checkpoint.calibration,
         held_out_folders,
-        PHASE_ENERGY_REPORTS / "check.safetensors",
-        weights=None if weights is None else SUCCESS_ENERGY_REPORTS / weights,
+        checkpoint.phase_energy,
+        weights=None if weights is None else checkpoint.reports / weights,
     )
 
 
@@ -376,11 +393,8 @@ def test_the_success_energy_on_gs_400_is_level_with_the_feature_distance():
     fitted on G's 92 successful calibration rollouts and read on G's 400 held-out rollouts (read before by other
     scores, never by E_s; no rule): 42/42 failed and 31/358 successful alarmed, 95.7 %, AUROC 0.991, paired -0.002
     [-0.009, +0.005] against `chunk_context_nn` (98.2 %, 0.994)."""
-    rows = success_energy_test(
-        RESULTS / "libero_object10_arm_more" / "reports" / "success_energy" / "g_rollouts.json",
-        G_EVAL / "vanilla_calib",
-        [G_EVAL / "vanilla_heldout", G_EVAL / "vanilla_confirm"],
-        None,
+    rows = checkpoint_success_energy_test(
+        G_READS, "g_rollouts.json", [G_EVAL / "vanilla_heldout", G_EVAL / "vanilla_confirm"]
     )
     chosen = rows["E_s, mean of the last 4"]
     assert (chosen["failed_alarmed"], chosen["failed"], chosen["successful_alarmed"]) == (42, 42, 31)
@@ -420,7 +434,7 @@ def test_the_success_energy_on_a_fourth_set_matches_the_feature_distances_decisi
     below the feature distance's 0.991 with a paired interval that ends at -0.0005: missed by the rule. Beside it the
     checkpoint's shipped `joint_phase_time_energy` falls to 92.6 %, paired -0.023 [-0.055, -0.002]."""
     held = [PHASE_EVAL / "vanilla_heldout_fourth", PHASE_EVAL / "vanilla_confirm_fourth"]
-    rows = k_success_energy_test("fourth_rollouts.json", held)
+    rows = checkpoint_success_energy_test(K_READS, "fourth_rollouts.json", held)
     assert sum(e[0].success for e in load_episodes([str(f / "task*") for f in held]).values()) == 364
     chosen, distance = rows["E_s, mean of the last 4"], rows["chunk_context_nn"]
     assert (chosen["failed_alarmed"], chosen["failed"], chosen["successful_alarmed"]) == (35, 36, 18)
@@ -478,7 +492,9 @@ def test_the_success_energy_on_a_fifth_set_beats_the_shipped_check_but_misses_th
     alarms on 27/27 failed and 20/373 successful rollouts, 97.3 % (`chunk_context_nn`: 27/27 and 23/373, 96.9 %), but
     its AUROC 0.990 is below the feature distance's 0.996, paired -0.006 [-0.013, -0.001]: missed by the rule. The
     shipped `joint_phase_time_energy`: 43/373 alarmed, 94.2 %."""
-    rows = k_success_energy_test("fifth_rollouts.json", FIFTH, "fourth_rollouts.safetensors")
+    rows = checkpoint_success_energy_test(
+        K_READS, "fifth_rollouts.json", FIFTH, "fourth_rollouts.safetensors"
+    )
     assert sum(e[0].success for e in load_episodes([str(f / "task*") for f in FIFTH]).values()) == 373
     chosen, distance = rows["E_s, mean of the last 4"], rows["chunk_context_nn"]
     assert (chosen["failed_alarmed"], chosen["failed"], chosen["successful_alarmed"]) == (27, 27, 20)
@@ -492,7 +508,8 @@ def test_the_fourth_and_fifth_sets_pooled_and_the_fifth_sets_ranking_recompute()
     """libero_runs.md, "E_s in the package, and a fifth set", descriptive: the 800 rollouts of the two tests pooled
     (E_s 96.6 %, 38/737 successful alarmed; `chunk_context_nn` 96.4 %, 42/737; paired -0.009 [-0.019, -0.002]), and on
     the fifth set the slow successes again score like failures."""
-    pooled = k_success_energy_test(
+    pooled = checkpoint_success_energy_test(
+        K_READS,
         "fourth_and_fifth_pooled.json",
         [PHASE_EVAL / "vanilla_heldout_fourth", PHASE_EVAL / "vanilla_confirm_fourth", *FIFTH],
         "fourth_rollouts.safetensors",
@@ -512,27 +529,23 @@ def test_the_fourth_and_fifth_sets_pooled_and_the_fifth_sets_ranking_recompute()
 
 
 def package_route_matches(
-    calibration: str,
-    held_out_folders,
-    weights: str,
-    report: str,
-    reports: Path = SUCCESS_ENERGY_REPORTS,
-    calibration_records: Path = K_EVAL / "vanilla_calib",
-    successful: int = 95,
+    calibration: str, held_out_folders, weights: str, report: str, checkpoint: Checkpoint = K_READS
 ) -> dict:
     """The committed package calibration (`ebvla-ood-report --calibrate_to`, in `calibration`) against the research
-    E_s in `weights` on `held_out_folders`: as `report` says, with E_s weight for weight and all 400 decisions the
-    same. All names in `reports` (K's by default), calibrated on `calibration_records` with `successful` of them
-    successful."""
+    E_s in `weights` on `held_out_folders`: as `report` says, fitted on every successful calibration rollout, with E_s
+    weight for weight and all 400 decisions the same. Names in `checkpoint`'s reports."""
     from lerobot_policy_ebvla.runtime.calibration import FailureCalibration
 
     check = load_benchmark("success_energy_failure_check")
-    package = FailureCalibration.from_pretrained(reports / calibration)
+    package = FailureCalibration.from_pretrained(checkpoint.reports / calibration)
+    successful = sum(e[0].success for e in load_episodes([str(checkpoint.calibration / "task*")]).values())
     assert (
         package.score.name == "success_energy" and package.chunks == 16 and package.n_rollouts == successful
     )
-    found = check.compare_package(package, held_out_folders, reports / weights, calibration_records)
-    assert found == json.loads((reports / report).read_text())
+    found = check.compare_package(
+        package, held_out_folders, checkpoint.reports / weights, checkpoint.calibration
+    )
+    assert found == json.loads((checkpoint.reports / report).read_text())
     assert found["max_weight_difference"] == 0 and found["same_decisions"] == 400
     return found
 
@@ -612,7 +625,7 @@ def test_the_success_energy_at_the_narrower_noise_meets_table_iv_on_a_sixth_set(
     22/368 successful alarmed, 92.3 %, AUROC 0.973 against `chunk_context_nn`'s 0.979, paired -0.007 [-0.023, +0.005]:
     met. The feature distance still decides a little better here (30/32 and 24/368, 93.6 %); the shipped
     `joint_phase_time_energy` 38/368 alarmed, paired -0.023 [-0.055, -0.000]."""
-    rows = k_success_energy_test("sixth_rollouts.json", SIXTH)
+    rows = checkpoint_success_energy_test(K_READS, "sixth_rollouts.json", SIXTH)
     assert sum(e[0].success for e in load_episodes([str(f / "task*") for f in SIXTH]).values()) == 368
     chosen, distance = rows["E_s, mean of the last 4"], rows["chunk_context_nn"]
     assert (chosen["failed_alarmed"], chosen["failed"], chosen["successful_alarmed"]) == (29, 32, 22)
@@ -628,9 +641,12 @@ def test_the_sixth_set_does_not_tell_the_two_noises_apart_and_the_six_sets_pool_
     saved would also have met on the sixth set (-0.007 [-0.020, +0.002]); over all six sets (2400 rollouts, five of
     them read to choose the std) the std-0.5 E_s is 95.7 % against the feature distance's 96.0 %, paired -0.002
     [-0.006, +0.001]; the sixth set's slow successes are few (4 of 368 took 25 chunks or more)."""
-    wide = k_success_energy_test("sixth_rollouts_std1.json", SIXTH, "fourth_rollouts.safetensors")
+    wide = checkpoint_success_energy_test(
+        K_READS, "sixth_rollouts_std1.json", SIXTH, "fourth_rollouts.safetensors"
+    )
     assert wide["E_s, mean of the last 4"]["auroc_minus_baseline_interval"][1] >= 0
-    pooled = k_success_energy_test(
+    pooled = checkpoint_success_energy_test(
+        K_READS,
         "six_sets_pooled.json",
         [
             K_EVAL / "vanilla_heldout",
@@ -664,20 +680,7 @@ def test_the_packages_route_at_its_new_default_fitted_the_sixth_tests_e_s_and_de
     assert found["alarmed"]["package"] == {"failed": 29, "successful": 22}
 
 
-G_SUCCESS_ENERGY_REPORTS = RESULTS / "libero_object10_arm_more" / "reports" / "success_energy"
 SEVENTH = [G_EVAL / "vanilla_heldout_seventh", G_EVAL / "vanilla_confirm_seventh"]
-
-
-def g_success_energy_test(report: str, held_out_folders, weights: str | None = None) -> dict:
-    """`success_energy_test` of a report on G's rollouts (G's calibration, no E_tau): names in
-    `G_SUCCESS_ENERGY_REPORTS`."""
-    return success_energy_test(
-        G_SUCCESS_ENERGY_REPORTS / report,
-        G_EVAL / "vanilla_calib",
-        held_out_folders,
-        None,
-        weights=None if weights is None else G_SUCCESS_ENERGY_REPORTS / weights,
-    )
 
 
 def test_the_shipped_success_energy_is_confirmed_on_400_new_rollouts_of_another_checkpoint():
@@ -685,7 +688,7 @@ def test_the_shipped_success_energy_is_confirmed_on_400_new_rollouts_of_another_
     346 succeeded) read by the rule committed before them, E_s as the package ships it (std 0.5) fitted on G's 92
     successful calibration rollouts: 54/54 failed and 15/346 successful alarmed, 97.8 %, AUROC 0.995, paired +0.001
     [-0.003, +0.005] against `chunk_context_nn` (54/54 and 13/346, 98.1 %): confirmed, level, not better."""
-    rows = g_success_energy_test("seventh_rollouts.json", SEVENTH)
+    rows = checkpoint_success_energy_test(G_READS, "seventh_rollouts.json", SEVENTH)
     assert sum(e[0].success for e in load_episodes([str(f / "task*") for f in SEVENTH]).values()) == 346
     chosen, distance = rows["E_s, mean of the last 4"], rows["chunk_context_nn"]
     assert (chosen["failed_alarmed"], chosen["failed"], chosen["successful_alarmed"]) == (54, 54, 15)
@@ -699,9 +702,12 @@ def test_on_g_the_narrower_noise_alarms_on_fewer_successful_rollouts_than_the_wi
     """libero_runs.md, "The success energy on another checkpoint", descriptive: on the same 400 G's std-1.0 E_s alarms
     on 28/346 successful rollouts (the std-0.5 one 15), paired -0.003 [-0.009, +0.001]; the std-0.5 E_s on G's 400
     earlier held-out rollouts: 42/42 and 19/358 (the std-1.0 one 31), paired +0.001 [-0.006, +0.009]."""
-    wide = g_success_energy_test("seventh_rollouts_std1.json", SEVENTH, "g_rollouts.safetensors")
+    wide = checkpoint_success_energy_test(
+        G_READS, "seventh_rollouts_std1.json", SEVENTH, "g_rollouts.safetensors"
+    )
     assert wide["E_s, mean of the last 4"]["successful_alarmed"] == 28
-    earlier = g_success_energy_test(
+    earlier = checkpoint_success_energy_test(
+        G_READS,
         "g_rollouts_std05.json",
         [G_EVAL / "vanilla_heldout", G_EVAL / "vanilla_confirm"],
         "seventh_rollouts.safetensors",
@@ -722,8 +728,6 @@ def test_the_packages_route_fits_the_same_e_s_for_a_checkpoint_without_a_phase_e
         SEVENTH,
         "seventh_rollouts.safetensors",
         "seventh_package_route.json",
-        G_SUCCESS_ENERGY_REPORTS,
-        G_EVAL / "vanilla_calib",
-        successful=92,
+        G_READS,
     )
     assert found["alarmed"]["package"] == {"failed": 54, "successful": 15}
